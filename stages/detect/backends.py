@@ -1,0 +1,160 @@
+"""Detector back-ends behind one interface: OpenCV's aruco AprilTag dictionaries and the AprilTag 3 library.
+
+Every back-end returns :class:`TagObservation` with corners in one convention, whatever the library:
+the OpenCV aruco order (top-left, top-right, bottom-right, bottom-left of the tag as printed) and
+pixel coordinates where the centre of the top-left pixel is (0, 0). The AprilTag 3 library reports
+corners half a pixel larger (its pixel centres are at +0.5) and starts from another corner; both are
+converted here and checked against rendered ground truth in the tests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.detect.config import DetectConfig
+
+ARUCO_DICTIONARIES = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h9",
+                      "tag16h5": "DICT_APRILTAG_16h5", "tag36h10": "DICT_APRILTAG_36h10"}
+
+# AprilTag 3 corner i (as pupil-apriltags returns them) that is OpenCV corner k: opencv = apriltag[_AT3_TO_CV].
+_AT3_TO_CV = [1, 0, 3, 2]
+# Shift from AprilTag 3 pixel coordinates (pixel centres at +0.5) to OpenCV's (pixel centres at integers).
+_AT3_PIXEL_OFFSET = -0.5
+
+
+@dataclass(frozen=True)
+class TagObservation:
+    """One tag found in one image.
+
+    Attributes:
+        tag_id: decoded id.
+        family: tag family.
+        corners: 4 x 2 float64 distorted pixel corners, OpenCV order and pixel convention.
+        decision_margin: AprilTag 3's decision margin; for OpenCV the smallest grey-level gap between a
+            data cell and the black/white threshold.
+        hamming: number of bits corrected when decoding.
+    """
+
+    tag_id: int
+    family: str
+    corners: npt.NDArray[np.float64]
+    decision_margin: float
+    hamming: int
+
+
+class Detector(Protocol):
+    """A tag detector: grayscale uint8 image in, observations out."""
+
+    name: str
+
+    def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:
+        """Detect tags in one grayscale image."""
+        ...
+
+
+def shortest_side_px(corners: npt.NDArray[np.float64]) -> float:
+    """Length of the shortest side of a quadrilateral (4 x 2), px."""
+    c = np.asarray(corners, float).reshape(4, 2)
+    return float(np.min(np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)))
+
+
+class AprilTag3Detector:
+    """The AprilTag 3 C library through pupil-apriltags."""
+
+    name = "apriltag3"
+
+    def __init__(self, cfg: DetectConfig) -> None:
+        import pupil_apriltags
+
+        self.families = cfg.families
+        self._detector = pupil_apriltags.Detector(
+            families=" ".join(cfg.families),
+            nthreads=1,
+            quad_decimate=float(cfg.decimation),
+            quad_sigma=float(cfg.blur_sigma),
+            refine_edges=int(cfg.refine_edges),
+            decode_sharpening=float(cfg.decode_sharpening),
+        )
+
+    def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:
+        """Detect tags in one grayscale image."""
+        out = []
+        for det in self._detector.detect(np.ascontiguousarray(gray, dtype=np.uint8)):
+            corners = np.asarray(det.corners, float)[_AT3_TO_CV] + _AT3_PIXEL_OFFSET
+            family = det.tag_family.decode() if isinstance(det.tag_family, bytes) else str(det.tag_family)
+            out.append(TagObservation(int(det.tag_id), family, corners, float(det.decision_margin), int(det.hamming)))
+        return out
+
+
+class OpenCVDetector:
+    """OpenCV's aruco detector with the AprilTag dictionaries (one dictionary per family)."""
+
+    name = "opencv"
+
+    def __init__(self, cfg: DetectConfig) -> None:
+        import cv2
+
+        aruco = cv2.aruco
+        params = aruco.DetectorParameters()
+        params.cornerRefinementMethod = {
+            "none": aruco.CORNER_REFINE_NONE, "subpix": aruco.CORNER_REFINE_SUBPIX,
+            "contour": aruco.CORNER_REFINE_CONTOUR, "apriltag": aruco.CORNER_REFINE_APRILTAG,
+        }[cfg.opencv_corner_refinement if cfg.refine_edges else "none"]
+        params.aprilTagQuadDecimate = float(cfg.decimation)
+        params.aprilTagQuadSigma = float(cfg.blur_sigma)
+        params.errorCorrectionRate = 1.0
+        self._dicts = {}
+        self._detectors = {}
+        for family in cfg.families:
+            dictionary = aruco.getPredefinedDictionary(getattr(aruco, ARUCO_DICTIONARIES[family]))
+            self._dicts[family] = dictionary
+            self._detectors[family] = aruco.ArucoDetector(dictionary, params)
+
+    def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:
+        """Detect tags in one grayscale image."""
+        out = []
+        for family, detector in self._detectors.items():
+            corners, ids, _ = detector.detectMarkers(gray)
+            if ids is None:
+                continue
+            for c, i in zip(corners, ids.ravel(), strict=True):
+                quad = np.asarray(c, float).reshape(4, 2)
+                hamming, margin = _read_bits(gray, quad, self._dicts[family], int(i))
+                out.append(TagObservation(int(i), family, quad, margin, hamming))
+        return out
+
+
+def _read_bits(gray: npt.NDArray[np.uint8], corners: npt.NDArray[np.float64], dictionary: object,
+               tag_id: int) -> tuple[int, float]:
+    """Hamming distance of the sampled data bits to ``tag_id``'s code, and the grey-level decision margin."""
+    import cv2
+
+    n = int(dictionary.markerSize)  # type: ignore[attr-defined]
+    cells = n + 2
+    px = 6
+    side = cells * px
+    dst = np.array([[0, 0], [side, 0], [side, side], [0, side]], np.float32) - 0.5
+    H = cv2.getPerspectiveTransform(corners.astype(np.float32), dst)
+    warped = cv2.warpPerspective(gray, H, (side, side), flags=cv2.INTER_LINEAR).astype(float)
+    means = warped.reshape(cells, px, cells, px)[:, 1:-1, :, 1:-1].mean(axis=(1, 3))
+    border = np.concatenate([means[0], means[-1], means[1:-1, 0], means[1:-1, -1]])
+    data = means[1:-1, 1:-1]
+    white = float(np.percentile(data, 90))
+    threshold = 0.5 * (float(np.median(border)) + white)
+    bits = (data > threshold).astype(np.uint8)
+    try:
+        hamming = int(dictionary.getDistanceToId(bits, tag_id, False))  # type: ignore[attr-defined]
+    except cv2.error:
+        hamming = -1
+    return hamming, float(np.min(np.abs(data - threshold)))
+
+
+def make_detector(cfg: DetectConfig) -> Detector:
+    """The back-end named by ``cfg.backend``, configured from the settings."""
+    if cfg.backend == "apriltag3":
+        return AprilTag3Detector(cfg)
+    return OpenCVDetector(cfg)

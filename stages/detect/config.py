@@ -1,0 +1,92 @@
+"""Settings of the detect stage (YAML section ``detect``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Family = Literal["tag36h11", "tag25h9", "tag16h5", "tag36h10"]
+Backend = Literal["apriltag3", "opencv"]
+
+
+class TagSize(BaseModel):
+    """The printed size of one tag id (edge of the black square)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: int = Field(..., ge=0, description="Tag id.")
+    size_m: float = Field(..., gt=0, description="Edge of the tag's black square, in metres.")
+
+
+class DetectConfig(BaseModel):
+    """Detect AprilTags in the ingested frames and measure each tag's pose with its covariance."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    backend: Backend = Field(
+        "apriltag3",
+        description="Detector: 'apriltag3' (AprilTag 3 C library via pupil-apriltags) or 'opencv' (cv2.aruco "
+        "AprilTag dictionaries; the only one that reads tag36h10).",
+    )
+    families: tuple[Family, ...] = Field(("tag36h11",), min_length=1, description="Tag families to look for.")
+    decimation: float = Field(
+        2.0, ge=1.0, description="Quad detection on an image decimated by this factor (1 = full resolution)."
+    )
+    blur_sigma: float = Field(0.0, ge=0.0, description="Gaussian blur before quad detection, pixels (0 = none).")
+    refine_edges: bool = Field(True, description="Refine the tag edges on the full-resolution image.")
+    decode_sharpening: float = Field(0.25, ge=0.0, description="Sharpening of the decoded image (apriltag3 only).")
+    opencv_corner_refinement: Literal["none", "subpix", "contour", "apriltag"] = Field(
+        "subpix", description="Corner refinement of the opencv back-end."
+    )
+    min_side_px: float = Field(8.0, ge=0.0, description="Detections whose shortest side is shorter are dropped, px.")
+    min_decision_margin: float = Field(
+        10.0, ge=0.0, description="apriltag3 detections with a lower decision margin are dropped (grey levels)."
+    )
+    max_hamming: int = Field(1, ge=0, le=3, description="Detections with more corrected bits are dropped.")
+    tag_size_m: float = Field(0.162, gt=0, description="Default edge of a tag's black square, metres.")
+    tag_sizes: tuple[TagSize, ...] = Field(
+        (), description="Per-id sizes overriding tag_size_m, a list of {id, size_m} (metres)."
+    )
+    corner_sigma_px: float | None = Field(
+        None,
+        gt=0,
+        description="Standard deviation of a corner coordinate, px; null = estimated from the reprojection "
+        "residuals of all detections of the run (pooled, 2 degrees of freedom per tag).",
+    )
+    min_corner_sigma_px: float = Field(
+        0.1, gt=0, description="Floor of the estimated corner noise, px (ignored when corner_sigma_px is set)."
+    )
+    max_reprojection_px: float = Field(
+        3.0, gt=0, description="Detections whose RMS corner reprojection error exceeds this are dropped, px."
+    )
+    max_ambiguity_ratio: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="A detection is ambiguous when the squared reprojection error of the best planar (IPPE) "
+        "solution exceeds this fraction of the other's (1 = never ambiguous... 0 = always).",
+    )
+    ambiguous: Literal["flag", "drop"] = Field(
+        "flag", description="What to do with ambiguous detections: keep them flagged, or drop them."
+    )
+    bag_corner_order: Literal["apriltag", "opencv"] = Field(
+        "apriltag",
+        description="Corner order of detections read from the bag: 'apriltag' (bottom-left, bottom-right, "
+        "top-right, top-left, as apriltag_ros and TagSLAM publish) or 'opencv' (top-left first, clockwise).",
+    )
+    workers: int = Field(2, ge=1, description="Worker processes detecting in parallel.")
+    batch_frames: int = Field(8, ge=1, description="Frames sent to a worker at a time.")
+
+    @model_validator(mode="after")
+    def _check_backend_families(self) -> DetectConfig:
+        if self.backend == "apriltag3" and "tag36h10" in self.families:
+            raise ValueError("family tag36h10 is not in the AprilTag 3 library; use backend: opencv")
+        return self
+
+    def size_of(self, tag_id: int) -> float:
+        """The edge length of tag ``tag_id``, metres."""
+        for entry in self.tag_sizes:
+            if entry.id == tag_id:
+                return entry.size_m
+        return self.tag_size_m

@@ -1,0 +1,141 @@
+"""Tag pose from its four corners: both planar (IPPE) solutions refined by pycolmap, with a 6x6 covariance.
+
+Conventions:
+    * Corners in the OpenCV aruco order: top-left, top-right, bottom-right, bottom-left of the tag as
+      printed (clockwise in the image when the tag faces the camera upright).
+    * Tag frame: origin at the tag centre, x right, y up, z out of the printed face (OpenCV's marker
+      frame); ``T_camera_tag`` maps tag-frame points into the camera frame (x right, y down, z ahead).
+    * Covariance in GTSAM's Pose3 tangent order (rx, ry, rz, tx, ty, tz) with the right perturbation
+      ``T = T_hat * Exp(xi)``: the rotation and translation errors are expressed in the tag frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+
+
+def tag_object_points(size_m: float) -> Array:
+    """Corners (4 x 3) of a tag of edge ``size_m`` in its own frame, in the OpenCV aruco order."""
+    h = size_m / 2.0
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+@dataclass(frozen=True)
+class TagPose:
+    """The pose of one tag in the camera frame.
+
+    Attributes:
+        T_camera_tag: 4x4 pose of the better planar solution.
+        cov_unit: 6x6 covariance (GTSAM tangent order, right perturbation) for a corner noise of 1 px;
+            multiply by sigma^2.
+        sse_px2: sum of squared corner reprojection errors of the chosen solution, px^2.
+        alt_T_camera_tag: the other planar solution (None when IPPE gave only one).
+        alt_sse_px2: its sum of squared reprojection errors, px^2 (inf without it).
+    """
+
+    T_camera_tag: Array
+    cov_unit: Array
+    sse_px2: float
+    alt_T_camera_tag: Array | None
+    alt_sse_px2: float
+
+    @property
+    def reprojection_px(self) -> float:
+        """RMS corner reprojection error, px."""
+        return float(np.sqrt(self.sse_px2 / 4.0))
+
+    @property
+    def ambiguity_ratio(self) -> float:
+        """Squared error of the chosen solution over the other's (0 = unambiguous, 1 = both fit alike)."""
+        if not np.isfinite(self.alt_sse_px2):
+            return 0.0
+        return float(self.sse_px2 / max(self.alt_sse_px2, 1e-300))
+
+    @property
+    def position_cov_unit(self) -> Array:
+        """3x3 covariance of the tag centre in the camera frame for 1 px corner noise, m^2."""
+        R = self.T_camera_tag[:3, :3]
+        return R @ self.cov_unit[3:, 3:] @ R.T
+
+
+def _refinement_options() -> object:
+    import pycolmap
+
+    opts = pycolmap.AbsolutePoseRefinementOptions()
+    opts.loss_function_scale = 1e6  # squared loss: four corners leave no room for robust down-weighting
+    opts.gradient_tolerance = 1e-12
+    opts.max_num_iterations = 50
+    return opts
+
+
+def colmap_to_gtsam_cov(cov_colmap: Array, R_camera_tag: Array) -> Array:
+    """Convert pycolmap's cam_from_world covariance into GTSAM's Pose3 tangent.
+
+    COLMAP perturbs ``R`` on the left through Ceres' quaternion manifold, whose tangent is half the
+    rotation angle, and ``t`` additively: ``R = Exp(2 d_r) R_hat``, ``t = t_hat + d_t``. GTSAM perturbs on
+    the right, ``T = T_hat Exp(xi)``, so ``omega = R^T 2 d_r`` and ``v = R^T d_t``.
+    """
+    M = np.zeros((6, 6))
+    M[:3, :3] = 2.0 * R_camera_tag.T
+    M[3:, 3:] = R_camera_tag.T
+    out = M @ np.asarray(cov_colmap, float) @ M.T
+    return 0.5 * (out + out.T)
+
+
+def _refine(camera: object, corners: Array, obj: Array, R: Array, t: Array) -> tuple[Array, Array, float] | None:
+    import pycolmap
+
+    start = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(R), translation=t)
+    res = pycolmap.refine_absolute_pose(start, corners, obj, np.ones(4, bool), camera, _refinement_options(),
+                                        return_covariance=True)
+    if res is None:
+        return None
+    pose = res["cam_from_world"]
+    T = np.eye(4)
+    T[:3, :4] = np.asarray(pose.matrix())
+    if T[2, 3] <= 0:
+        return None
+    proj = np.asarray(camera.img_from_cam(obj @ T[:3, :3].T + T[:3, 3], check_cheirality=False))  # type: ignore[attr-defined]
+    sse = float(np.sum((proj - corners) ** 2))
+    return T, colmap_to_gtsam_cov(np.asarray(res["covariance"]), T[:3, :3]), sse
+
+
+def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPose | None:
+    """Pose of a tag from its distorted pixel corners (4 x 2, OpenCV aruco order), or None if degenerate.
+
+    Both IPPE solutions of the planar ambiguity are computed on the undistorted corners and refined
+    on the distorted ones through the pycolmap camera model; the one with the smaller reprojection
+    error is returned with the other kept for the ambiguity ratio.
+    """
+    import cv2
+
+    corners = np.asarray(corners_px, float).reshape(4, 2)
+    obj = tag_object_points(size_m)
+    normalized = np.asarray(camera.cam_from_img(corners))  # type: ignore[attr-defined]
+    if not np.all(np.isfinite(normalized)):
+        return None
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, normalized.reshape(4, 1, 2), np.eye(3), None,
+                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    except cv2.error:
+        return None
+    candidates = []
+    for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
+        R, _ = cv2.Rodrigues(rvec)
+        refined = _refine(camera, corners, obj, R, np.asarray(tvec, float).ravel())
+        if refined is not None and np.all(np.isfinite(refined[1])):
+            candidates.append(refined)
+    if not candidates:
+        return None
+    candidates.sort(key=lambda c: c[2])
+    T, cov, sse = candidates[0]
+    alt = candidates[1] if len(candidates) > 1 else None
+    # Two refinements may converge to the same minimum; then the view is not ambiguous.
+    if alt is not None and np.linalg.norm(alt[0][:3, :3] - T[:3, :3]) < 1e-6:
+        alt = None
+    return TagPose(T, cov, sse, alt[0] if alt else None, alt[2] if alt else float("inf"))
