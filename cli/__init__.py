@@ -1,0 +1,1 @@
+"""The focusmap command line (typer)."""

@@ -1,0 +1,296 @@
+"""The focusmap command line: one command per stage, plus info, run, view and show-config.
+
+Every failure the user can fix is one line on stderr starting with ``error:`` and exit code 1
+(``--debug`` shows the traceback instead).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from cli.options import (
+    BagArg,
+    CameraOpt,
+    ConfigOpt,
+    EndOpt,
+    ForceOpt,
+    NameOpt,
+    OutOpt,
+    RunDirArg,
+    SalvageOpt,
+    SetOpt,
+    StartOpt,
+    StrideOpt,
+)
+from pipeline.errors import InputError, PipelineError
+
+app = typer.Typer(
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+    help="Turn recorded robot runs into small, task-focused AprilTag maps, logged to Rerun.",
+)
+
+_DEBUG = {"on": os.environ.get("FOCUSMAP_DEBUG", "") not in ("", "0")}
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def handled(func: F) -> F:
+    """Turn known failures into one ``error:`` line and a non-zero exit."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except PipelineError as err:
+            if _DEBUG["on"]:
+                raise
+            typer.echo(f"error: {err}", err=True)
+            raise typer.Exit(1) from None
+        except KeyboardInterrupt:
+            typer.echo("error: interrupted; finished stages are kept, the interrupted one left no output", err=True)
+            raise typer.Exit(130) from None
+        except (typer.Exit, typer.Abort, SystemExit):
+            raise
+        except Exception as err:
+            if _DEBUG["on"]:
+                raise
+            typer.echo(
+                f"error: internal error {type(err).__name__}: {err} (re-run with --debug for the traceback "
+                "and report it)",
+                err=True,
+            )
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+@app.callback()
+def _root(
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")] = False,
+) -> None:
+    if debug:
+        _DEBUG["on"] = True
+
+
+# --- helpers ---------------------------------------------------------------------------------------
+def _registry() -> Any:
+    from stages import REGISTRY
+
+    return REGISTRY
+
+
+def _settings(config: Path | None, sets: list[str] | None, extra: list[str] | None = None) -> Any:
+    from pipeline.config import load_settings
+
+    return load_settings(_registry().models(), config, [*(sets or []), *(extra or [])])
+
+
+def _ingest_overrides(
+    start: float | None, end: float | None, stride: int | None, camera: Path | None, salvage: bool
+) -> list[str]:
+    out = []
+    if start is not None:
+        out.append(f"ingest.start_s={start}")
+    if end is not None:
+        out.append(f"ingest.end_s={end}")
+    if stride is not None:
+        out.append(f"ingest.frame_stride={stride}")
+    if camera is not None:
+        if not camera.is_file():
+            raise InputError(f"camera file {str(camera)!r} not found; pass an existing calibration YAML to --camera")
+        out.append(f"ingest.camera_file={json.dumps(str(camera.resolve()))}")
+    if salvage:
+        out.append("ingest.salvage=true")
+    return out
+
+
+def _run_name(bag: Path, name: str | None) -> str:
+    if name:
+        return name
+    base = bag.resolve()
+    return base.name if base.is_dir() else base.stem
+
+
+def _open_run(run_dir: Path) -> Any:
+    from pipeline.run_folder import RunFolder
+
+    if not run_dir.exists():
+        raise InputError(f"run folder {str(run_dir)!r} does not exist; create it with 'focusmap ingest BAG --out DIR'")
+    return RunFolder(run_dir)
+
+
+def _print_result(result: Any) -> None:
+    from rich.console import Console
+
+    console = Console(stderr=False, highlight=False)
+    keys = [k for k in result.summary if k not in ("seconds", "topics", "camera", "notes", "read_seconds")][:6]
+    figures = "  ".join(f"{k}={result.summary[k]}" for k in keys if not isinstance(result.summary[k], dict | list))
+    status = "up to date" if result.status == "skipped" else f"done in {result.seconds:.1f} s"
+    console.print(f"[bold]{result.stage:<20}[/bold] {status:<16} {figures}")
+    for note in result.summary.get("notes", []) if result.status == "done" else []:
+        console.print(f"  [yellow]note:[/yellow] {note}")
+    salvaged = result.summary.get("salvaged")
+    if salvaged and result.status == "done":
+        console.print(f"  [yellow]salvaged:[/yellow] {salvaged}")
+
+
+def _run_stages(run: Any, names: list[str], settings: Any, force: bool) -> list[Any]:
+    from pipeline.runner import run_stage, write_resolved_settings
+
+    write_resolved_settings(run, settings)
+    results = []
+    for name in names:
+        result = run_stage(run, _registry(), name, settings, force=force)
+        _print_result(result)
+        results.append(result)
+    return results
+
+
+# --- commands --------------------------------------------------------------------------------------
+@app.command()
+@handled
+def info(
+    bag: BagArg,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the same as JSON.")] = False,
+    salvage: SalvageOpt = False,
+) -> None:
+    """Topics, message types, counts, rates, duration and start time of a recording (counts read from the file)."""
+    from stages.ingest.info import bag_info, format_info
+
+    data = bag_info(bag, salvage=salvage)
+    typer.echo(json.dumps(data, indent=2) if as_json else format_info(data))
+
+
+@app.command()
+@handled
+def ingest(
+    bag: BagArg,
+    out: OutOpt = Path("runs"),
+    name: NameOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    start: StartOpt = None,
+    end: EndOpt = None,
+    stride: StrideOpt = None,
+    camera: CameraOpt = None,
+    salvage: SalvageOpt = False,
+) -> None:
+    """Read frames, odometry, laser scans, the camera model and extrinsics into OUT/<name>/ingest/."""
+    from pipeline.run_folder import RunFolder
+    from stages.ingest.bags import detect_format
+
+    settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
+    detect_format(bag)
+    run = RunFolder.create(out / _run_name(bag, name), bag)
+    _run_stages(run, ["ingest"], settings, force)
+    typer.echo(f"run folder: {run.path}")
+
+
+def _stage_command(stage_name: str, help_text: str) -> None:
+    """A command that runs one stage on an existing run folder."""
+
+    @handled
+    def command(run_dir: RunDirArg, config: ConfigOpt = None, set_: SetOpt = None, force: ForceOpt = False) -> None:
+        run = _open_run(run_dir)
+        _run_stages(run, [stage_name], _settings(config, set_), force)
+
+    command.__doc__ = help_text
+    app.command(name=stage_name.replace("_", "-"), help=help_text)(command)
+
+
+for _stage in list(_registry())[1:]:
+    _stage_command(_stage.name, _stage.help or f"Run the {_stage.command} stage on a run folder.")
+
+
+@app.command(name="run")
+@handled
+def run_pipeline(
+    bag: BagArg,
+    out: OutOpt = Path("runs"),
+    name: NameOpt = None,
+    start_stage: Annotated[
+        str | None, typer.Option("--from", help="First stage to run (earlier ones must exist).")
+    ] = None,
+    until: Annotated[str | None, typer.Option("--until", help="Last stage to run.")] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    start: StartOpt = None,
+    end: EndOpt = None,
+    stride: StrideOpt = None,
+    camera: CameraOpt = None,
+    salvage: SalvageOpt = False,
+) -> None:
+    """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
+    from pipeline.run_folder import RunFolder
+    from stages.ingest.bags import detect_format
+
+    settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
+    stages = _registry().between(start_stage, until)
+    detect_format(bag)
+    run = RunFolder.create(out / _run_name(bag, name), bag)
+    _run_stages(run, [s.name for s in stages], settings, force)
+    typer.echo(f"run folder: {run.path}")
+    typer.echo(f"open it with: focusmap view {run.path}")
+
+
+@app.command()
+@handled
+def view(
+    run_dir: RunDirArg,
+    print_only: Annotated[bool, typer.Option("--print", help="Only print the viewer command.")] = False,
+) -> None:
+    """Open every stage recording of a run in the Rerun viewer, as one recording."""
+    run = _open_run(run_dir)
+    files = sorted(str(p) for p in run.path.glob("*.rrd"))
+    if not files:
+        raise InputError(f"no .rrd recordings in {str(run.path)!r}; run a stage first")
+    exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    cmd = [exe, *files]
+    if print_only:
+        typer.echo(" ".join(cmd))
+        return
+    raise typer.Exit(subprocess.call(cmd))
+
+
+@app.command("show-config")
+@handled
+def show_config(
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    defaults: Annotated[
+        bool, typer.Option("--defaults", help="Print configs/default.yaml: every key with its description.")
+    ] = False,
+) -> None:
+    """Print the resolved settings (defaults, then --config, then --set) as YAML."""
+    import yaml
+
+    from pipeline.config import defaults_yaml
+
+    if defaults:
+        typer.echo(defaults_yaml(_registry().models()), nl=False)
+        return
+    settings = _settings(config, set_)
+    typer.echo(yaml.safe_dump(settings.dump(), sort_keys=False), nl=False)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

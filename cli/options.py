@@ -1,0 +1,50 @@
+"""Options shared by the commands, as ``Annotated`` aliases."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+RunDirArg = Annotated[
+    Path,
+    typer.Argument(
+        help="A run folder made by 'focusmap ingest' or 'focusmap run' (OUT/<run name>).", show_default=False
+    ),
+]
+BagArg = Annotated[
+    Path,
+    typer.Argument(
+        help="The recording: a ROS 1 .bag, a ROS 2 bag folder (SQLite or MCAP storage), a .db3 or a .mcap file.",
+        show_default=False,
+    ),
+]
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Folder that holds the run folders (created if absent).")]
+NameOpt = Annotated[
+    str | None, typer.Option("--name", help="Run folder name; default: the recording's file name without extension.")
+]
+ConfigOpt = Annotated[
+    Path | None, typer.Option("--config", "-c", help="YAML settings file (sections as in configs/default.yaml).")
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set", "-s", help="Override one setting: SECTION.KEY=VALUE (repeatable), e.g. detect.family=tag25h9."
+    ),
+]
+ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Re-run even if the results are up to date.")]
+StartOpt = Annotated[
+    float | None, typer.Option("--start", help="Skip messages before this time (seconds from the bag start).")
+]
+EndOpt = Annotated[
+    float | None, typer.Option("--end", help="Skip messages after this time (seconds from the bag start).")
+]
+StrideOpt = Annotated[int | None, typer.Option("--stride", help="Keep every n-th camera frame.", min=1)]
+CameraOpt = Annotated[
+    Path | None,
+    typer.Option("--camera", help="Camera calibration (Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML)."),
+]
+SalvageOpt = Annotated[
+    bool, typer.Option("--salvage", help="Read a damaged bag up to the damage and say how much was recovered.")
+]

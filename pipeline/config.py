@@ -1,0 +1,173 @@
+"""Settings: one pydantic model per YAML section, merged from defaults, a file and ``--set`` overrides.
+
+A run's settings file has one section per stage (``detect: {family: tag36h11}``) plus the
+``rerun`` section shared by every stage. Unknown sections and keys are errors that name the file
+and suggest the nearest valid name; a wrong value names the file, the key and what was expected.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from pipeline.errors import ConfigError
+
+
+class RecordingSettings(BaseModel):
+    """How stages draw into their Rerun recordings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    n_sigma: float = Field(3.0, gt=0, description="Covariance ellipsoids are drawn at this many standard deviations.")
+    image_stride: int = Field(5, ge=1, description="Log every n-th camera frame to the recordings (1 = every frame).")
+    scan_stride: int = Field(5, ge=1, description="Log every n-th laser scan to the recordings.")
+
+
+SHARED_SECTIONS: dict[str, type[BaseModel]] = {"rerun": RecordingSettings}
+
+
+class Settings:
+    """The resolved settings of every section, by section name."""
+
+    def __init__(self, sections: Mapping[str, BaseModel], sources: Mapping[str, str]) -> None:
+        self.sections = dict(sections)
+        self.sources = dict(sources)
+
+    def __getitem__(self, section: str) -> Any:
+        return self.sections[section]
+
+    @property
+    def rerun(self) -> RecordingSettings:
+        """The shared recording settings."""
+        return self.sections["rerun"]  # type: ignore[return-value]
+
+    def dump(self) -> dict[str, Any]:
+        """Every section as plain JSON-able data."""
+        return {name: model.model_dump(mode="json") for name, model in self.sections.items()}
+
+
+def _nearest(name: str, choices: Iterable[str]) -> str:
+    match = difflib.get_close_matches(name, list(choices), n=1)
+    return f" (did you mean {match[0]!r}?)" if match else f"; valid: {', '.join(sorted(choices))}"
+
+
+def _parse_override(text: str) -> tuple[str, list[str], Any]:
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.family=tag25h9")
+    lhs, rhs = text.split("=", 1)
+    parts = lhs.strip().split(".")
+    if len(parts) < 2 or not all(parts):
+        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.family=tag25h9")
+    try:
+        value = yaml.safe_load(rhs) if rhs.strip() else ""
+    except yaml.YAMLError:
+        value = rhs
+    return parts[0].replace("-", "_"), parts[1:], value
+
+
+def _describe(err: ValidationError, section: str, source_of: Mapping[tuple[str, str], str]) -> str:
+    first = err.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"])
+    top = str(first["loc"][0]) if first["loc"] else ""
+    source = source_of.get((section, top), "defaults")
+    if first["type"] == "extra_forbidden":
+        return f"{source}: unknown key {section}.{loc}"
+    value = first.get("input")
+    shown = f" (got {value!r})" if not isinstance(value, dict) else ""
+    return f"{source}: {section}.{loc}: {first['msg'].rstrip('.')}{shown}"
+
+
+def load_settings(
+    models: Mapping[str, type[BaseModel]],
+    path: Path | None = None,
+    overrides: Iterable[str] = (),
+) -> Settings:
+    """Resolve the settings of every section.
+
+    Args:
+        models: section name to settings model (stages first; ``rerun`` is added).
+        path: optional YAML file with one mapping per section.
+        overrides: ``SECTION.KEY=VALUE`` strings; values are parsed as YAML (``0.5``, ``[1, 2]``).
+
+    Raises:
+        ConfigError: on a missing or malformed file, an unknown section or key, or a bad value.
+    """
+    models = {**models, **SHARED_SECTIONS}
+    raw: dict[str, dict[str, Any]] = {name: {} for name in models}
+    source_of: dict[tuple[str, str], str] = {}
+    if path is not None:
+        if not path.is_file():
+            raise ConfigError(f"settings file {str(path)!r} not found; pass an existing YAML file to --config")
+        try:
+            loaded = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            mark = getattr(err, "problem_mark", None)
+            where = f" at line {mark.line + 1}" if mark is not None else ""
+            raise ConfigError(f"{path}: not valid YAML{where}; fix the file or pass another") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: expected a mapping of sections (e.g. 'detect:'), got {type(loaded).__name__}")
+        for section, values in loaded.items():
+            key = str(section).replace("-", "_")
+            if key not in models:
+                raise ConfigError(f"{path}: unknown section {section!r}{_nearest(key, models)}")
+            if not isinstance(values, dict):
+                raise ConfigError(f"{path}: section {section!r} must be a mapping of keys, got {values!r}")
+            for k, v in values.items():
+                raw[key][str(k)] = v
+                source_of[(key, str(k))] = str(path)
+    for text in overrides:
+        section, keys, value = _parse_override(text)
+        if section not in models:
+            raise ConfigError(f"--set {text!r}: unknown section {section!r}{_nearest(section, models)}")
+        fields = models[section].model_fields
+        if keys[0] not in fields:
+            raise ConfigError(f"--set {text!r}: unknown key {section}.{keys[0]}{_nearest(keys[0], fields)}")
+        target = raw[section]
+        for k in keys[:-1]:
+            target = target.setdefault(k, {})
+        target[keys[-1]] = value
+        source_of[(section, keys[0])] = "--set"
+    sections: dict[str, BaseModel] = {}
+    for name, model in models.items():
+        for k in raw[name]:
+            if k not in model.model_fields:
+                src = source_of.get((name, k), "defaults")
+                raise ConfigError(f"{src}: unknown key {name}.{k}{_nearest(k, model.model_fields)}")
+        try:
+            sections[name] = model.model_validate(raw[name])
+        except ValidationError as err:
+            raise ConfigError(_describe(err, name, source_of)) from None
+    sources = {f"{s}.{k}": v for (s, k), v in source_of.items()}
+    return Settings(sections, sources)
+
+
+def defaults_yaml(models: Mapping[str, type[BaseModel]]) -> str:
+    """``configs/default.yaml``: every key of every section with its default and its description."""
+    models = {**models, **SHARED_SECTIONS}
+    lines = [
+        "# focusmap default settings: every key, its default, and what it means.",
+        "# Generated from the settings models (focusmap show-config --defaults); a test fails on drift.",
+        "# Copy the sections you change into your own file and pass it with --config,",
+        "# or change one key with --set SECTION.KEY=VALUE.",
+    ]
+    for name, model in models.items():
+        lines.append("")
+        doc = (model.__doc__ or "").strip().splitlines()
+        if doc:
+            lines.append(f"# {doc[0]}")
+        lines.append(f"{name}:")
+        dumped = model().model_dump(mode="json")
+        for key, info in model.model_fields.items():
+            if info.description:
+                lines.append(f"  # {info.description}")
+            text = yaml.safe_dump({key: dumped[key]}, default_flow_style=True, sort_keys=False, width=1000)
+            text = text.strip()
+            if text.startswith("{") and text.endswith("}"):
+                text = text[1:-1]
+            lines.append(f"  {text}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,13 @@
+"""The stages of focusmap, in pipeline order, and the estimation maths they share.
+
+Each stage module exposes ``STAGE: Final[Stage]``; :data:`REGISTRY` lists them in order.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+from pipeline.registry import Registry
+from stages import ingest
+
+REGISTRY: Final = Registry([ingest.STAGE])

@@ -1,0 +1,541 @@
+"""Open any recording focusmap reads, behind one small interface.
+
+Formats: ROS 1 ``.bag`` (uncompressed, bz2 or lz4 chunks), ROS 2 bag folders with SQLite (``.db3``)
+or MCAP storage (split recordings included), a single ROS 2 ``.db3`` file, and a standalone ``.mcap``
+file with ROS 2 (CDR) messages. rosbags reads what it can; the mcap library reads MCAP files that
+rosbags cannot (no ``metadata.yaml``, a standalone file, damaged indexes).
+
+Message counts always come from the files themselves (the ROS 1 index, the MCAP statistics or the
+records, SQLite's ``messages`` table), never from a ``metadata.yaml`` that may disagree.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Iterable, Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pipeline.errors import InputError
+
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+@dataclass
+class TopicInfo:
+    """One topic of a recording."""
+
+    name: str
+    type: str
+    count: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+    @property
+    def rate_hz(self) -> float:
+        """Mean message rate over the topic's own span."""
+        if self.count < 2 or self.first_ns is None or self.last_ns is None or self.last_ns <= self.first_ns:
+            return 0.0
+        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+@dataclass
+class RawMessage:
+    """A message as stored: topic, type, log time and serialized bytes (deserialize on demand)."""
+
+    topic: str
+    type: str
+    log_time_ns: int
+    data: bytes
+    _decode: Any = field(repr=False, default=None)
+
+    def decode(self) -> Any:
+        """The deserialized message (attribute access, ROS field names of the bag's ROS version)."""
+        try:
+            return self._decode(self.data, self.type)
+        except Exception as err:  # library errors vary by reader
+            raise InputError(f"cannot decode a {self.type} message on {self.topic}: {err}") from None
+
+
+def _normalise_type(name: str) -> str:
+    """``pkg/Type`` and ``pkg/msg/Type`` both become ``pkg/msg/Type``."""
+    parts = name.split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return name
+
+
+def detect_format(path: Path) -> str:
+    """Which kind of recording ``path`` is: ``ros1``, ``ros2`` (folder), ``ros2-db3`` or ``mcap``.
+
+    Raises:
+        InputError: for a missing path, an empty file, or a file that is no recording.
+    """
+    if not path.exists():
+        raise InputError(
+            f"{str(path)!r} does not exist; pass the path of a .bag file, a ROS 2 bag folder or a .mcap file"
+        )
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return "ros2"
+        if any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+            return "ros2"
+        raise InputError(f"{str(path)!r} is a folder without metadata.yaml, .db3 or .mcap files; it is not a ROS 2 bag")
+    size = path.stat().st_size
+    if size == 0:
+        raise InputError(f"{str(path)!r} is empty (0 bytes); the recording was not written, copy it again")
+    with path.open("rb") as fh:
+        head = fh.read(16)
+    if head.startswith(ROS1_MAGIC[:9]):
+        return "ros1"
+    if head.startswith(MCAP_MAGIC):
+        return "mcap"
+    if head.startswith(SQLITE_MAGIC):
+        return "ros2-db3"
+    raise InputError(
+        f"{str(path)!r} is not a ROS bag or MCAP file (it starts with {head[:12]!r}); "
+        "pass a ROS 1 .bag, a ROS 2 bag folder, a .db3 or a .mcap file"
+    )
+
+
+class Recording:
+    """An open recording: its topics with real counts, and its messages in log-time order."""
+
+    def __init__(self, path: Path, salvage: bool = False) -> None:
+        self.path = path
+        self.salvage = salvage
+        self.format = detect_format(path)
+        self.reader = "rosbags"
+        self.storage = ""
+        self.salvaged: dict[str, Any] | None = None
+        self._stack = ExitStack()
+        self._impl: _Impl
+        try:
+            self._impl = self._open()
+        except InputError:
+            self._stack.close()
+            raise
+
+    def _open(self) -> _Impl:
+        if self.format == "ros1":
+            self.storage = "ros1"
+            return _Ros1(self)
+        if self.format == "mcap":
+            self.storage = "mcap"
+            self.reader = "mcap"
+            return _Mcap(self, [self.path])
+        if self.format == "ros2-db3":
+            self.storage = "sqlite3"
+            self.reader = "sqlite3"
+            return _Sqlite(self, [self.path])
+        files, storage = _ros2_files(self.path)
+        self.storage = storage
+        if storage == "mcap":
+            try:
+                impl: _Impl = _Rosbags2(self)
+            except InputError:
+                self.reader = "mcap"
+                return _Mcap(self, files)
+            return impl
+        try:
+            return _Rosbags2(self)
+        except InputError:
+            self.reader = "sqlite3"
+            return _Sqlite(self, files)
+
+    # public API -----------------------------------------------------------------------------------
+    @property
+    def topics(self) -> dict[str, TopicInfo]:
+        """Topics by name, with the counts read from the file."""
+        return self._impl.topics
+
+    @property
+    def start_ns(self) -> int:
+        """Log time of the first message (0 for an empty recording)."""
+        firsts = [t.first_ns for t in self.topics.values() if t.first_ns is not None and t.count]
+        return min(firsts) if firsts else 0
+
+    @property
+    def end_ns(self) -> int:
+        """Log time of the last message."""
+        lasts = [t.last_ns for t in self.topics.values() if t.last_ns is not None and t.count]
+        return max(lasts) if lasts else 0
+
+    @property
+    def message_count(self) -> int:
+        """Messages in the recording."""
+        return sum(t.count for t in self.topics.values())
+
+    def topics_of_type(self, *types: str) -> list[str]:
+        """Names of the topics whose type is one of ``types`` (``pkg/msg/Type``)."""
+        wanted = {_normalise_type(t) for t in types}
+        return sorted(name for name, t in self.topics.items() if t.type in wanted)
+
+    def messages(self, topics: Iterable[str]) -> Iterator[RawMessage]:
+        """Messages on ``topics`` in log-time order."""
+        return self._impl.messages(set(topics))
+
+    def close(self) -> None:
+        """Release the files."""
+        self._stack.close()
+
+    def __enter__(self) -> Recording:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _Impl:
+    topics: dict[str, TopicInfo]
+
+    def messages(self, topics: set[str]) -> Iterator[RawMessage]:
+        raise NotImplementedError
+
+
+def _ros2_files(path: Path) -> tuple[list[Path], str]:
+    meta = path / "metadata.yaml"
+    files: list[Path] = []
+    storage = ""
+    if meta.is_file():
+        try:
+            info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information", {})
+        except yaml.YAMLError:
+            info = {}
+        storage = str(info.get("storage_identifier", ""))
+        files = [path / f for f in info.get("relative_file_paths", []) if (path / f).is_file()]
+    if not files:
+        files = sorted(path.glob("*.db3")) or sorted(path.glob("*.mcap"))
+    if not files:
+        raise InputError(f"ROS 2 bag {str(path)!r} lists no storage files that exist; the folder is incomplete")
+    if not storage:
+        storage = "mcap" if files[0].suffix == ".mcap" else "sqlite3"
+    return files, storage
+
+
+def _truncation_hint(path: Path, err: Exception) -> InputError:
+    return InputError(
+        f"{str(path)!r} cannot be read, it looks truncated or damaged ({err}); copy it again, "
+        "or read what is intact with --salvage"
+    )
+
+
+class _Ros1(_Impl):
+    """ROS 1 bags through rosbags (index) or, with --salvage, a sequential scan of the records."""
+
+    def __init__(self, rec: Recording) -> None:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+
+        self.rec = rec
+        self.reader: Any = None
+        try:
+            reader = AnyReader([rec.path])
+            rec._stack.enter_context(reader)
+        except (AnyReaderError, Exception) as err:
+            if not rec.salvage:
+                raise _truncation_hint(rec.path, err) from None
+            from stages.ingest.salvage import Ros1Salvage
+
+            self.salvage = Ros1Salvage(rec.path)
+            rec.salvaged = self.salvage.report
+            rec.reader = "salvage"
+            self.topics = self.salvage.topics
+            return
+        self.reader = reader
+        self.topics = {}
+        for conn in reader.connections:
+            info = self.topics.setdefault(conn.topic, TopicInfo(conn.topic, _normalise_type(conn.msgtype)))
+            info.count += conn.msgcount
+        # first/last stamps per topic from the index (cheap: no deserialisation)
+        for raw in self._iter(None):
+            info = self.topics[raw.topic]
+            if info.first_ns is None:
+                info.first_ns = raw.log_time_ns
+            info.last_ns = raw.log_time_ns
+
+    def _iter(self, topics: set[str] | None) -> Iterator[RawMessage]:
+        reader = self.reader
+        conns = [c for c in reader.connections if topics is None or c.topic in topics]
+        if not conns:
+            return
+        for conn, stamp, data in reader.messages(connections=conns):
+            yield RawMessage(conn.topic, _normalise_type(conn.msgtype), stamp, data, reader.deserialize)
+
+    def messages(self, topics: set[str]) -> Iterator[RawMessage]:
+        if self.reader is None:
+            yield from self.salvage.messages(topics)
+            return
+        try:
+            yield from self._iter(topics)
+        except InputError:
+            raise
+        except Exception as err:
+            raise _truncation_hint(self.rec.path, err) from None
+
+
+class _Rosbags2(_Impl):
+    """ROS 2 bag folders through rosbags."""
+
+    def __init__(self, rec: Recording) -> None:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.typesys import Stores, get_typestore
+
+        self.rec = rec
+        try:
+            reader = AnyReader([rec.path], default_typestore=get_typestore(Stores.LATEST))
+            rec._stack.enter_context(reader)
+        except (AnyReaderError, Exception) as err:
+            raise InputError(f"rosbags cannot read {str(rec.path)!r}: {err}") from None
+        self.reader = reader
+        self.topics = {}
+        for conn in reader.connections:
+            self.topics.setdefault(conn.topic, TopicInfo(conn.topic, _normalise_type(conn.msgtype)))
+        files, _ = _ros2_files(rec.path)
+        # real counts from the storage files, not metadata.yaml
+        counts = _sqlite_counts(files) if rec.storage == "sqlite3" else _mcap_counts(files)
+        for name, (n, first, last) in counts.items():
+            if name in self.topics:
+                info = self.topics[name]
+                info.count, info.first_ns, info.last_ns = n, first, last
+
+    def messages(self, topics: set[str]) -> Iterator[RawMessage]:
+        reader = self.reader
+        conns = [c for c in reader.connections if c.topic in topics]
+        if not conns:
+            return
+        try:
+            for conn, stamp, data in reader.messages(connections=conns):
+                yield RawMessage(conn.topic, _normalise_type(conn.msgtype), stamp, data, reader.deserialize)
+        except InputError:
+            raise
+        except Exception as err:
+            raise _truncation_hint(self.rec.path, err) from None
+
+
+def _sqlite_counts(files: list[Path]) -> dict[str, tuple[int, int | None, int | None]]:
+    out: dict[str, list[Any]] = {}
+    for f in files:
+        con = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+        try:
+            rows = con.execute(
+                "SELECT t.name, COUNT(m.id), MIN(m.timestamp), MAX(m.timestamp) "
+                "FROM topics t LEFT JOIN messages m ON m.topic_id = t.id GROUP BY t.id"
+            ).fetchall()
+        except sqlite3.DatabaseError as err:
+            raise InputError(f"{str(f)!r} is not a readable ROS 2 SQLite bag ({err}); copy it again") from None
+        finally:
+            con.close()
+        for name, n, first, last in rows:
+            acc = out.setdefault(name, [0, None, None])
+            acc[0] += n
+            if first is not None:
+                acc[1] = first if acc[1] is None else min(acc[1], first)
+                acc[2] = last if acc[2] is None else max(acc[2], last)
+    return {k: (v[0], v[1], v[2]) for k, v in out.items()}
+
+
+def _mcap_counts(files: list[Path]) -> dict[str, tuple[int, int | None, int | None]]:
+    from mcap.reader import make_reader
+
+    out: dict[str, list[Any]] = {}
+    for f in files:
+        with f.open("rb") as fh:
+            reader = make_reader(fh)
+            summary = None
+            try:
+                summary = reader.get_summary()
+            except Exception:
+                summary = None
+            if summary is not None and summary.statistics is not None and summary.channels:
+                # statistics hold per-channel counts; message index gives the per-channel span
+                stats = summary.statistics.channel_message_counts
+                for cid, ch in summary.channels.items():
+                    acc = out.setdefault(ch.topic, [0, None, None])
+                    acc[0] += int(stats.get(cid, 0))
+                fh.seek(0)
+            for _schema, channel, message in make_reader(fh).iter_messages(log_time_order=False):
+                acc = out.setdefault(channel.topic, [0, None, None])
+                if summary is None or summary.statistics is None:
+                    acc[0] += 1
+                t = message.log_time
+                acc[1] = t if acc[1] is None else min(acc[1], t)
+                acc[2] = t if acc[2] is None else max(acc[2], t)
+    return {k: (v[0], v[1], v[2]) for k, v in out.items()}
+
+
+class _Mcap(_Impl):
+    """MCAP files (standalone, or a ROS 2 folder rosbags cannot read) through the mcap library."""
+
+    def __init__(self, rec: Recording, files: list[Path]) -> None:
+        from mcap.reader import make_reader
+
+        self.rec = rec
+        self.files = files
+        self.topics = {}
+        self._schemas: dict[str, tuple[str, str]] = {}
+        try:
+            for f in files:
+                with f.open("rb") as fh:
+                    reader = make_reader(fh)
+                    if rec.salvage:
+                        self._scan(f)
+                        continue
+                    summary = reader.get_summary()
+                    if summary is None:
+                        raise InputError("no summary section")
+                    for ch in summary.channels.values():
+                        sch = summary.schemas.get(ch.schema_id)
+                        name = _normalise_type(sch.name) if sch else ""
+                        self.topics.setdefault(ch.topic, TopicInfo(ch.topic, name))
+            if not rec.salvage:
+                for name, (n, first, last) in _mcap_counts(files).items():
+                    info = self.topics.setdefault(name, TopicInfo(name, ""))
+                    info.count, info.first_ns, info.last_ns = n, first, last
+        except InputError as err:
+            raise _truncation_hint(rec.path, err) from None
+        except Exception as err:
+            raise _truncation_hint(rec.path, err) from None
+
+    def _scan(self, f: Path) -> None:
+        """Salvage: read records in order until the damage, counting what is intact."""
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        read = 0
+        with f.open("rb") as fh:
+            try:
+                for record in StreamReader(fh, skip_magic=False).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record
+                        sch = schemas.get(record.schema_id)
+                        self.topics.setdefault(
+                            record.topic, TopicInfo(record.topic, _normalise_type(sch.name) if sch else "")
+                        )
+                    elif isinstance(record, Message):
+                        ch = channels[record.channel_id]
+                        info = self.topics[ch.topic]
+                        info.count += 1
+                        info.first_ns = (
+                            record.log_time if info.first_ns is None else min(info.first_ns, record.log_time)
+                        )
+                        info.last_ns = record.log_time if info.last_ns is None else max(info.last_ns, record.log_time)
+                        read += 1
+            except Exception as err:
+                self.rec.salvaged = {"messages": read, "stopped_at": str(err)}
+                return
+        self.rec.salvaged = {"messages": read, "stopped_at": None}
+
+    def messages(self, topics: set[str]) -> Iterator[RawMessage]:
+        from mcap.reader import make_reader
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+        from mcap_ros2.decoder import DecoderFactory
+
+        factory = DecoderFactory()
+        decoders: dict[int, Any] = {}
+
+        def decode_with(schema: Any, channel: Any) -> Any:
+            dec = decoders.get(channel.id)
+            if dec is None:
+                dec = factory.decoder_for(channel.message_encoding, schema)
+                if dec is None:
+                    raise InputError(f"no decoder for {channel.message_encoding} messages on {channel.topic}")
+                decoders[channel.id] = dec
+            return dec
+
+        for f in self.files:
+            with f.open("rb") as fh:
+                if self.rec.salvage:
+                    schemas: dict[int, Any] = {}
+                    channels: dict[int, Any] = {}
+                    try:
+                        for record in StreamReader(fh, skip_magic=False).records:
+                            if isinstance(record, Schema):
+                                schemas[record.id] = record
+                            elif isinstance(record, Channel):
+                                channels[record.id] = record
+                            elif isinstance(record, Message):
+                                ch = channels[record.channel_id]
+                                if ch.topic in topics:
+                                    sch = schemas[ch.schema_id]
+                                    dec = decode_with(sch, ch)
+                                    yield RawMessage(
+                                        ch.topic,
+                                        _normalise_type(sch.name),
+                                        record.log_time,
+                                        record.data,
+                                        lambda d, _t, dec=dec: dec(d),
+                                    )
+                    except InputError:
+                        raise
+                    except Exception:
+                        return
+                    continue
+                reader = make_reader(fh)
+                try:
+                    for schema, channel, message in reader.iter_messages(topics=list(topics), log_time_order=True):
+                        dec = decode_with(schema, channel)
+                        yield RawMessage(
+                            channel.topic,
+                            _normalise_type(schema.name),
+                            message.log_time,
+                            message.data,
+                            lambda d, _t, dec=dec: dec(d),
+                        )
+                except InputError:
+                    raise
+                except Exception as err:
+                    raise _truncation_hint(self.rec.path, err) from None
+
+
+class _Sqlite(_Impl):
+    """ROS 2 SQLite storage files read directly (a lone .db3, or a folder rosbags cannot open)."""
+
+    def __init__(self, rec: Recording, files: list[Path]) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        self.rec = rec
+        self.files = files
+        self.typestore = get_typestore(Stores.LATEST)
+        self.topics = {}
+        for f in files:
+            con = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+            try:
+                for name, typ in con.execute("SELECT name, type FROM topics"):
+                    self.topics.setdefault(name, TopicInfo(name, _normalise_type(typ)))
+            except sqlite3.DatabaseError as err:
+                raise InputError(f"{str(f)!r} is not a readable ROS 2 SQLite bag ({err}); copy it again") from None
+            finally:
+                con.close()
+        for name, (n, first, last) in _sqlite_counts(files).items():
+            info = self.topics[name]
+            info.count, info.first_ns, info.last_ns = n, first, last
+
+    def _decode(self, data: bytes, typ: str) -> Any:
+        return self.typestore.deserialize_cdr(data, typ)
+
+    def messages(self, topics: set[str]) -> Iterator[RawMessage]:
+        rows: list[tuple[int, str, str, bytes]] = []
+        for f in self.files:
+            con = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+            try:
+                q = (
+                    "SELECT m.timestamp, t.name, t.type, m.data FROM messages m JOIN topics t ON m.topic_id = t.id "
+                    f"WHERE t.name IN ({','.join('?' * len(topics))}) ORDER BY m.timestamp"
+                )
+                rows.extend(con.execute(q, sorted(topics)).fetchall())
+            finally:
+                con.close()
+        rows.sort(key=lambda r: r[0])
+        for stamp, name, typ, data in rows:
+            yield RawMessage(name, _normalise_type(typ), stamp, bytes(data), self._decode)

@@ -1,0 +1,188 @@
+"""ROS messages to plain rows, for ROS 1 and ROS 2 field names alike.
+
+rosbags gives ROS 1 messages their ROS 1 field names (``K``, ``D``) and ROS 2 messages theirs
+(``k``, ``d``); the mcap decoder gives ROS 2 names. Every accessor here accepts both.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+
+def get(msg: Any, *names: str, default: Any = None) -> Any:
+    """The first of ``names`` that ``msg`` has."""
+    for n in names:
+        if hasattr(msg, n):
+            return getattr(msg, n)
+    return default
+
+
+def stamp_ns(msg: Any, fallback_ns: int) -> int:
+    """The header stamp in nanoseconds, or ``fallback_ns`` (the log time) when it is zero."""
+    header = get(msg, "header")
+    if header is None:
+        return fallback_ns
+    st = get(header, "stamp")
+    sec = int(get(st, "sec", "secs", default=0))
+    nsec = int(get(st, "nanosec", "nsecs", default=0))
+    value = sec * 1_000_000_000 + nsec
+    return value if value > 0 else fallback_ns
+
+
+def frame_id(msg: Any) -> str:
+    """The header's frame id, without a leading slash."""
+    header = get(msg, "header")
+    return str(get(header, "frame_id", default="") or "").lstrip("/")
+
+
+def as_bytes(data: Any) -> bytes:
+    """Message byte arrays (numpy, list or bytes) as bytes."""
+    if isinstance(data, bytes | bytearray | memoryview):
+        return bytes(data)
+    return np.asarray(data, dtype=np.uint8).tobytes()
+
+
+def image_row(msg: Any, compressed: bool) -> dict[str, Any]:
+    """The stored form of an image: compressed bytes as they are, raw pixels with their encoding."""
+    if compressed:
+        fmt = str(get(msg, "format", default="")).lower()
+        kind = "png" if "png" in fmt else "jpeg" if ("jpeg" in fmt or "jpg" in fmt) else fmt or "jpeg"
+        return {"format": kind, "width": 0, "height": 0, "step": 0, "data": as_bytes(msg.data)}
+    return {
+        "format": str(msg.encoding),
+        "width": int(msg.width),
+        "height": int(msg.height),
+        "step": int(msg.step),
+        "data": as_bytes(msg.data),
+    }
+
+
+def camera_from_info(msg: Any, topic: str) -> dict[str, Any]:
+    """``camera.json`` from a CameraInfo message.
+
+    Raises:
+        InputError: when the message holds no calibration (zero focal length or image size).
+    """
+    K = [float(v) for v in np.asarray(get(msg, "k", "K"), dtype=float).ravel()]
+    D = [float(v) for v in np.asarray(get(msg, "d", "D", default=[]), dtype=float).ravel()]
+    width, height = int(msg.width), int(msg.height)
+    if len(K) != 9 or K[0] <= 0 or K[4] <= 0:
+        raise InputError(
+            f"CameraInfo on {topic} has zero focal length (K = {K[:1] + K[4:5]}): the camera is not calibrated; "
+            "pass a calibration file with --camera FILE"
+        )
+    if width <= 0 or height <= 0:
+        raise InputError(
+            f"CameraInfo on {topic} has image size {width}x{height}; pass a calibration with --camera FILE"
+        )
+    model = str(get(msg, "distortion_model", default="") or ("plumb_bob" if D else "none"))
+    if not any(D):
+        model = "none" if not D else model
+    return {
+        "width": width,
+        "height": height,
+        "K": K,
+        "distortion_model": model,
+        "D": D,
+        "frame_id": frame_id(msg),
+        "topic": topic,
+        "source": "camera_info",
+    }
+
+
+def odometry_row(msg: Any, stamp: int) -> dict[str, Any]:
+    """One odometry sample: pose, twist and their covariances (ROS order x y z roll pitch yaw)."""
+    p = msg.pose.pose.position
+    q = msg.pose.pose.orientation
+    v = msg.twist.twist.linear
+    w = msg.twist.twist.angular
+    return {
+        "stamp_ns": stamp,
+        "x": float(p.x),
+        "y": float(p.y),
+        "z": float(p.z),
+        "qx": float(q.x),
+        "qy": float(q.y),
+        "qz": float(q.z),
+        "qw": float(q.w),
+        "vx": float(v.x),
+        "vy": float(v.y),
+        "vz": float(v.z),
+        "wx": float(w.x),
+        "wy": float(w.y),
+        "wz": float(w.z),
+        "pose_cov": [float(c) for c in np.asarray(msg.pose.covariance, dtype=float).ravel()],
+        "twist_cov": [float(c) for c in np.asarray(msg.twist.covariance, dtype=float).ravel()],
+        "frame_id": frame_id(msg),
+        "child_frame_id": str(get(msg, "child_frame_id", default="")).lstrip("/"),
+    }
+
+
+def scan_row(msg: Any, stamp: int) -> dict[str, Any]:
+    """One laser scan."""
+    return {
+        "stamp_ns": stamp,
+        "frame_id": frame_id(msg),
+        "angle_min": float(msg.angle_min),
+        "angle_max": float(msg.angle_max),
+        "angle_increment": float(msg.angle_increment),
+        "range_min": float(msg.range_min),
+        "range_max": float(msg.range_max),
+        "ranges": np.asarray(msg.ranges, dtype=np.float32),
+    }
+
+
+def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """Rotation matrix of a unit quaternion given as x, y, z, w (ROS order)."""
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    if n == 0:
+        return np.eye(3)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def transform_edges(msg: Any) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child) of every transform in a TFMessage."""
+    out = []
+    for tf in msg.transforms:
+        t = tf.transform.translation
+        r = tf.transform.rotation
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(r.x, r.y, r.z, r.w)
+        T[:3, 3] = [t.x, t.y, t.z]
+        out.append((frame_id(tf), str(tf.child_frame_id).lstrip("/"), T))
+    return out
+
+
+def chain(edges: list[tuple[str, str, np.ndarray]], source: str, target: str) -> np.ndarray | None:
+    """T_source_target through the static transform tree (edges used in either direction), or None."""
+    if source == target:
+        return np.eye(4)
+    adj: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for parent, child, T in edges:
+        adj.setdefault(parent, []).append((child, T))
+        adj.setdefault(child, []).append((parent, np.linalg.inv(T)))
+    seen = {source}
+    queue: deque[tuple[str, np.ndarray]] = deque([(source, np.eye(4))])
+    while queue:
+        node, T = queue.popleft()
+        for nxt, T_step in adj.get(node, []):
+            if nxt in seen:
+                continue
+            T_next = T @ T_step
+            if nxt == target:
+                return T_next
+            seen.add(nxt)
+            queue.append((nxt, T_next))
+    return None

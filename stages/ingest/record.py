@@ -1,0 +1,92 @@
+"""What ingest draws in ``ingest.rrd``: the odometry path, laser scans in the odometry frame, camera frames."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pyarrow.parquet as pq
+import rerun as rr
+
+from pipeline.context import StageContext
+from pipeline.recording import quat_xyzw_from_matrix, set_stamp
+from stages.ingest.convert import quat_to_matrix
+
+
+def _pose_matrices(odom: Any) -> np.ndarray:
+    n = odom.num_rows
+    T = np.tile(np.eye(4), (n, 1, 1))
+    cols = {c: odom.column(c).to_numpy() for c in ("x", "y", "z", "qx", "qy", "qz", "qw")}
+    for i in range(n):
+        T[i, :3, :3] = quat_to_matrix(cols["qx"][i], cols["qy"][i], cols["qz"][i], cols["qw"][i])
+        T[i, :3, 3] = cols["x"][i], cols["y"][i], cols["z"][i]
+    return T
+
+
+def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any]) -> None:
+    """Log the ingested data to the stage's recording."""
+    rec = ctx.rec
+    out = ctx.output.path
+    rr_cfg = ctx.settings.rerun
+    rec.log("/ingest/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    odom = pq.read_table(out / "odometry.parquet")
+    poses = _pose_matrices(odom) if odom.num_rows else np.zeros((0, 4, 4))
+    stamps = odom.column("stamp_ns").to_numpy() if odom.num_rows else np.zeros(0, dtype=np.int64)
+    if len(poses):
+        rec.log("/ingest/world/odometry/path", rr.LineStrips3D([poses[:, :3, 3]], colors=[[90, 160, 255]]), static=True)
+        quats = np.array([quat_xyzw_from_matrix(T[:3, :3]) for T in poses])
+        rec.send_columns(
+            "/ingest/world/odometry/base",
+            indexes=[rr.TimeColumn("time", timestamp=stamps.astype("datetime64[ns]"))],
+            columns=rr.Transform3D.columns(translation=poses[:, :3, 3], quaternion=quats),
+        )
+        rec.log("/ingest/world/odometry/base", rr.TransformAxes3D(0.3), static=True)
+
+    scans = pq.read_table(out / "scans.parquet")
+    if scans.num_rows and len(poses):
+        T_base_laser = np.asarray(sensors.get("laser", {}).get("T_base_sensor", np.eye(4)))
+        s_stamps = scans.column("stamp_ns").to_numpy()
+        for i in range(0, scans.num_rows, rr_cfg.scan_stride):
+            row = scans.slice(i, 1).to_pylist()[0]
+            r = np.asarray(row["ranges"], dtype=float)
+            a = row["angle_min"] + row["angle_increment"] * np.arange(len(r))
+            ok = np.isfinite(r) & (r >= row["range_min"]) & (r <= row["range_max"])
+            pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
+            j = int(np.clip(np.searchsorted(stamps, s_stamps[i]), 0, len(stamps) - 1))
+            world = (poses[j] @ T_base_laser @ pts.T).T[:, :3]
+            set_stamp(rec, int(s_stamps[i]))
+            rec.log("/ingest/world/scan", rr.Points3D(world, colors=[[255, 120, 60]], radii=0.02))
+
+    K = np.asarray(camera["K"], dtype=float).reshape(3, 3)
+    rec.log(
+        "/ingest/camera", rr.Pinhole(image_from_camera=K, resolution=[camera["width"], camera["height"]]), static=True
+    )
+    frames_path = out / "frames.parquet"
+    pf = pq.ParquetFile(frames_path)
+    if pf.metadata.num_rows == 0:
+        return
+    k = 0
+    for batch in pf.iter_batches(batch_size=64):
+        for row in batch.to_pylist():
+            if k % rr_cfg.image_stride == 0:
+                set_stamp(rec, row["stamp_ns"])
+                rec.log("/ingest/camera/image", image_archetype(row))
+            k += 1
+
+
+def image_archetype(row: dict[str, Any]) -> Any:
+    """A Rerun image for a frames.parquet row: compressed bytes as they are, raw pixels with their layout."""
+    fmt = row["format"]
+    if fmt in ("jpeg", "png"):
+        return rr.EncodedImage(contents=row["data"], media_type="image/jpeg" if fmt == "jpeg" else "image/png")
+    h, w, step = row["height"], row["width"], row["step"]
+    buf = np.frombuffer(row["data"], dtype=np.uint8)
+    if fmt in ("mono8", "8UC1"):
+        return rr.Image(buf.reshape(h, step)[:, :w], color_model="L")
+    if fmt in ("mono16", "16UC1"):
+        return rr.Image(buf.view(np.uint16).reshape(h, step // 2)[:, :w], color_model="L")
+    if fmt in ("bgr8", "rgb8"):
+        img = buf.reshape(h, step)[:, : w * 3].reshape(h, w, 3)
+        return rr.Image(img, color_model="BGR" if fmt == "bgr8" else "RGB")
+    return rr.TextLog(f"frame in encoding {fmt!r} not drawn")
