@@ -43,7 +43,8 @@ def load_calibration(path: Path, topic: str | None = None) -> CameraDict:
     try:
         doc = yaml.safe_load(Path(path).read_text())
     except (OSError, yaml.YAMLError) as err:
-        raise InputError(f"camera file {str(path)!r} cannot be read as YAML ({err}); pass a valid --camera FILE") from err
+        msg = f"camera file {str(path)!r} cannot be read as YAML ({err}); pass a valid --camera FILE"
+        raise InputError(msg) from err
     if not isinstance(doc, dict):
         raise InputError(f"camera file {str(path)!r} is not a YAML mapping; expected cameras.yaml or camera_info")
     if "image_width" in doc or "camera_matrix" in doc or "K" in doc or "k" in doc:

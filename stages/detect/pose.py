@@ -41,7 +41,7 @@ class TagPose:
     T_camera_tag: Array
     cov_unit: Array
     sse_px2: float
-    alt_T_camera_tag: Array | None
+    alt_T_camera_tag: Array | None  # noqa: N815 (frames in names, as everywhere)
     alt_sse_px2: float
 
     @property

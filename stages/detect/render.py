@@ -89,8 +89,10 @@ def render_frame(
         R, t = T[:3, :3], T[:3, 3]
         # Bounding box of the tag (with its white border) from points along its outline.
         edge = np.linspace(-half, half, 25)
-        outline = np.concatenate([np.stack([edge, np.full_like(edge, v), np.zeros_like(edge)], 1) for v in (-half, half)]
-                                 + [np.stack([np.full_like(edge, v), edge, np.zeros_like(edge)], 1) for v in (-half, half)])
+        zero = np.zeros_like(edge)
+        sides = [np.stack([edge, np.full_like(edge, v), zero], 1) for v in (-half, half)]
+        sides += [np.stack([np.full_like(edge, v), edge, zero], 1) for v in (-half, half)]
+        outline = np.concatenate(sides)
         pc = outline @ R.T + t
         if np.any(pc[:, 2] <= 1e-6):
             continue

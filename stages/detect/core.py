@@ -1,0 +1,148 @@
+"""From an image (or corners already detected) to detection rows: detect, filter, estimate the pose.
+
+Shared by the stage's worker processes, the tests and the benchmark. Covariances here are for a
+corner noise of 1 px (``pose_cov_unit``); the stage scales them once the noise is known.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.detect.backends import Detector, TagObservation, make_detector, shortest_side_px
+from stages.detect.calibration import CameraDict, colmap_camera
+from stages.detect.config import DetectConfig
+from stages.detect.images import CorruptFrameError, decode_frame
+from stages.detect.pose import estimate_tag_pose
+
+Row = dict[str, Any]
+
+# Reasons a detection is dropped before its pose is kept (summary keys).
+DROP_REASONS = ("family", "hamming", "decision_margin", "small", "pose_failed", "reprojection")
+
+
+@dataclass
+class FrameJob:
+    """One frame to process: its image bytes, or corners a bag already holds (then ``data`` is None)."""
+
+    frame: int
+    stamp_ns: int
+    camera: str
+    format: str = ""
+    width: int = 0
+    height: int = 0
+    step: int = 0
+    data: bytes | None = None
+    observations: list[TagObservation] | None = None
+
+
+@dataclass
+class BatchResult:
+    """Rows of a batch of frames, the frames that did not decode, and the drop counts."""
+
+    rows: list[Row] = field(default_factory=list)
+    corrupt: list[tuple[int, str]] = field(default_factory=list)
+    dropped: Counter[str] = field(default_factory=Counter)
+    frames: int = 0
+
+
+def observations_to_rows(
+    observations: list[TagObservation], job: FrameJob, cfg: DetectConfig, camera: object, dropped: Counter[str],
+    apply_quality: bool = True,
+) -> list[Row]:
+    """Filter observations by the settings and estimate each one's pose; one row per kept tag."""
+    rows = []
+    for obs in observations:
+        if obs.family not in cfg.families:
+            dropped["family"] += 1
+            continue
+        if apply_quality and obs.hamming > cfg.max_hamming:
+            dropped["hamming"] += 1
+            continue
+        if apply_quality and cfg.backend == "apriltag3" and obs.decision_margin < cfg.min_decision_margin:
+            dropped["decision_margin"] += 1
+            continue
+        if shortest_side_px(obs.corners) < cfg.min_side_px:
+            dropped["small"] += 1
+            continue
+        size = cfg.size_of(obs.tag_id)
+        pose = estimate_tag_pose(obs.corners, size, camera)
+        if pose is None:
+            dropped["pose_failed"] += 1
+            continue
+        if pose.reprojection_px > cfg.max_reprojection_px:
+            dropped["reprojection"] += 1
+            continue
+        alt = pose.alt_T_camera_tag if pose.alt_T_camera_tag is not None else np.full((4, 4), np.nan)
+        rows.append({
+            "frame": job.frame,
+            "stamp_ns": job.stamp_ns,
+            "camera": job.camera,
+            "tag_id": obs.tag_id,
+            "family": obs.family,
+            "corners": np.asarray(obs.corners, float).ravel().tolist(),
+            "size_m": size,
+            "T_camera_tag": pose.T_camera_tag.ravel().tolist(),
+            "alt_T_camera_tag": alt.ravel().tolist(),
+            "pose_cov_unit": pose.cov_unit.ravel().tolist(),
+            "position_cov_unit": pose.position_cov_unit.ravel().tolist(),
+            "sse_px2": pose.sse_px2,
+            "reprojection_px": pose.reprojection_px,
+            "ambiguity_ratio": pose.ambiguity_ratio,
+            "decision_margin": obs.decision_margin,
+            "hamming": obs.hamming,
+        })
+    return rows
+
+
+def detect_image(gray: npt.NDArray[np.uint8], detector: Detector, camera: object, cfg: DetectConfig,
+                 job: FrameJob | None = None, dropped: Counter[str] | None = None) -> list[Row]:
+    """Rows for the tags in one grayscale image (an image without tags gives no rows)."""
+    job = job or FrameJob(frame=0, stamp_ns=0, camera="")
+    return observations_to_rows(detector.detect(gray), job, cfg, camera, dropped if dropped is not None else Counter())
+
+
+class FrameProcessor:
+    """A detector and a camera model, built once per worker process."""
+
+    def __init__(self, cfg: DetectConfig, camera: CameraDict, with_detector: bool = True) -> None:
+        self.cfg = cfg
+        self.camera = colmap_camera(camera)
+        self.detector = make_detector(cfg) if with_detector else None
+
+    def process(self, jobs: list[FrameJob]) -> BatchResult:
+        """Process a batch of frames; corrupt frames are listed, not raised."""
+        result = BatchResult()
+        for job in jobs:
+            result.frames += 1
+            if job.observations is not None:
+                result.rows += observations_to_rows(job.observations, job, self.cfg, self.camera, result.dropped,
+                                                    apply_quality=False)
+                continue
+            try:
+                gray = decode_frame(job.format, job.width, job.height, job.step, job.data or b"")
+            except CorruptFrameError as err:
+                result.corrupt.append((job.frame, str(err)))
+                continue
+            assert self.detector is not None
+            result.rows += detect_image(gray, self.detector, self.camera, self.cfg, job, result.dropped)
+        return result
+
+
+_PROCESSOR: FrameProcessor | None = None
+
+
+def init_worker(cfg_data: dict[str, Any], camera: CameraDict, with_detector: bool) -> None:
+    """Worker-process initializer: build the detector and camera once."""
+    global _PROCESSOR
+    _PROCESSOR = FrameProcessor(DetectConfig.model_validate(cfg_data), camera, with_detector)
+
+
+def process_in_worker(jobs: list[FrameJob]) -> BatchResult:
+    """Worker-process task: process one batch with the processor built by :func:`init_worker`."""
+    assert _PROCESSOR is not None, "init_worker was not called"
+    return _PROCESSOR.process(jobs)

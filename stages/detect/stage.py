@@ -1,0 +1,287 @@
+"""The detect stage: every ingested frame in, every tag out, with its pose and an honest covariance."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import rerun as rr
+
+from pipeline.context import StageContext
+from pipeline.errors import InputError, StageError
+from pipeline.recording import colormap, ellipsoids, set_stamp
+from stages.detect.backends import TagObservation
+from stages.detect.calibration import CameraDict
+from stages.detect.config import DetectConfig
+from stages.detect.core import DROP_REASONS, BatchResult, FrameJob, FrameProcessor, Row, init_worker, process_in_worker
+
+log = logging.getLogger(__name__)
+
+# apriltag_ros / TagSLAM publish the AprilTag library's corner order; this picks the OpenCV order from it.
+_APRILTAG_TO_OPENCV = [1, 0, 3, 2]
+
+DETECTIONS_SCHEMA = pa.schema([
+    ("frame", pa.int64()),
+    ("stamp_ns", pa.int64()),
+    ("camera", pa.string()),
+    ("tag_id", pa.int32()),
+    ("family", pa.string()),
+    ("corners", pa.list_(pa.float64(), 8)),
+    ("size_m", pa.float64()),
+    ("T_camera_tag", pa.list_(pa.float64(), 16)),
+    ("alt_T_camera_tag", pa.list_(pa.float64(), 16)),
+    ("pose_cov", pa.list_(pa.float64(), 36)),
+    ("position_cov", pa.list_(pa.float64(), 9)),
+    ("reprojection_px", pa.float64()),
+    ("ambiguity_ratio", pa.float64()),
+    ("ambiguous", pa.bool_()),
+    ("decision_margin", pa.float64()),
+    ("hamming", pa.int32()),
+])
+
+
+def _frame_jobs(path: Any, batch_frames: int) -> Iterator[list[FrameJob]]:
+    columns = ["frame", "stamp_ns", "topic", "format", "width", "height", "step", "data"]
+    for batch in pq.ParquetFile(path).iter_batches(batch_size=batch_frames, columns=columns):
+        d = batch.to_pydict()
+        yield [FrameJob(frame=int(d["frame"][i]), stamp_ns=int(d["stamp_ns"][i]), camera=str(d["topic"][i]),
+                        format=str(d["format"][i]), width=int(d["width"][i]), height=int(d["height"][i]),
+                        step=int(d["step"][i] or 0), data=d["data"][i]) for i in range(batch.num_rows)]
+
+
+def bag_detection_jobs(table: pa.Table, cfg: DetectConfig) -> list[FrameJob]:
+    """Frames of detections a bag already holds (``ingest/tag_detections.parquet``), in the OpenCV order."""
+    d = table.to_pydict()
+    by_frame: dict[tuple[str, int], FrameJob] = {}
+    for i in range(table.num_rows):
+        key = (str(d["topic"][i]), int(d["frame"][i]))
+        job = by_frame.setdefault(key, FrameJob(frame=key[1], stamp_ns=int(d["stamp_ns"][i]), camera=key[0],
+                                                observations=[]))
+        corners = np.asarray(d["corners"][i], float).reshape(4, 2)
+        if cfg.bag_corner_order == "apriltag":
+            corners = corners[_APRILTAG_TO_OPENCV]
+        assert job.observations is not None
+        job.observations.append(TagObservation(int(d["tag_id"][i]), str(d["family"][i] or cfg.families[0]),
+                                               corners, float("nan"), 0))
+    return sorted(by_frame.values(), key=lambda j: (j.stamp_ns, j.camera, j.frame))
+
+
+def _bounded_map(fn: Callable[[list[FrameJob]], BatchResult], items: Iterable[list[FrameJob]],
+                 pool: ProcessPoolExecutor | None, in_flight: int) -> Iterator[tuple[list[FrameJob], BatchResult]]:
+    """``fn`` over ``items`` in order, at most ``in_flight`` batches queued in the pool at once."""
+    if pool is None:
+        for item in items:
+            yield item, fn(item)
+        return
+    queue: deque[tuple[list[FrameJob], Future[BatchResult]]] = deque()
+    for item in items:
+        queue.append((item, pool.submit(process_in_worker, item)))
+        if len(queue) >= in_flight:
+            done, fut = queue.popleft()
+            yield done, fut.result()
+    while queue:
+        done, fut = queue.popleft()
+        yield done, fut.result()
+
+
+def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
+    """Detect tags in every ingested frame (or read the bag's detections) and write ``detections.parquet``."""
+    start = time.perf_counter()
+    ingest = ctx.input("ingest")
+    if not ingest.exists("camera.json"):
+        raise InputError("ingest wrote no camera.json (no camera_info in the bag); re-run ingest with --camera FILE")
+    camera: CameraDict = ingest.read_json("camera.json")
+    from_bag = ingest.exists("tag_detections.parquet")
+    stride = ctx.settings.rerun.image_stride
+    _log_static(ctx.rec, camera)
+
+    rows: list[Row] = []
+    corrupt: list[tuple[int, str]] = []
+    dropped: Counter[str] = Counter()
+    n_frames = 0
+    if from_bag:
+        jobs = bag_detection_jobs(ingest.read_table("tag_detections.parquet"), cfg)
+        batches: Iterable[list[FrameJob]] = [jobs[i : i + 256] for i in range(0, len(jobs), 256)]
+        total = (len(jobs) + 255) // 256
+        workers = 1
+    else:
+        frames_path = ingest.file("frames.parquet")
+        total_frames = pq.ParquetFile(frames_path).metadata.num_rows
+        if total_frames == 0:
+            raise InputError(f"no frames in {frames_path}; check the camera topic given to ingest")
+        batches = _frame_jobs(frames_path, cfg.batch_frames)
+        total = (total_frames + cfg.batch_frames - 1) // cfg.batch_frames
+        workers = cfg.workers
+    pool = None
+    if workers > 1:
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker,
+                                   initargs=(cfg.model_dump(mode="json"), camera, not from_bag))
+        fn = process_in_worker
+    else:
+        fn = FrameProcessor(cfg, camera, with_detector=not from_bag).process
+    try:
+        stream = _bounded_map(fn, batches, pool, 2 * workers)
+        for jobs_done, result in ctx.progress(stream, "detect", total=total):
+            n_frames += result.frames
+            rows += result.rows
+            corrupt += result.corrupt
+            dropped.update(result.dropped)
+            _log_frames(ctx.rec, jobs_done, result, stride)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    for frame, why in corrupt:
+        log.warning("frame %d skipped: %s", frame, why)
+
+    sigma, sigma_source = _corner_sigma(rows, cfg)
+    table, n_ambiguous, n_dropped_ambiguous = _table(rows, sigma, cfg)
+    if table.num_rows == 0:
+        raise StageError(
+            f"no {'/'.join(cfg.families)} tags found in {n_frames} frames ({len(corrupt)} corrupt) with backend "
+            f"{cfg.backend}; check the families and the tag sizes, or lower min_decision_margin / min_side_px"
+        )
+    ctx.output.write_table("detections.parquet", table)
+    _log_tags(ctx.rec, table, ctx.n_sigma)
+    seconds = time.perf_counter() - start
+    tags = table.column("tag_id").to_numpy()
+    reproj = table.column("reprojection_px").to_numpy()
+    return {
+        "frames": n_frames,
+        "detections": table.num_rows,
+        "distinct_tags": len(np.unique(tags)),
+        "frames_with_tags": len(set(zip(table.column("camera").to_pylist(), table.column("frame").to_pylist(),
+                                        strict=True))),
+        "detector": "bag" if from_bag else cfg.backend,
+        "source": "tag_detections" if from_bag else "images",
+        "families": list(cfg.families),
+        "corrupt_frames": len(corrupt),
+        "corrupt_frame_ids": [f for f, _ in corrupt][:100],
+        "dropped": {k: int(dropped.get(k, 0)) for k in DROP_REASONS} | {"ambiguous": n_dropped_ambiguous},
+        "ambiguous": n_ambiguous,
+        "corner_sigma_px": round(sigma, 4),
+        "corner_sigma_source": sigma_source,
+        "reprojection_px_median": round(float(np.median(reproj)), 4),
+        "detect_seconds": round(seconds, 3),
+        "frames_per_second": round(n_frames / seconds, 2) if seconds > 0 else None,
+        "workers": workers,
+    }
+
+
+def _corner_sigma(rows: list[Row], cfg: DetectConfig) -> tuple[float, str]:
+    """The corner noise: from the settings, or pooled over the residuals (4 corners x 2 - 6 = 2 dof a tag)."""
+    if cfg.corner_sigma_px is not None:
+        return float(cfg.corner_sigma_px), "settings"
+    if not rows:
+        return cfg.min_corner_sigma_px, "floor"
+    sse = float(sum(r["sse_px2"] for r in rows))
+    estimate = float(np.sqrt(sse / (2.0 * len(rows))))
+    if estimate < cfg.min_corner_sigma_px:
+        return cfg.min_corner_sigma_px, "floor"
+    return estimate, "residuals"
+
+
+def _table(rows: list[Row], sigma: float, cfg: DetectConfig) -> tuple[pa.Table, int, int]:
+    out: dict[str, list[Any]] = {f.name: [] for f in DETECTIONS_SCHEMA}
+    n_ambiguous = n_dropped = 0
+    var = sigma**2
+    for r in rows:
+        ambiguous = bool(r["ambiguity_ratio"] > cfg.max_ambiguity_ratio)
+        n_ambiguous += ambiguous
+        if ambiguous and cfg.ambiguous == "drop":
+            n_dropped += 1
+            continue
+        for key in ("frame", "stamp_ns", "camera", "tag_id", "family", "corners", "size_m", "T_camera_tag",
+                    "alt_T_camera_tag", "reprojection_px", "ambiguity_ratio", "decision_margin", "hamming"):
+            out[key].append(r[key])
+        out["pose_cov"].append([var * v for v in r["pose_cov_unit"]])
+        out["position_cov"].append([var * v for v in r["position_cov_unit"]])
+        out["ambiguous"].append(ambiguous)
+    if n_ambiguous:
+        log.info("%d ambiguous detections (ratio > %.2f) %s", n_ambiguous, cfg.max_ambiguity_ratio,
+                 "dropped" if cfg.ambiguous == "drop" else "kept, flagged")
+    return pa.table(out, schema=DETECTIONS_SCHEMA), n_ambiguous, n_dropped
+
+
+def _log_static(rec: rr.RecordingStream, camera: CameraDict) -> None:
+    K = np.asarray(camera["K"], float).reshape(3, 3)
+    rec.log("/detect/camera", rr.Pinhole(image_from_camera=K, resolution=[camera["width"], camera["height"]],
+                                         camera_xyz=rr.ViewCoordinates.RDF), static=True)
+
+
+def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResult, stride: int) -> None:
+    by_frame: dict[tuple[str, int], list[Row]] = {}
+    for r in result.rows:
+        by_frame.setdefault((r["camera"], r["frame"]), []).append(r)
+    for job in jobs:
+        rows = by_frame.get((job.camera, job.frame), [])
+        set_stamp(rec, job.stamp_ns)
+        rec.log("/detect/stats/detections", rr.Scalars([float(len(rows))]))
+        if rows:
+            rec.log("/detect/stats/reprojection_px", rr.Scalars([float(np.mean([r["reprojection_px"] for r in rows]))]))
+        if job.frame % stride:
+            continue
+        if job.data is not None and job.format in ("jpeg", "png"):
+            rec.log("/detect/camera/image", rr.EncodedImage(contents=job.data, media_type=f"image/{job.format}"))
+        elif job.data is not None and job.format in ("mono8", "bgr8", "rgb8"):
+            ch = 1 if job.format == "mono8" else 3
+            row = job.width * ch
+            buf = np.frombuffer(job.data, np.uint8)
+            if buf.size >= job.step * job.height and job.step >= row:
+                pix = buf[: job.step * job.height].reshape(job.height, job.step)[:, :row]
+                pix = pix.reshape(job.height, job.width, ch)
+                model = "L" if ch == 1 else ("BGR" if job.format == "bgr8" else "RGB")
+                rec.log("/detect/camera/image", rr.Image(pix if ch == 3 else pix[:, :, 0], color_model=model))
+        strips = [np.vstack([np.reshape(r["corners"], (4, 2)), np.reshape(r["corners"], (4, 2))[:1]]) for r in rows]
+        ids = np.array([r["tag_id"] for r in rows])
+        rec.log("/detect/camera/image/tags", rr.LineStrips2D(
+            strips, labels=[str(i) for i in ids], colors=colormap(ids % 16, 0, 15) if len(ids) else None,
+            radii=rr.Radius.ui_points(2.0)))
+
+
+def _log_tags(rec: rr.RecordingStream, table: pa.Table, n_sigma: float) -> None:
+    """Tag axes and n-sigma position ellipsoids in the camera frame, per frame."""
+    d = table.select(["stamp_ns", "tag_id", "size_m", "T_camera_tag", "position_cov", "ambiguous"]).to_pydict()
+    by_stamp: dict[int, list[int]] = {}
+    for i, s in enumerate(d["stamp_ns"]):
+        by_stamp.setdefault(int(s), []).append(i)
+    axis_colors = np.array([[230, 40, 40], [40, 200, 40], [40, 90, 230]], np.uint8)
+    for stamp, idx in by_stamp.items():
+        set_stamp(rec, stamp)
+        origins, vectors, colors = [], [], []
+        centers, covs, labels = [], [], []
+        for i in idx:
+            T = np.reshape(d["T_camera_tag"][i], (4, 4))
+            for k in range(3):
+                origins.append(T[:3, 3])
+                vectors.append(T[:3, k] * d["size_m"][i] * 0.75)
+                colors.append(axis_colors[k])
+            centers.append(T[:3, 3])
+            covs.append(np.reshape(d["position_cov"][i], (3, 3)))
+            labels.append(f"{d['tag_id'][i]}{' (ambiguous)' if d['ambiguous'][i] else ''}")
+        rec.log("/detect/camera/tags/axes", rr.Arrows3D(origins=origins, vectors=vectors, colors=colors))
+        rec.log("/detect/camera/tags/position_cov", ellipsoids(np.array(centers), covs, n_sigma, labels=labels))
+
+
+def blueprint() -> Any:
+    """Camera image with outlines, the tags in 3D, the series and the summary."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="/detect/camera/image", name="camera"),
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="/detect/camera", name="tags in the camera"),
+                rrb.TimeSeriesView(origin="/detect/stats", name="detections and reprojection error"),
+                rrb.TextDocumentView(origin="/detect/summary", name="summary"),
+            ),
+        ),
+        rrb.TimePanel(play_state="paused", timeline="time"),
+    )
