@@ -1,0 +1,205 @@
+"""A sparse linear(ised) information model: variables in blocks, factors as whitened Jacobians.
+
+A factor ``f`` over the variables ``x_{v_1}, ..., x_{v_k}`` contributes ``A_fᵀ A_f`` to the
+information matrix, where ``A_f`` (``m_f × Σ dim(v_i)``) is its whitened Jacobian
+(``Σ^{-1/2} ∂h/∂x``). The system's information is ``Λ = Σ_f A_fᵀ A_f`` over any chosen subset of
+factors; it is assembled with scipy.sparse and never densified for large problems.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+
+if TYPE_CHECKING:
+    import gtsam
+
+VariableKind = Literal["pose", "landmark"]
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One block of the state vector."""
+
+    key: int
+    """Identifier (a gtsam key when built from gtsam)."""
+    dim: int
+    """Tangent-space dimension of the block."""
+    kind: VariableKind
+    """``pose`` or ``landmark``."""
+
+
+@dataclass(frozen=True)
+class Factor:
+    """One whitened linear factor ``‖A x − b‖²`` (only ``A`` matters for information)."""
+
+    variables: tuple[int, ...]
+    """Indices into :attr:`LinearSystem.variables`, in the column order of :attr:`jacobian`."""
+    jacobian: FloatArray
+    """Whitened Jacobian, shape ``(rows, Σ dim)``."""
+    kind: str = "other"
+    """``prior`` (one pose), ``odometry`` (two poses), ``landmark`` (pose and landmark) or ``other``."""
+
+    @property
+    def rows(self) -> int:
+        """Number of whitened residual rows."""
+        return int(self.jacobian.shape[0])
+
+
+def _factor_kind(kinds: Sequence[VariableKind]) -> str:
+    if len(kinds) == 1 and kinds[0] == "pose":
+        return "prior"
+    if len(kinds) == 2 and kinds[0] == kinds[1] == "pose":
+        return "odometry"
+    if len(kinds) == 2 and sorted(kinds) == ["landmark", "pose"]:
+        return "landmark"
+    return "other"
+
+
+@dataclass
+class LinearSystem:
+    """Variables (blocks) and whitened Jacobian factors of a linearised factor graph."""
+
+    variables: list[Variable]
+    factors: list[Factor]
+    offsets: IntArray = field(init=False)
+    """``offsets[i]`` is the first column of variable ``i``; ``offsets[-1]`` the total dimension."""
+    _index_of_key: dict[int, int] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        dims = np.array([v.dim for v in self.variables], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(dims)]).astype(np.int64)
+        self._index_of_key = {v.key: i for i, v in enumerate(self.variables)}
+        for i, f in enumerate(self.factors):
+            width = int(sum(self.variables[v].dim for v in f.variables))
+            if f.jacobian.ndim != 2 or f.jacobian.shape[1] != width:
+                raise ValueError(
+                    f"factor {i}: jacobian shape {f.jacobian.shape} does not match its variables' "
+                    f"total dimension {width}"
+                )
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_blocks(
+        cls,
+        dims: Sequence[int],
+        kinds: Sequence[VariableKind],
+        factors: Iterable[tuple[Sequence[int], FloatArray]],
+        keys: Sequence[int] | None = None,
+    ) -> LinearSystem:
+        """Build a system directly from block dimensions and ``(variable indices, jacobian)`` pairs."""
+        keys = list(range(len(dims))) if keys is None else list(keys)
+        variables = [Variable(int(k), int(d), kd) for k, d, kd in zip(keys, dims, kinds, strict=True)]
+        fs = [
+            Factor(tuple(int(v) for v in vs), np.asarray(A, dtype=np.float64),
+                   _factor_kind([variables[int(v)].kind for v in vs]))
+            for vs, A in factors
+        ]
+        return cls(variables, fs)
+
+    @classmethod
+    def from_gtsam(
+        cls,
+        nfg: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        is_landmark: Callable[[int], bool] | None = None,
+    ) -> LinearSystem:
+        """Linearise ``nfg`` at ``values`` and keep each factor's whitened Jacobian.
+
+        ``is_landmark(key)`` tells landmark keys from pose keys; by default a key whose gtsam
+        symbol character is ``l`` or ``L`` is a landmark. Factor ``i`` of the result is factor
+        ``i`` of ``nfg`` (null factors are kept as empty factors so that indices line up).
+        """
+        import gtsam
+
+        if is_landmark is None:
+
+            def is_landmark(key: int) -> bool:
+                return chr(gtsam.Symbol(key).chr()) in "lL"
+
+        dims = values.dims()
+        keys = sorted(int(k) for k in values.keys())
+        variables = [Variable(k, int(dims[k]), "landmark" if is_landmark(k) else "pose") for k in keys]
+        index = {k: i for i, k in enumerate(keys)}
+        lin = nfg.linearize(values)
+        factors: list[Factor] = []
+        for i in range(lin.size()):
+            g = lin.at(i)
+            if g is None:
+                factors.append(Factor((), np.zeros((0, 0)), "other"))
+                continue
+            fkeys = [int(k) for k in g.keys()]
+            A, _ = g.jacobian()
+            vs = tuple(index[k] for k in fkeys)
+            factors.append(Factor(vs, np.asarray(A, dtype=np.float64),
+                                  _factor_kind([variables[v].kind for v in vs])))
+        return cls(variables, factors)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def dim(self) -> int:
+        """Total state dimension."""
+        return int(self.offsets[-1])
+
+    def index_of_key(self, key: int) -> int:
+        """Variable index of a key."""
+        return self._index_of_key[key]
+
+    def columns(self, variable_ids: Iterable[int]) -> IntArray:
+        """State-vector columns of the given variables, concatenated in the given order."""
+        parts = [np.arange(self.offsets[v], self.offsets[v + 1]) for v in variable_ids]
+        return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+
+    def factor_columns(self, factor_id: int) -> IntArray:
+        """State-vector columns of a factor's Jacobian."""
+        return self.columns(self.factors[factor_id].variables)
+
+    def jacobian(self, factor_ids: Iterable[int]) -> sp.csr_matrix:
+        """Stacked whitened Jacobian of the given factors, shape ``(Σ rows, dim)``."""
+        rows: list[IntArray] = []
+        cols: list[IntArray] = []
+        vals: list[FloatArray] = []
+        r0 = 0
+        for f_id in factor_ids:
+            f = self.factors[f_id]
+            if f.rows == 0:
+                continue
+            c = self.factor_columns(f_id)
+            rr, cc = np.meshgrid(np.arange(r0, r0 + f.rows), c, indexing="ij")
+            rows.append(rr.ravel())
+            cols.append(cc.ravel())
+            vals.append(f.jacobian.ravel())
+            r0 += f.rows
+        if not rows:
+            return sp.csr_matrix((0, self.dim))
+        return sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, self.dim)
+        )
+
+    def information(self, factor_ids: Iterable[int] | None = None) -> sp.csc_matrix:
+        """``Λ = Σ_f A_fᵀ A_f`` over the given factors (all by default), as a sparse matrix."""
+        ids = range(len(self.factors)) if factor_ids is None else factor_ids
+        A = self.jacobian(ids)
+        return sp.csc_matrix(A.T @ A)
+
+    def factors_of_kind(self, kind: str) -> list[int]:
+        """Indices of the factors of one kind."""
+        return [i for i, f in enumerate(self.factors) if f.kind == kind]
+
+    def variables_of_kind(self, kind: VariableKind) -> list[int]:
+        """Indices of the variables of one kind."""
+        return [i for i, v in enumerate(self.variables) if v.kind == kind]
+
+    def diagonal_prior(self, variable_ids: Iterable[int], sigma: float) -> sp.csc_matrix:
+        """Information ``σ⁻² I`` on the given variables' columns (a weak prior)."""
+        cols = self.columns(variable_ids)
+        d = np.zeros(self.dim)
+        d[cols] = 1.0 / sigma**2
+        return sp.diags(d, format="csc")

@@ -1,0 +1,447 @@
+"""Stage two of focused inference: choose the measurements that best localise the focused variables.
+
+Maths (Mu et al. 2015, Problem 2 and Theorem 1). With the information ``Λ_S = Λ₀ + Σ_{j∈S} A_jᵀ A_j``
+of the picks ``S``, ``Σ = Λ_S⁻¹`` and the focused block ``Σ_F = W Σ Wᵀ``, adding candidate ``c``
+(whitened Jacobian ``A_c``, ``m`` rows) reduces the focused entropy by::
+
+    gain_c = ½ log det S_c − ½ log det(S_c − U_cᵀ Σ_F⁻¹ U_c),
+    S_c = I + A_c Σ A_cᵀ,   U_c = W Σ A_cᵀ
+
+(matrix inversion lemma on ``Σ_{S+c}`` and ``det(Σ_F − U S⁻¹ Uᵀ) = det Σ_F · det(S − UᵀΣ_F⁻¹U) / det S``).
+After picking ``j`` with ``V = Σ A_jᵀ`` and ``T = S_j``, ``Σ ← Σ − V T⁻¹ Vᵀ``, so for every candidate,
+with ``g_c = A_c V`` and ``w = W V``::
+
+    M_c ← M_c − g_c T⁻¹ g_cᵀ               (M_c = A_c Σ A_cᵀ)
+    U_c ← U_c − w T⁻¹ g_cᵀ
+    Σ_F ← Σ_F − w T⁻¹ wᵀ
+    P   ← P + p E⁻¹ pᵀ,  p = P w,  E = T − wᵀ P w        (P = Σ_F⁻¹, Woodbury)
+    R_c ← R_c + p E⁻¹ (wᵀ R_c − g_cᵀ)                  (R_c = P U_c, so U_cᵀ Σ_F⁻¹ U_c = U_cᵀ R_c)
+
+Each step costs one sparse solve for ``V`` (with the factor of the last refactorised information
+plus a Woodbury correction over the picks since, refactorising every ``refactor_every`` picks)
+and ``O(N_candidates · f · m²)`` small dense work. No dense ``n × n`` matrix is ever formed.
+
+Initial information ``Λ₀`` = the base factors (odometry and prior) plus a weak isotropic prior of
+standard deviation ``landmark_prior_sigma`` on every landmark variable, so landmarks that the base
+leaves unobserved have finite, comparable first gains.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from stages.estimation.linear_system import Factor, LinearSystem
+from stages.estimation.sparse_cov import SPDSolver, covariance_blocks, covariance_blocks_schur, logdet_spd
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+SelectionStatus = Literal["ok", "budget_zero", "budget_exceeds_candidates", "no_candidates"]
+Measure = Literal["logdet", "trace", "max_eig"]
+
+_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
+
+
+@dataclass
+class MeasurementSelection:
+    """Result of a measurement selection."""
+
+    picks: list[int]
+    """Factor indices (of the input system) in the order picked."""
+    gains: list[float]
+    """Score at each pick: entropy reduction in nats (``information``), sampling probability
+    (``leverage``), NaN for strategies without a score."""
+    status: SelectionStatus
+    """``budget_zero``: nothing kept; ``budget_exceeds_candidates``: every candidate kept."""
+    n_candidates: int
+    budget: int
+    entropy_before: float = float("nan")
+    """Differential entropy (nats) of the focused variables under ``Λ₀``: ``½ log det(2πe Σ_F)``."""
+    entropy_after: float = float("nan")
+    """The same with the picks added."""
+    stats: dict[str, float] = field(default_factory=dict)
+    """Timings (s) and counters."""
+
+
+@dataclass
+class _Problem:
+    """A compact sub-system: only the variables that the base, candidates and focus touch."""
+
+    system: LinearSystem
+    base: list[int]
+    candidates: list[int]
+    focused: list[int]
+    prior: sp.csc_matrix
+    info0: sp.csc_matrix
+    landmark_vars: list[int]
+
+
+def _compact_problem(
+    system: LinearSystem,
+    base: Sequence[int],
+    candidates: Sequence[int],
+    focused: Sequence[int],
+    landmark_prior_sigma: float,
+) -> _Problem:
+    used: dict[int, None] = {}
+    for f in list(base) + list(candidates):
+        for v in system.factors[f].variables:
+            used[v] = None
+    for v in focused:
+        used[int(v)] = None
+    var_ids = sorted(used)
+    remap = {v: k for k, v in enumerate(var_ids)}
+    variables = [system.variables[v] for v in var_ids]
+    fac_ids = list(base) + list(candidates)
+    factors = [
+        Factor(tuple(remap[v] for v in system.factors[f].variables), system.factors[f].jacobian,
+               system.factors[f].kind)
+        for f in fac_ids
+    ]
+    sub = LinearSystem(variables, factors)
+    nb = len(base)
+    landmark_vars = sub.variables_of_kind("landmark")
+    prior = sub.diagonal_prior(landmark_vars, landmark_prior_sigma) if landmark_vars else sp.csc_matrix(
+        (sub.dim, sub.dim))
+    info0 = sp.csc_matrix(sub.information(range(nb)) + prior)
+    return _Problem(sub, list(range(nb)), list(range(nb, len(fac_ids))),
+                    [remap[int(v)] for v in focused], prior, info0, landmark_vars)
+
+
+def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:
+    """Every factor that is not a candidate and not a landmark measurement (odometry, priors, ...)."""
+    cand = set(candidates)
+    return [i for i, f in enumerate(system.factors) if i not in cand and f.kind != "landmark" and f.rows]
+
+
+def _entropy(logdet_cov: float, dim: int) -> float:
+    return 0.5 * (logdet_cov + dim * _LOG_2PI_E)
+
+
+def _focused_cov(solver: SPDSolver, n: int, fcols: IntArray) -> tuple[FloatArray, FloatArray]:
+    E = np.zeros((n, len(fcols)))
+    E[fcols, np.arange(len(fcols))] = 1.0
+    XF = solver.solve(E)
+    SF = XF[fcols]
+    return XF, 0.5 * (SF + SF.T)
+
+
+def _budget_status(budget: int, n: int) -> SelectionStatus | None:
+    if n == 0:
+        return "no_candidates"
+    if budget <= 0:
+        return "budget_zero"
+    if budget >= n:
+        return "budget_exceeds_candidates" if budget > n else None
+    return None
+
+
+def focused_entropy(
+    system: LinearSystem,
+    factors: Sequence[int],
+    focused: Sequence[int],
+    landmark_prior_sigma: float = 100.0,
+) -> float:
+    """Entropy (nats) of the focused variables given the factors (plus the weak landmark prior)."""
+    prob = _compact_problem(system, factors, [], focused, landmark_prior_sigma)
+    solver = SPDSolver(prob.info0)
+    fcols = prob.system.columns(prob.focused)
+    _, SF = _focused_cov(solver, prob.system.dim, fcols)
+    return _entropy(logdet_spd(SF), len(fcols))
+
+
+def _padded_candidates(sub: LinearSystem, cand: Sequence[int]) -> tuple[FloatArray, IntArray]:
+    m = max(sub.factors[c].rows for c in cand)
+    d = max(sub.factors[c].jacobian.shape[1] for c in cand)
+    Ac = np.zeros((len(cand), m, d))
+    cols = np.zeros((len(cand), d), dtype=np.int64)
+    for k, c in enumerate(cand):
+        J = sub.factors[c].jacobian
+        Ac[k, : J.shape[0], : J.shape[1]] = J
+        cc = sub.factor_columns(c)
+        cols[k, : len(cc)] = cc
+    return Ac, cols
+
+
+def _clique_covariances(
+    info: sp.csc_matrix, sub: LinearSystem, cand: Sequence[int], d: int, separator: Sequence[int] | None,
+    solver: SPDSolver | None = None,
+) -> FloatArray:
+    """``Σ[cols_c, cols_c]`` for every candidate (padded to ``d × d``)."""
+    pairs = []
+    for c in cand:
+        vs = sub.factors[c].variables
+        pairs += [(a, b) for a in vs for b in vs]
+    if separator:
+        blocks = covariance_blocks_schur(info, sub.offsets, pairs, separator)
+    else:
+        blocks = covariance_blocks(info, sub.offsets, pairs, solver=solver)
+    out = np.zeros((len(cand), d, d))
+    for k, c in enumerate(cand):
+        vs = sub.factors[c].variables
+        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
+        for ia, a in enumerate(vs):
+            for ib, b in enumerate(vs):
+                out[k, off[ia] : off[ia + 1], off[ib] : off[ib + 1]] = blocks[(a, b)]
+    return out
+
+
+def _batched_logdet(M: FloatArray) -> FloatArray:
+    sign, ld = np.linalg.slogdet(M)
+    return np.where(sign > 0, ld, np.inf)
+
+
+def select_information(
+    system: LinearSystem,
+    candidates: Sequence[int],
+    focused: Sequence[int],
+    budget: int,
+    base: Sequence[int] | None = None,
+    landmark_prior_sigma: float = 100.0,
+    refactor_every: int = 64,
+) -> MeasurementSelection:
+    """Greedy focused-entropy measurement selection (Mu et al. Alg. 1), exact and fast.
+
+    Args:
+        system: the linearised full graph (whitened Jacobians at the full-graph solution).
+        candidates: factor indices that may be kept (e.g. the tag measurements of the focused
+            landmarks), in time order.
+        focused: variable indices of the focused variables (``W`` selects their blocks).
+        budget: number of measurements to keep (``K``).
+        base: factor indices always kept (default: every non-candidate non-landmark factor, i.e.
+            odometry and priors).
+        landmark_prior_sigma: standard deviation (state units, e.g. m) of the weak isotropic prior
+            put on every landmark variable in ``Λ₀``.
+        refactor_every: picks between sparse refactorisations of ``Λ_S`` (in between, solves use
+            the last factor plus a Woodbury correction over the picks since).
+
+    Returns:
+        The picks in order with their entropy reductions (nats).
+    """
+    t0 = time.perf_counter()
+    cand = list(dict.fromkeys(int(c) for c in candidates))
+    base = default_base(system, cand) if base is None else list(base)
+    prob = _compact_problem(system, base, cand, focused, landmark_prior_sigma)
+    sub = prob.system
+    n = sub.dim
+    fcols = sub.columns(prob.focused)
+    f = len(fcols)
+    if f == 0:
+        raise ValueError("no focused variables: run landmark selection first")
+    solver = SPDSolver(prob.info0)
+    XF, SF = _focused_cov(solver, n, fcols)
+    h0 = _entropy(logdet_spd(SF), f)
+    N = len(cand)
+    status = _budget_status(budget, N)
+    stats: dict[str, float] = {"setup_s": time.perf_counter() - t0}
+    if status in ("no_candidates", "budget_zero"):
+        return MeasurementSelection([], [], status or "ok", N, budget, h0, h0, stats)
+    if status == "budget_exceeds_candidates" or budget >= N:
+        after = focused_entropy(system, base + cand, focused, landmark_prior_sigma)
+        return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget, h0, after, stats)
+
+    cidx = prob.candidates
+    Ac, cols = _padded_candidates(sub, cidx)
+    m, d = Ac.shape[1], Ac.shape[2]
+    Sig_c = _clique_covariances(prob.info0, sub, cidx, d, None, solver=solver)
+    stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
+    AcT = Ac.transpose(0, 2, 1)
+    M = Ac @ Sig_c @ AcT  # (N, m, m)
+    U = np.einsum("ndf,nmd->nfm", XF[cols], Ac)  # (N, f, m)
+    P = sla.cho_solve(sla.cho_factor(SF), np.eye(f))
+    R = P @ U
+    eye_m = np.eye(m)
+
+    info_last = prob.info0
+    win_V = np.zeros((n, refactor_every * m))
+    win_Tinv = np.zeros((refactor_every, m, m))
+    win_picks: list[int] = []
+    picked = np.zeros(N, dtype=bool)
+    picks: list[int] = []
+    gains: list[float] = []
+    n_refactor = 0
+    t_loop = time.perf_counter()
+    for _ in range(budget):
+        S = eye_m + M
+        Q = np.swapaxes(U, 1, 2) @ R
+        gain = 0.5 * (_batched_logdet(S) - _batched_logdet(S - Q))
+        gain[picked] = -np.inf
+        j = int(np.argmax(gain))
+        picks.append(cand[j])
+        gains.append(float(gain[j]))
+        picked[j] = True
+        # V = Σ_S A_jᵀ: solve with the last factor, then the Woodbury correction of the window.
+        rhs = np.zeros((n, m))
+        np.add.at(rhs, cols[j], Ac[j].T)
+        V = solver.solve(rhs)
+        k = len(win_picks)
+        if k:
+            G = Ac[j] @ win_V[cols[j], : k * m]  # (m, k m): A_j V_i over the window
+            coef = win_Tinv[:k] @ G.T.reshape(k, m, m)  # T_i⁻¹ V_iᵀ A_jᵀ
+            V -= win_V[:, : k * m] @ coef.reshape(k * m, m)
+        T = eye_m + Ac[j] @ V[cols[j]]
+        T = 0.5 * (T + T.T)
+        Tinv = np.linalg.inv(T)
+        w = V[fcols]  # (f, m)
+        g = Ac @ V[cols]  # (N, m, m)
+        gT = np.swapaxes(g, 1, 2)
+        M -= g @ Tinv @ gT
+        U -= (w @ Tinv) @ gT
+        p = P @ w
+        E = T - w.T @ p
+        Einv = np.linalg.inv(0.5 * (E + E.T))
+        R += (p @ Einv) @ (w.T @ R - gT)
+        P += p @ Einv @ p.T
+        SF -= w @ Tinv @ w.T
+        win_V[:, k * m : (k + 1) * m] = V
+        win_Tinv[k] = Tinv
+        win_picks.append(j)
+        if len(win_picks) == refactor_every:
+            # Fold the window into the sparse information, refactorise, and refresh the focused
+            # quantities exactly (bounds the drift of the rank updates).
+            info_last = sp.csc_matrix(info_last + sub.information([cidx[i] for i in win_picks]))
+            solver = SPDSolver(info_last)
+            n_refactor += 1
+            win_picks = []
+            XF, SF = _focused_cov(solver, n, fcols)
+            U = np.einsum("ndf,nmd->nfm", XF[cols], Ac)
+            P = sla.cho_solve(sla.cho_factor(SF), np.eye(f))
+            R = P @ U
+    stats["loop_s"] = time.perf_counter() - t_loop
+    stats["refactorisations"] = float(n_refactor)
+    stats["factor_nnz"] = float(solver.nnz_factor)
+    h1 = h0 - float(np.sum(gains))
+    return MeasurementSelection(picks, gains, "ok", N, budget, h0, h1, stats)
+
+
+# ---------------------------------------------------------------------------------- other strategies
+def _measure(cov: FloatArray, measure: Measure) -> float:
+    if measure == "trace":
+        return float(np.trace(cov))
+    if measure == "max_eig":
+        return float(np.linalg.eigvalsh(cov)[-1])
+    return logdet_spd(cov)
+
+
+def leverage_probabilities(
+    system: LinearSystem,
+    candidates: Sequence[int],
+    base: Sequence[int],
+    focused: Sequence[int] = (),
+    landmark_prior_sigma: float = 100.0,
+) -> FloatArray:
+    """Mousavi & Motee eq. 29-30 for candidate measurements.
+
+    ``r_c = tr(Λ_all⁻¹ (Λ₀ / N + A_cᵀ A_c))`` with ``Λ_all = Λ₀ + Σ_c A_cᵀ A_c``; ``π_c = r_c / n``
+    sums to 1 because ``tr(Λ_all⁻¹ Λ_all) = n``. The clique covariances of ``Λ_all`` are computed
+    with the Schur complement onto the landmark variables.
+    """
+    cand = list(candidates)
+    prob = _compact_problem(system, base, cand, focused, landmark_prior_sigma)
+    sub = prob.system
+    info_all = sp.csc_matrix(prob.info0 + sub.information(prob.candidates))
+    Ac, _ = _padded_candidates(sub, prob.candidates)
+    Sig_c = _clique_covariances(info_all, sub, prob.candidates, Ac.shape[2], prob.landmark_vars)
+    lev = np.einsum("nmd,nde,nme->n", Ac, Sig_c, Ac)  # tr(A_c Σ A_cᵀ)
+    n = sub.dim
+    N = len(cand)
+    r = lev + (n - lev.sum()) / N
+    return np.asarray(r / n)
+
+
+def select_leverage(
+    system: LinearSystem,
+    candidates: Sequence[int],
+    focused: Sequence[int],
+    budget: int,
+    base: Sequence[int] | None = None,
+    draws: int = 20,
+    measure: Measure = "logdet",
+    seed: int = 0,
+    landmark_prior_sigma: float = 100.0,
+) -> MeasurementSelection:
+    """Leverage-score sampling (Mousavi & Motee Alg. 1) over candidate measurements.
+
+    Each of ``draws`` independent draws samples candidates with replacement from ``π`` until
+    ``budget`` distinct ones are chosen; the draw whose focused covariance has the smallest
+    ``measure`` (``logdet``, ``trace`` or ``max_eig``) is kept. Scores are the ``π`` of the picks.
+    """
+    t0 = time.perf_counter()
+    cand = list(dict.fromkeys(int(c) for c in candidates))
+    base = default_base(system, cand) if base is None else list(base)
+    N = len(cand)
+    status = _budget_status(budget, N)
+    h0 = focused_entropy(system, base, focused, landmark_prior_sigma)
+    if status in ("no_candidates", "budget_zero"):
+        return MeasurementSelection([], [], status or "ok", N, budget, h0, h0)
+    if budget >= N:
+        h1 = focused_entropy(system, base + cand, focused, landmark_prior_sigma)
+        return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget, h0, h1)
+    pi = leverage_probabilities(system, cand, base, focused, landmark_prior_sigma)
+    t_prob = time.perf_counter() - t0
+    rng = np.random.default_rng(seed)
+    prob = _compact_problem(system, base, cand, focused, landmark_prior_sigma)
+    fcols = prob.system.columns(prob.focused)
+    best: tuple[float, list[int]] | None = None
+    for _ in range(draws):
+        chosen: dict[int, None] = {}
+        while len(chosen) < budget:
+            for c in rng.choice(N, size=2 * (budget - len(chosen)), p=pi):
+                chosen[int(c)] = None
+                if len(chosen) == budget:
+                    break
+        order = list(chosen)
+        info = prob.info0 + prob.system.information([prob.candidates[i] for i in order])
+        _, SF = _focused_cov(SPDSolver(info), prob.system.dim, fcols)
+        value = _measure(SF, measure)
+        if best is None or value < best[0]:
+            best = (value, order)
+    assert best is not None
+    picks = [cand[i] for i in best[1]]
+    h1 = focused_entropy(system, base + picks, focused, landmark_prior_sigma)
+    stats = {"probabilities_s": t_prob, "total_s": time.perf_counter() - t0}
+    return MeasurementSelection(picks, [float(pi[i]) for i in best[1]], "ok", N, budget, h0, h1, stats)
+
+
+def select_uniform(candidates: Sequence[int], budget: int, times: Sequence[float] | None = None
+                   ) -> MeasurementSelection:
+    """Even downsampling in time (the paper's ``DS``): ``budget`` candidates evenly spaced in time order."""
+    cand = list(dict.fromkeys(int(c) for c in candidates))
+    N = len(cand)
+    status = _budget_status(budget, N)
+    if status in ("no_candidates", "budget_zero"):
+        return MeasurementSelection([], [], status or "ok", N, budget)
+    if budget >= N:
+        return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget)
+    order = np.argsort(np.asarray(times), kind="stable") if times is not None else np.arange(N)
+    pos = np.unique(np.round(np.linspace(0, N - 1, budget)).astype(int))
+    picks = [cand[int(order[p])] for p in pos]
+    return MeasurementSelection(picks, [float("nan")] * len(picks), "ok", N, budget)
+
+
+def select_random(candidates: Sequence[int], budget: int, seed: int = 0) -> MeasurementSelection:
+    """``budget`` candidates drawn uniformly without replacement (seeded)."""
+    cand = list(dict.fromkeys(int(c) for c in candidates))
+    N = len(cand)
+    status = _budget_status(budget, N)
+    if status in ("no_candidates", "budget_zero"):
+        return MeasurementSelection([], [], status or "ok", N, budget)
+    if budget >= N:
+        return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget)
+    idx = np.random.default_rng(seed).choice(N, size=budget, replace=False)
+    return MeasurementSelection([cand[int(i)] for i in idx], [float("nan")] * budget, "ok", N, budget)
+
+
+def select_all(candidates: Sequence[int]) -> MeasurementSelection:
+    """Keep every candidate."""
+    cand = list(dict.fromkeys(int(c) for c in candidates))
+    return MeasurementSelection(cand, [float("nan")] * len(cand), "ok" if cand else "no_candidates",
+                                len(cand), len(cand))

@@ -1,0 +1,271 @@
+"""Sparse factorisation of an information matrix and the covariance blocks read from it.
+
+Only scipy is used (SuperLU with a symmetric fill-reducing ordering and diagonal pivoting, which
+for a symmetric positive-definite matrix is an LDLᵀ in disguise), so everything installs from
+wheels. Covariance *blocks* are computed without forming the inverse:
+
+* per connected component of the block-sparsity graph (different components are independent,
+  their cross-covariance is exactly zero);
+* a component whose variables form a path (odometry chains: the usual initial information) is
+  block tridiagonal, and its diagonal and neighbour blocks come from one forward/backward
+  block recursion in O(length);
+* any other block is read from columns of ``Λ⁻¹`` obtained by sparse solves (exact, costs one
+  solve per needed column block).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
+import scipy.sparse.linalg as spla
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+class SingularInformationError(ValueError):
+    """The information matrix is not positive definite (some direction is unobserved)."""
+
+
+class SPDSolver:
+    """Factorise a sparse symmetric positive-definite matrix once; solve many right-hand sides."""
+
+    def __init__(self, matrix: sp.spmatrix) -> None:
+        A = sp.csc_matrix(matrix)
+        self.n = A.shape[0]
+        if self.n == 0:
+            self._lu = None
+            self.logdet = 0.0
+            return
+        try:
+            self._lu = spla.splu(
+                A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+            )
+        except RuntimeError as err:  # "Factor is exactly singular"
+            raise SingularInformationError(f"information matrix is singular: {err}") from err
+        d = self._lu.U.diagonal()
+        scale = max(float(np.max(np.abs(A.diagonal()))), 1e-300)
+        if np.any(d <= 1e-13 * scale):
+            raise SingularInformationError(
+                "information matrix is not positive definite (a variable or direction is unobserved: "
+                "add a prior or a weak landmark prior)"
+            )
+        self.logdet = float(np.sum(np.log(d)))
+        """``log det`` of the factorised matrix."""
+
+    @property
+    def nnz_factor(self) -> int:
+        """Non-zeros of L + U (a measure of fill)."""
+        return 0 if self._lu is None else int(self._lu.L.nnz + self._lu.U.nnz)
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``A⁻¹ rhs`` for a dense vector or matrix ``rhs``."""
+        if self._lu is None:
+            return np.zeros_like(rhs, dtype=np.float64)
+        return np.asarray(self._lu.solve(np.asarray(rhs, dtype=np.float64)))
+
+
+def _variable_graph(info: sp.spmatrix, offsets: IntArray) -> sp.csr_matrix:
+    """Block-sparsity pattern of ``info`` as a variable adjacency matrix (no self loops)."""
+    coo = sp.coo_matrix(info)
+    var_of_col = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    vr, vc = var_of_col[coo.row], var_of_col[coo.col]
+    keep = (vr != vc) & (coo.data != 0)
+    n = len(offsets) - 1
+    g = sp.csr_matrix((np.ones(int(keep.sum())), (vr[keep], vc[keep])), shape=(n, n))
+    g.data[:] = 1.0
+    return g
+
+
+def _path_order(graph: sp.csr_matrix, members: IntArray) -> list[int] | None:
+    """The members in path order if the component is a simple path, else ``None``."""
+    if len(members) == 1:
+        return [int(members[0])]
+    deg = np.diff(graph.indptr)[members]
+    if np.any(deg > 2) or int(deg.sum()) != 2 * (len(members) - 1):
+        return None
+    ends = members[deg == 1]
+    if len(ends) != 2:
+        return None
+    order = [int(ends[0])]
+    prev = -1
+    while len(order) < len(members):
+        cur = order[-1]
+        nbrs = graph.indices[graph.indptr[cur] : graph.indptr[cur + 1]]
+        nxt = [int(v) for v in nbrs if v != prev]
+        prev = cur
+        order.append(nxt[0])
+    return order
+
+
+def _tridiagonal_blocks(
+    info: sp.csc_matrix, offsets: IntArray, order: Sequence[int]
+) -> tuple[list[FloatArray], list[FloatArray]]:
+    """Diagonal blocks ``Σ_kk`` and neighbour blocks ``Σ_{k,k+1}`` of a block-tridiagonal inverse."""
+    info = sp.csr_matrix(info)
+
+    def block(a: int, b: int) -> FloatArray:
+        return info[offsets[a] : offsets[a + 1], :][:, offsets[b] : offsets[b + 1]].toarray()
+
+    n = len(order)
+    D = [block(v, v) for v in order]
+    B = [block(order[k], order[k + 1]) for k in range(n - 1)]
+    S_inv: list[FloatArray] = []
+    S = D[0]
+    for k in range(n):
+        if k > 0:
+            S = D[k] - B[k - 1].T @ S_inv[k - 1] @ B[k - 1]
+        S_inv.append(np.linalg.inv(S))
+    diag: list[FloatArray] = [np.zeros((0, 0))] * n
+    off: list[FloatArray] = [np.zeros((0, 0))] * max(n - 1, 0)
+    diag[n - 1] = S_inv[n - 1]
+    for k in range(n - 2, -1, -1):
+        G = S_inv[k] @ B[k]  # S_k⁻¹ B_k
+        off[k] = -G @ diag[k + 1]
+        diag[k] = S_inv[k] + G @ diag[k + 1] @ G.T
+    return diag, off
+
+
+def covariance_blocks(
+    info: sp.spmatrix,
+    offsets: IntArray,
+    pairs: Iterable[tuple[int, int]],
+    solver: SPDSolver | None = None,
+) -> dict[tuple[int, int], FloatArray]:
+    """Blocks ``Σ[i, j]`` (``Σ = info⁻¹``) for the requested variable pairs, without the full inverse.
+
+    Args:
+        info: sparse SPD information matrix.
+        offsets: column offsets of the variable blocks (``len = n_variables + 1``).
+        pairs: variable index pairs ``(i, j)``; ``(i, i)`` asks for a marginal block.
+        solver: a factorisation of ``info`` to reuse for blocks not given by the recursions.
+
+    Returns:
+        ``{(i, j): Σ_ij}`` for every requested pair.
+    """
+    info = sp.csc_matrix(info)
+    pairs = list(dict.fromkeys((int(i), int(j)) for i, j in pairs))
+    graph = _variable_graph(info, offsets)
+    n_comp, label = csgraph.connected_components(graph, directed=False)
+    members_of: dict[int, list[int]] = defaultdict(list)
+    for v, c in enumerate(label):
+        members_of[int(c)].append(v)
+    dims = np.diff(offsets)
+    out: dict[tuple[int, int], FloatArray] = {}
+    pending: list[tuple[int, int]] = []
+    needed_comp = {int(label[i]) for i, _ in pairs} | {int(label[j]) for _, j in pairs}
+    tri: dict[int, tuple[dict[int, int], list[FloatArray], list[FloatArray]]] = {}
+    for c in needed_comp:
+        members = np.array(members_of[c], dtype=np.int64)
+        order = _path_order(graph, members)
+        if order is not None:
+            diag, off = _tridiagonal_blocks(info, offsets, order)
+            tri[c] = ({v: k for k, v in enumerate(order)}, diag, off)
+    for i, j in pairs:
+        if label[i] != label[j]:
+            out[(i, j)] = np.zeros((dims[i], dims[j]))
+            continue
+        c = int(label[i])
+        if c in tri:
+            pos, diag, off = tri[c]
+            a, b = pos[i], pos[j]
+            if a == b:
+                out[(i, j)] = diag[a]
+                continue
+            if abs(a - b) == 1:
+                out[(i, j)] = off[a] if b == a + 1 else off[b].T
+                continue
+        pending.append((i, j))
+    if pending:
+        if solver is None:
+            solver = SPDSolver(info)
+        cols_needed = sorted({j for _, j in pending})
+        for start in range(0, len(cols_needed), 256):
+            chunk = cols_needed[start : start + 256]
+            rhs_cols = np.concatenate([np.arange(offsets[j], offsets[j + 1]) for j in chunk])
+            E = np.zeros((info.shape[0], len(rhs_cols)))
+            E[rhs_cols, np.arange(len(rhs_cols))] = 1.0
+            X = solver.solve(E)
+            local = {}
+            p = 0
+            for j in chunk:
+                local[j] = X[:, p : p + dims[j]]
+                p += dims[j]
+            for i, j in pending:
+                if j in local:
+                    out[(i, j)] = local[j][offsets[i] : offsets[i + 1], :]
+    return out
+
+
+def logdet_spd(matrix: FloatArray) -> float:
+    """``log det`` of a small dense SPD matrix via Cholesky."""
+    if matrix.size == 0:
+        return 0.0
+    c = sla.cholesky(matrix, lower=True)
+    return float(2.0 * np.sum(np.log(np.diag(c))))
+
+
+def covariance_blocks_schur(
+    info: sp.spmatrix,
+    offsets: IntArray,
+    pairs: Iterable[tuple[int, int]],
+    separator: Sequence[int],
+) -> dict[tuple[int, int], FloatArray]:
+    """Blocks of ``info⁻¹`` via the Schur complement onto a small ``separator`` (e.g. the landmarks).
+
+    Write ``info = [[Λ_rr, Λ_rs], [Λ_sr, Λ_ss]]`` with ``s`` the separator. With ``X = Λ_rr⁻¹ Λ_rs``
+    (one sparse solve per separator column) and ``C = (Λ_ss − Λ_sr X)⁻¹`` (small, dense)::
+
+        Σ_ss = C,   Σ_rs = −X C,   Σ_rr = Λ_rr⁻¹ + X C Xᵀ
+
+    and the blocks of ``Λ_rr⁻¹`` come from :func:`covariance_blocks` (cheap when the rest, e.g. the
+    pose chain, is a path). Exact; memory ``O(dim_r · dim_s)``.
+    """
+    info = sp.csc_matrix(info)
+    n_var = len(offsets) - 1
+    sep = sorted({int(s) for s in separator})
+    is_sep = np.zeros(n_var, dtype=bool)
+    is_sep[sep] = True
+    rest = [v for v in range(n_var) if not is_sep[v]]
+    dims = np.diff(offsets)
+    r_cols = np.concatenate([np.arange(offsets[v], offsets[v + 1]) for v in rest]) if rest else np.zeros(0, int)
+    s_cols = np.concatenate([np.arange(offsets[v], offsets[v + 1]) for v in sep]) if sep else np.zeros(0, int)
+    # local offsets inside r and s
+    r_off = np.concatenate([[0], np.cumsum(dims[rest])]).astype(np.int64)
+    s_off = np.concatenate([[0], np.cumsum(dims[sep])]).astype(np.int64)
+    r_pos = {v: k for k, v in enumerate(rest)}
+    s_pos = {v: k for k, v in enumerate(sep)}
+    L_rr = info[r_cols][:, r_cols]
+    L_rs = info[r_cols][:, s_cols].toarray()
+    L_ss = info[s_cols][:, s_cols].toarray()
+    solver_r = SPDSolver(L_rr)
+    X = solver_r.solve(L_rs) if len(s_cols) else np.zeros((len(r_cols), 0))
+    C = np.linalg.inv(L_ss - L_rs.T @ X) if len(s_cols) else np.zeros((0, 0))
+    C = 0.5 * (C + C.T)
+    pairs = list(dict.fromkeys((int(i), int(j)) for i, j in pairs))
+    rr_pairs = [(r_pos[i], r_pos[j]) for i, j in pairs if not is_sep[i] and not is_sep[j]]
+    base = covariance_blocks(L_rr, r_off, rr_pairs, solver=solver_r) if rr_pairs else {}
+    XC = X @ C
+    out: dict[tuple[int, int], FloatArray] = {}
+    for i, j in pairs:
+        if is_sep[i] and is_sep[j]:
+            a, b = s_pos[i], s_pos[j]
+            out[(i, j)] = C[s_off[a] : s_off[a + 1], s_off[b] : s_off[b + 1]]
+        elif is_sep[j]:
+            a, b = r_pos[i], s_pos[j]
+            out[(i, j)] = -XC[r_off[a] : r_off[a + 1], s_off[b] : s_off[b + 1]]
+        elif is_sep[i]:
+            a, b = s_pos[i], r_pos[j]
+            out[(i, j)] = -XC[r_off[b] : r_off[b + 1], s_off[a] : s_off[a + 1]].T
+        else:
+            a, b = r_pos[i], r_pos[j]
+            Xi = X[r_off[a] : r_off[a + 1]]
+            Xj = X[r_off[b] : r_off[b + 1]]
+            out[(i, j)] = base[(a, b)] + Xi @ C @ Xj.T
+    return out

@@ -1,0 +1,85 @@
+"""Synthetic planar SLAM problems (a robot driving loops among point landmarks), for tests and benchmarks.
+
+Ground truth is used as the linearisation point, as the selection stages linearise once at the
+full-graph solution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import numpy.typing as npt
+from gtsam.symbol_shorthand import L, X
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass
+class PlanarProblem:
+    """A planar pose + point-landmark factor graph with its ground truth."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    poses: FloatArray
+    """(T, 3) x, y, θ."""
+    landmarks: FloatArray
+    """(n_landmarks, 2)."""
+    measurement_factors: list[int]
+    """Indices (in ``graph``) of the bearing-range factors, in time order."""
+    measured: list[tuple[int, int]]
+    """(pose index, landmark index) of each measurement factor."""
+
+
+def planar_problem(
+    n_poses: int,
+    n_landmarks: int,
+    n_measurements: int,
+    seed: int = 0,
+    extent: float = 60.0,
+    sensor_range: float = 15.0,
+    odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.01),
+    bearing_range_sigmas: tuple[float, float] = (0.02, 0.10),
+) -> PlanarProblem:
+    """A robot on a smooth random closed-ish path; each measurement joins a pose and a landmark in range.
+
+    Landmarks are scattered uniformly in a square of side ``extent``; measurements are drawn at
+    random among (pose, landmark) pairs within ``sensor_range`` (nearest landmark as fallback).
+    """
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 2.0 * np.pi * max(1.0, n_poses / 1500.0), n_poses)
+    r = 0.38 * extent * (1.0 + 0.25 * np.sin(3.0 * t + rng.uniform(0, 2 * np.pi)))
+    xy = np.stack([r * np.cos(t), r * np.sin(t)], axis=1) + 0.5 * extent
+    d = np.gradient(xy, axis=0)
+    theta = np.arctan2(d[:, 1], d[:, 0])
+    poses = np.column_stack([xy, theta])
+    landmarks = rng.uniform(0.0, extent, size=(n_landmarks, 2))
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for i, (x, y, th) in enumerate(poses):
+        values.insert(X(i), gtsam.Pose2(x, y, th))
+    for k, (x, y) in enumerate(landmarks):
+        values.insert(L(k), gtsam.Point2(x, y))
+    graph.add(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*poses[0]),
+                                     gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.001]))))
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(odometry_sigmas))
+    for i in range(n_poses - 1):
+        a, b = gtsam.Pose2(*poses[i]), gtsam.Pose2(*poses[i + 1])
+        graph.add(gtsam.BetweenFactorPose2(X(i), X(i + 1), a.between(b), odo))
+    # choose measurements: random poses, a random landmark in range
+    dist = np.linalg.norm(xy[:, None, :] - landmarks[None, :, :], axis=2)
+    pose_ids = np.sort(rng.integers(0, n_poses, size=n_measurements))
+    br = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(bearing_range_sigmas))
+    measurement_factors: list[int] = []
+    measured: list[tuple[int, int]] = []
+    for i in pose_ids:
+        in_range = np.flatnonzero(dist[i] < sensor_range)
+        k = int(rng.choice(in_range)) if len(in_range) else int(np.argmin(dist[i]))
+        p = gtsam.Pose2(*poses[i])
+        pt = gtsam.Point2(*landmarks[k])
+        measurement_factors.append(graph.size())
+        graph.add(gtsam.BearingRangeFactor2D(X(int(i)), L(k), p.bearing(pt), p.range(pt), br))
+        measured.append((int(i), k))
+    return PlanarProblem(graph, values, poses, landmarks, measurement_factors, measured)
