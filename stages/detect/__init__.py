@@ -2,7 +2,7 @@
 
 Public pieces: :class:`~stages.detect.config.DetectConfig`, :func:`~stages.detect.images.decode_frame`,
 :func:`~stages.detect.backends.make_detector`, :func:`~stages.detect.pose.estimate_tag_pose`,
-:func:`~stages.detect.calibration.load_calibration` and :data:`STAGE`.
+:func:`stages.camera.load_camera_file` and :data:`STAGE`.
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from stages.camera import CameraDict, colmap_camera
 from stages.detect.backends import Detector, TagObservation, make_detector, shortest_side_px
-from stages.detect.calibration import CameraDict, colmap_camera
 from stages.detect.config import DetectConfig
 from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import estimate_tag_pose

@@ -18,8 +18,8 @@ import rerun as rr
 from pipeline.context import StageContext
 from pipeline.errors import InputError, StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
+from stages.camera import CameraDict
 from stages.detect.backends import TagObservation
-from stages.detect.calibration import CameraDict
 from stages.detect.config import DetectConfig
 from stages.detect.core import DROP_REASONS, BatchResult, FrameJob, FrameProcessor, Row, init_worker, process_in_worker
 

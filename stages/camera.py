@@ -24,7 +24,7 @@ _KALIBR_DISTORTION = {"radtan": "plumb_bob", "plumb_bob": "plumb_bob", "equidist
                       "fisheye": "equidistant", "none": "none", "": "none"}
 
 
-def load_calibration(path: Path, topic: str | None = None) -> CameraDict:
+def load_camera_file(path: Path, topic: str | None = None) -> CameraDict:
     """Read a camera calibration file into the ``camera.json`` dict.
 
     Two formats are understood: Kalibr / TagSLAM ``cameras.yaml`` (``cam0: {intrinsics, distortion_model,
@@ -66,7 +66,7 @@ def load_calibration(path: Path, topic: str | None = None) -> CameraDict:
     return _from_kalibr(name, cam, path)
 
 
-def load_calibrations(path: Path) -> dict[str, CameraDict]:
+def load_camera_files(path: Path) -> dict[str, CameraDict]:
     """Every camera of a Kalibr/TagSLAM ``cameras.yaml`` (a camera_info file gives one), by camera name."""
     doc = yaml.safe_load(Path(path).read_text())
     if isinstance(doc, dict) and any(isinstance(v, dict) and "intrinsics" in v for v in doc.values()):
@@ -160,3 +160,7 @@ def colmap_camera(camera: CameraDict) -> pycolmap.Camera:
     else:
         raise InputError(f"distortion model {model!r} unsupported; use plumb_bob, rational_polynomial or equidistant")
     return pycolmap.Camera(model=name, width=int(camera["width"]), height=int(camera["height"]), params=params)
+
+
+load_calibration = load_camera_file
+"""Alias of :func:`load_camera_file`."""
