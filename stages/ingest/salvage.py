@@ -48,6 +48,29 @@ def _records(buf: bytes, pos: int = 0) -> Iterator[tuple[dict[str, bytes], bytes
         pos = start + dlen
 
 
+def _partial_record(buf: bytes, pos: int) -> tuple[dict[str, bytes], bytes] | None:
+    """Header and available data of the record cut off at the end of ``buf``."""
+    if pos + 4 > len(buf):
+        return None
+    (hlen,) = struct.unpack_from("<I", buf, pos)
+    if pos + 8 + hlen > len(buf):
+        return None
+    return _fields(buf[pos + 4 : pos + 4 + hlen]), buf[pos + 8 + hlen :]
+
+
+def _decompress(hdr: dict[str, bytes], data: bytes, partial_ok: bool = False) -> bytes:
+    comp = hdr.get("compression", b"none").decode()
+    if comp == "bz2":
+        return bz2.BZ2Decompressor().decompress(data) if partial_ok else bz2.decompress(data)
+    if comp == "lz4":
+        import lz4.frame
+
+        if partial_ok:
+            return lz4.frame.LZ4FrameDecompressor().decompress(data)
+        return lz4.frame.decompress(data)
+    return data
+
+
 class Ros1Salvage:
     """Everything readable in a damaged ROS 1 bag."""
 
@@ -65,16 +88,8 @@ class Ros1Salvage:
         for hdr, data, rec_end in _records(buf, 13):
             op = hdr.get("op", b"\x00")[0]
             if op == _OP_CHUNK:
-                comp = hdr.get("compression", b"none").decode()
                 try:
-                    if comp == "bz2":
-                        inner = bz2.decompress(data)
-                    elif comp == "lz4":
-                        import lz4.frame
-
-                        inner = lz4.frame.decompress(data)
-                    else:
-                        inner = data
+                    inner = _decompress(hdr, data)
                 except Exception as err:
                     bad_chunks += 1
                     stopped = f"chunk at byte {rec_end - len(data)} does not decompress: {err}"
@@ -87,6 +102,15 @@ class Ros1Salvage:
             end = rec_end
         if stopped is None and end < len(buf):
             stopped = f"incomplete record at byte {end} of {len(buf)}"
+            partial = _partial_record(buf, end)
+            if partial is not None and partial[0].get("op", b"\x00")[0] == _OP_CHUNK:
+                # the cut chunk: keep every whole message before the cut
+                try:
+                    inner = _decompress(partial[0], partial[1], partial_ok=True)
+                except Exception:
+                    inner = b""
+                for ihdr, idata, _ in _records(inner):
+                    self._take(ihdr, idata, types)
         store = get_typestore(Stores.EMPTY)
         for name, definition in types.items():
             try:

@@ -44,10 +44,12 @@ def run_b(ctx, cfg: ACfg) -> dict:
     return {"twice": 2 * a["value"]}
 
 
-REG = Registry([
-    Stage(name="a", config_type=ACfg, run=run_a),
-    Stage(name="b", config_type=ACfg, run=run_b, inputs=("a",)),
-])
+REG = Registry(
+    [
+        Stage(name="a", config_type=ACfg, run=run_a),
+        Stage(name="b", config_type=ACfg, run=run_b, inputs=("a",)),
+    ]
+)
 
 
 @pytest.fixture
@@ -113,7 +115,8 @@ def test_recover_after_kill_restores_old_and_drops_partial(run: RunFolder) -> No
 def test_killed_process_leaves_no_half_written_stage(tmp_path: Path) -> None:
     """A real SIGKILL in the middle of a stage: the previous output survives, the next run recovers."""
     script = tmp_path / "slow.py"
-    script.write_text(textwrap.dedent(f"""
+    script.write_text(
+        textwrap.dedent(f"""
         import sys, time
         sys.path.insert(0, {str(Path(__file__).resolve().parents[2])!r})
         from pydantic import BaseModel, ConfigDict
@@ -137,7 +140,8 @@ def test_killed_process_leaves_no_half_written_stage(tmp_path: Path) -> None:
         reg = Registry([Stage(name="s", config_type=C, run=go)])
         run = RunFolder.create(__import__("pathlib").Path(sys.argv[1]), None)
         run_stage(run, reg, "s", load_settings(reg.models(), None, sys.argv[2:]))
-    """))
+    """)
+    )
     rdir = tmp_path / "run"
     subprocess.run([sys.executable, str(script), str(rdir)], check=True)
     proc = subprocess.Popen([sys.executable, str(script), str(rdir), "s.slow=true"], stdout=subprocess.PIPE, text=True)

@@ -1,0 +1,133 @@
+"""Every bad input: exit code non-zero, one line on stderr starting with 'error:', nothing half-written."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import write_minimal_bag
+
+FOCUSMAP = [sys.executable, "-m", "cli.app"]
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def focusmap(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*FOCUSMAP, *map(str, args)], capture_output=True, text=True, cwd=ROOT, timeout=300)
+
+
+def assert_one_error_line(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+    assert proc.returncode != 0, proc.stdout
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: "), lines[0]
+    assert "Traceback" not in proc.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def assert_no_stage_output(out: Path) -> None:
+    if not out.exists():
+        return
+    for run in out.iterdir():
+        assert not (run / "ingest").exists(), f"half-written ingest in {run}"
+        assert not (run / ".partial").exists()
+        assert not (run / "ingest.rrd").exists()
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    proc = focusmap("ingest", tmp_path / "nope.bag", "--out", tmp_path / "runs")
+    assert_one_error_line(proc, "does not exist")
+    assert not (tmp_path / "runs").exists()
+
+
+def test_zero_byte_file(tmp_path: Path) -> None:
+    bag = tmp_path / "empty.bag"
+    bag.write_bytes(b"")
+    proc = focusmap("ingest", bag, "--out", tmp_path / "runs")
+    assert_one_error_line(proc, "empty (0 bytes)")
+    assert_no_stage_output(tmp_path / "runs")
+
+
+def test_text_file_named_bag(tmp_path: Path) -> None:
+    bag = tmp_path / "notes.bag"
+    bag.write_text("these are not messages\n")
+    proc = focusmap("ingest", bag, "--out", tmp_path / "runs")
+    assert_one_error_line(proc, "is not a ROS bag or MCAP file")
+    assert_no_stage_output(tmp_path / "runs")
+
+
+def test_bag_with_no_messages(shared_data: Path, tmp_path: Path) -> None:
+    proc = focusmap("ingest", shared_data / "rosbag1-fixtures" / "no-messages.bag", "--out", tmp_path / "runs")
+    assert_one_error_line(proc, "holds no messages")
+    assert_no_stage_output(tmp_path / "runs")
+
+
+def test_bag_with_no_image_topic(shared_data: Path, tmp_path: Path) -> None:
+    proc = focusmap("ingest", shared_data / "rosbag1-fixtures" / "example.bag", "--out", tmp_path / "runs")
+    assert_one_error_line(proc, "no camera image topic", "/turtle1/pose (turtlesim/msg/Pose)")
+    assert_no_stage_output(tmp_path / "runs")
+
+
+def test_camera_info_with_zero_focal_length(tmp_path: Path) -> None:
+    bag = write_minimal_bag(tmp_path / "uncalibrated.bag", focal=0.0)
+    before = bag.read_bytes()
+    proc = focusmap("ingest", bag, "--out", tmp_path / "runs")
+    assert_one_error_line(proc, "zero focal length", "--camera FILE")
+    assert_no_stage_output(tmp_path / "runs")
+    assert bag.read_bytes() == before
+
+
+def test_unknown_set_key(tmp_path: Path) -> None:
+    bag = write_minimal_bag(tmp_path / "ok.bag")
+    proc = focusmap("ingest", bag, "--out", tmp_path / "runs", "--set", "ingest.frame_strid=2")
+    assert_one_error_line(proc, "unknown key ingest.frame_strid", "frame_stride")
+    assert not (tmp_path / "runs").exists()
+
+
+def _truncated_copy(src: Path, dst: Path, keep: float) -> Path:
+    shutil.copy(src, dst)
+    with dst.open("r+b") as fh:
+        fh.truncate(int(dst.stat().st_size * keep))
+    return dst
+
+
+def test_truncated_bag_fails_and_salvage_recovers(shared_data: Path, tmp_path: Path) -> None:
+    bag = _truncated_copy(shared_data / "rosbag1-fixtures" / "example.bag", tmp_path / "cut.bag", 0.6)
+    proc = focusmap("info", bag)
+    assert_one_error_line(proc, "truncated or damaged", "--salvage")
+    proc = focusmap("info", bag, "--salvage", "--json")
+    assert proc.returncode == 0, proc.stderr
+    import json
+
+    data = json.loads(proc.stdout)
+    assert 0 < data["messages"] < 8647
+    assert data["salvaged"]["messages"] == data["messages"]
+    assert data["salvaged"]["stopped_at"]
+
+
+def test_ingest_minimal_bag_works(tmp_path: Path) -> None:
+    """The control for the cases above: the same bag with a calibrated camera ingests."""
+    bag = write_minimal_bag(tmp_path / "ok.bag")
+    proc = focusmap("ingest", bag, "--out", tmp_path / "runs")
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "runs" / "ok" / "ingest" / "frames.parquet").is_file()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--help"],
+        ["info", "--help"],
+        ["ingest", "--help"],
+        ["run", "--help"],
+        ["view", "--help"],
+        ["show-config", "--help"],
+    ],
+)
+def test_help(args: list[str]) -> None:
+    proc = focusmap(*args)
+    assert proc.returncode == 0 and "Usage" in proc.stdout
