@@ -46,7 +46,7 @@ def test_unknown_section_and_set_key() -> None:
         load_settings(MODELS, None, ["tyo.budget=1"])
     with pytest.raises(ConfigError, match=r"--set 'toy.famly=x': unknown key toy.famly \(did you mean 'family'"):
         load_settings(MODELS, None, ["toy.famly=x"])
-    with pytest.raises(ConfigError, match="expected SECTION.KEY=VALUE"):
+    with pytest.raises(ConfigError, match=r"expected SECTION\.KEY=VALUE"):
         load_settings(MODELS, None, ["budget"])
 
 

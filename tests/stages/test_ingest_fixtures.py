@@ -79,7 +79,7 @@ def test_info_fields_and_rates(shared_data: Path) -> None:
 
 @pytest.mark.parametrize("rel", ["rosbag1-fixtures/empty-file.bag", "rosbag1-fixtures/asci-file.txt"])
 def test_broken_fixtures_fail_with_a_reason(shared_data: Path, rel: str) -> None:
-    with pytest.raises(InputError, match="empty|not a ROS bag"):
+    with pytest.raises(InputError, match=r"empty|not a ROS bag"):
         Recording(shared_data / rel)
 
 
