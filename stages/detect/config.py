@@ -52,7 +52,7 @@ class DetectConfig(BaseModel):
         None,
         gt=0,
         description="Standard deviation of a corner coordinate, px; null = estimated from the reprojection "
-        "residuals of all detections of the run (pooled, 2 degrees of freedom per tag).",
+        "residuals of the run's detections (2 degrees of freedom per tag), pooled per band of tag side in px.",
     )
     min_corner_sigma_px: float = Field(
         0.1, gt=0, description="Floor of the estimated corner noise, px (ignored when corner_sigma_px is set)."
@@ -64,8 +64,8 @@ class DetectConfig(BaseModel):
         0.5,
         gt=0,
         le=1,
-        description="A detection is ambiguous when the squared reprojection error of the best planar (IPPE) "
-        "solution exceeds this fraction of the other's (1 = never ambiguous... 0 = always).",
+        description="A detection is ambiguous when the squared reprojection error of the better planar (IPPE) "
+        "solution exceeds this fraction of the other's (1 = never ambiguous).",
     )
     ambiguous: Literal["flag", "drop"] = Field(
         "flag", description="What to do with ambiguous detections: keep them flagged, or drop them."

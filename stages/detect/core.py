@@ -66,7 +66,8 @@ def observations_to_rows(
         if apply_quality and cfg.backend == "apriltag3" and obs.decision_margin < cfg.min_decision_margin:
             dropped["decision_margin"] += 1
             continue
-        if shortest_side_px(obs.corners) < cfg.min_side_px:
+        side = shortest_side_px(obs.corners)
+        if side < cfg.min_side_px:
             dropped["small"] += 1
             continue
         size = cfg.size_of(obs.tag_id)
@@ -91,6 +92,7 @@ def observations_to_rows(
             "pose_cov_unit": pose.cov_unit.ravel().tolist(),
             "position_cov_unit": pose.position_cov_unit.ravel().tolist(),
             "sse_px2": pose.sse_px2,
+            "side_px": side,
             "reprojection_px": pose.reprojection_px,
             "ambiguity_ratio": pose.ambiguity_ratio,
             "decision_margin": obs.decision_margin,

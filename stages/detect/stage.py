@@ -166,7 +166,8 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         "corrupt_frame_ids": [f for f, _ in corrupt][:100],
         "dropped": {k: int(dropped.get(k, 0)) for k in DROP_REASONS} | {"ambiguous": n_dropped_ambiguous},
         "ambiguous": n_ambiguous,
-        "corner_sigma_px": round(sigma, 4),
+        "corner_sigma_px": {f"{lo:g}-{hi:g}": round(v, 4)
+                            for lo, hi, v in zip(SIDE_BANDS_PX[:-1], SIDE_BANDS_PX[1:], sigma, strict=True)},
         "corner_sigma_source": sigma_source,
         "reprojection_px_median": round(float(np.median(reproj)), 4),
         "detect_seconds": round(seconds, 3),
@@ -175,24 +176,45 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
     }
 
 
-def _corner_sigma(rows: list[Row], cfg: DetectConfig) -> tuple[float, str]:
-    """The corner noise: from the settings, or pooled over the residuals (4 corners x 2 - 6 = 2 dof a tag)."""
+# Corner noise can be pooled per band of the tag's shortest side in the image (px). Per-band pools
+# (0, 15, 25, 40, 70, inf) were measured worse than one pool on the simulator (docs/detect.md): the
+# residuals of mid-size tags understate their correlated corner errors. So one band.
+SIDE_BANDS_PX = (0.0, float("inf"))
+_MIN_PER_BAND = 20
+
+
+def _band_of(side_px: float) -> int:
+    return int(np.searchsorted(SIDE_BANDS_PX, side_px, side="right") - 1)
+
+
+def _corner_sigma(rows: list[Row], cfg: DetectConfig) -> tuple[list[float], str]:
+    """Corner noise per side band: from the settings, or pooled over the reprojection residuals.
+
+    A tag's four corners give 8 residuals for 6 pose parameters, so 2 degrees of freedom. Residuals are
+    pooled per band of the tag's shortest side (``SIDE_BANDS_PX``); a band with fewer than 20 tags uses
+    the pool of every tag. Estimates are floored at ``min_corner_sigma_px``.
+    """
+    n_bands = len(SIDE_BANDS_PX) - 1
     if cfg.corner_sigma_px is not None:
-        return float(cfg.corner_sigma_px), "settings"
+        return [float(cfg.corner_sigma_px)] * n_bands, "settings"
     if not rows:
-        return cfg.min_corner_sigma_px, "floor"
-    sse = float(sum(r["sse_px2"] for r in rows))
-    estimate = float(np.sqrt(sse / (2.0 * len(rows))))
-    if estimate < cfg.min_corner_sigma_px:
-        return cfg.min_corner_sigma_px, "floor"
-    return estimate, "residuals"
+        return [cfg.min_corner_sigma_px] * n_bands, "floor"
+    sse = np.zeros(n_bands)
+    count = np.zeros(n_bands)
+    for r in rows:
+        b = _band_of(r["side_px"])
+        sse[b] += r["sse_px2"]
+        count[b] += 1
+    overall = np.sqrt(sse.sum() / (2.0 * count.sum()))
+    per_band = np.where(count >= _MIN_PER_BAND, np.sqrt(sse / (2.0 * np.maximum(count, 1))), overall)
+    return [float(v) for v in np.maximum(per_band, cfg.min_corner_sigma_px)], "residuals"
 
 
-def _table(rows: list[Row], sigma: float, cfg: DetectConfig) -> tuple[pa.Table, int, int]:
+def _table(rows: list[Row], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.Table, int, int]:
     out: dict[str, list[Any]] = {f.name: [] for f in DETECTIONS_SCHEMA}
     n_ambiguous = n_dropped = 0
-    var = sigma**2
     for r in rows:
+        var = sigmas[_band_of(r["side_px"])] ** 2
         ambiguous = bool(r["ambiguity_ratio"] > cfg.max_ambiguity_ratio)
         n_ambiguous += ambiguous
         if ambiguous and cfg.ambiguous == "drop":
