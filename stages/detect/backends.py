@@ -10,7 +10,7 @@ converted here and checked against rendered ground truth in the tests.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -62,6 +62,11 @@ def shortest_side_px(corners: npt.NDArray[np.float64]) -> float:
     return float(np.min(np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)))
 
 
+# pupil-apriltags 1.0.4 corrupts the heap when a detector holding tag16h5 is destroyed, so detectors are
+# built once per process and settings, and kept for the life of the process.
+_AT3_DETECTORS: dict[tuple[object, ...], object] = {}
+
+
 class AprilTag3Detector:
     """The AprilTag 3 C library through pupil-apriltags."""
 
@@ -71,14 +76,17 @@ class AprilTag3Detector:
         import pupil_apriltags
 
         self.families = cfg.families
-        self._detector = pupil_apriltags.Detector(
-            families=" ".join(cfg.families),
-            nthreads=1,
-            quad_decimate=float(cfg.decimation),
-            quad_sigma=float(cfg.blur_sigma),
-            refine_edges=int(cfg.refine_edges),
-            decode_sharpening=float(cfg.decode_sharpening),
-        )
+        key = (cfg.families, cfg.decimation, cfg.blur_sigma, cfg.refine_edges, cfg.decode_sharpening)
+        if key not in _AT3_DETECTORS:
+            _AT3_DETECTORS[key] = pupil_apriltags.Detector(
+                families=" ".join(cfg.families),
+                nthreads=1,
+                quad_decimate=float(cfg.decimation),
+                quad_sigma=float(cfg.blur_sigma),
+                refine_edges=int(cfg.refine_edges),
+                decode_sharpening=float(cfg.decode_sharpening),
+            )
+        self._detector: Any = _AT3_DETECTORS[key]
 
     def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:
         """Detect tags in one grayscale image."""

@@ -31,7 +31,10 @@ class DetectConfig(BaseModel):
     )
     families: tuple[Family, ...] = Field(("tag36h11",), min_length=1, description="Tag families to look for.")
     decimation: float = Field(
-        2.0, ge=1.0, description="Quad detection on an image decimated by this factor (1 = full resolution)."
+        1.0,
+        ge=1.0,
+        description="Quad detection on an image decimated by this factor (1 = full resolution; 2 is 3-4x faster "
+        "but misses small tags: 9 of 12 and 7 of 10 on the real photos).",
     )
     blur_sigma: float = Field(0.0, ge=0.0, description="Gaussian blur before quad detection, pixels (0 = none).")
     refine_edges: bool = Field(True, description="Refine the tag edges on the full-resolution image.")
