@@ -98,8 +98,11 @@ class LinearSystem:
         keys = list(range(len(dims))) if keys is None else list(keys)
         variables = [Variable(int(k), int(d), kd) for k, d, kd in zip(keys, dims, kinds, strict=True)]
         fs = [
-            Factor(tuple(int(v) for v in vs), np.asarray(A, dtype=np.float64),
-                   _factor_kind([variables[int(v)].kind for v in vs]))
+            Factor(
+                tuple(int(v) for v in vs),
+                np.asarray(A, dtype=np.float64),
+                _factor_kind([variables[int(v)].kind for v in vs]),
+            )
             for vs, A in factors
         ]
         return cls(variables, fs)
@@ -125,7 +128,8 @@ class LinearSystem:
                 return chr(gtsam.Symbol(key).chr()) in "lL"
 
         dims = values.dims()
-        keys = sorted(int(k) for k in values.keys())
+        key_vector = values.keys()  # a gtsam KeyVector, not a dict
+        keys = sorted(int(k) for k in key_vector)
         variables = [Variable(k, int(dims[k]), "landmark" if is_landmark(k) else "pose") for k in keys]
         index = {k: i for i, k in enumerate(keys)}
         lin = nfg.linearize(values)
@@ -135,11 +139,11 @@ class LinearSystem:
             if g is None:
                 factors.append(Factor((), np.zeros((0, 0)), "other"))
                 continue
-            fkeys = [int(k) for k in g.keys()]
+            factor_keys = g.keys()  # a gtsam KeyVector
+            fkeys = [int(k) for k in factor_keys]
             A, _ = g.jacobian()
             vs = tuple(index[k] for k in fkeys)
-            factors.append(Factor(vs, np.asarray(A, dtype=np.float64),
-                                  _factor_kind([variables[v].kind for v in vs])))
+            factors.append(Factor(vs, np.asarray(A, dtype=np.float64), _factor_kind([variables[v].kind for v in vs])))
         return cls(variables, factors)
 
     # ------------------------------------------------------------------ queries
@@ -179,9 +183,7 @@ class LinearSystem:
             r0 += f.rows
         if not rows:
             return sp.csr_matrix((0, self.dim))
-        return sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, self.dim)
-        )
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, self.dim))
 
     def information(self, factor_ids: Iterable[int] | None = None) -> sp.csc_matrix:
         """``Λ = Σ_f A_fᵀ A_f`` over the given factors (all by default), as a sparse matrix."""

@@ -25,6 +25,13 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
+try:  # optional, faster sparse Cholesky (CHOLMOD in a wheel)
+    from cholespy import CholeskySolverD, MatrixType
+
+    _HAVE_CHOLESPY = True
+except ImportError:  # pragma: no cover - depends on the environment
+    _HAVE_CHOLESPY = False
+
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
@@ -34,41 +41,75 @@ class SingularInformationError(ValueError):
 
 
 class SPDSolver:
-    """Factorise a sparse symmetric positive-definite matrix once; solve many right-hand sides."""
+    """Factorise a sparse symmetric positive-definite matrix once; solve many right-hand sides.
 
-    def __init__(self, matrix: sp.spmatrix) -> None:
+    Uses CHOLMOD through ``cholespy`` (a self-contained wheel) when it is installed, else SciPy's
+    SuperLU with a symmetric minimum-degree ordering and diagonal pivoting.
+    """
+
+    def __init__(self, matrix: sp.spmatrix, backend: str | None = None) -> None:
         A = sp.csc_matrix(matrix)
-        self.n = A.shape[0]
+        self._A = A
+        self.n = int(A.shape[0])
+        self._lu: spla.SuperLU | None = None
+        self._chol = None
+        self.backend = backend or ("cholmod" if _HAVE_CHOLESPY else "superlu")
         if self.n == 0:
-            self._lu = None
-            self.logdet = 0.0
             return
-        try:
-            self._lu = spla.splu(
-                A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-            )
-        except RuntimeError as err:  # "Factor is exactly singular"
-            raise SingularInformationError(f"information matrix is singular: {err}") from err
-        d = self._lu.U.diagonal()
-        scale = max(float(np.max(np.abs(A.diagonal()))), 1e-300)
-        if np.any(d <= 1e-13 * scale):
+        diag = A.diagonal()
+        if np.any(diag <= 0):
             raise SingularInformationError(
-                "information matrix is not positive definite (a variable or direction is unobserved: "
-                "add a prior or a weak landmark prior)"
+                f"information matrix has {int(np.sum(diag <= 0))} unobserved directions (zero diagonal): "
+                "add a prior or a weak landmark prior"
             )
-        self.logdet = float(np.sum(np.log(d)))
-        """``log det`` of the factorised matrix."""
+        if self.backend == "cholmod":
+            coo = sp.coo_matrix(A)
+            try:
+                self._chol = CholeskySolverD(
+                    self.n,
+                    coo.row.astype(np.int32),
+                    coo.col.astype(np.int32),
+                    coo.data.astype(np.float64),
+                    MatrixType.COO,
+                )
+            except Exception as err:  # CHOLMOD reports a non-positive-definite matrix as a plain error
+                raise SingularInformationError(f"information matrix is not positive definite: {err}") from err
+        else:
+            self._superlu()
 
-    @property
-    def nnz_factor(self) -> int:
-        """Non-zeros of L + U (a measure of fill)."""
-        return 0 if self._lu is None else int(self._lu.L.nnz + self._lu.U.nnz)
+    def _superlu(self) -> spla.SuperLU:
+        if self._lu is None:
+            try:
+                self._lu = spla.splu(
+                    self._A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+                )
+            except RuntimeError as err:  # "Factor is exactly singular"
+                raise SingularInformationError(f"information matrix is singular: {err}") from err
+            d = self._lu.U.diagonal()
+            scale = max(float(np.max(np.abs(self._A.diagonal()))), 1e-300)
+            if np.any(d <= 1e-13 * scale):
+                raise SingularInformationError(
+                    "information matrix is not positive definite (a variable or direction is unobserved: "
+                    "add a prior or a weak landmark prior)"
+                )
+        return self._lu
+
+    def logdet(self) -> float:
+        """``log det`` of the factorised matrix (SuperLU, computed on first use)."""
+        if self.n == 0:
+            return 0.0
+        return float(np.sum(np.log(self._superlu().U.diagonal())))
 
     def solve(self, rhs: FloatArray) -> FloatArray:
         """``A⁻¹ rhs`` for a dense vector or matrix ``rhs``."""
-        if self._lu is None:
-            return np.zeros_like(rhs, dtype=np.float64)
-        return np.asarray(self._lu.solve(np.asarray(rhs, dtype=np.float64)))
+        b = np.ascontiguousarray(rhs, dtype=np.float64)
+        if self.n == 0:
+            return np.zeros_like(b)
+        if self._chol is not None:
+            x = np.zeros_like(b)
+            self._chol.solve(b, x)
+            return x
+        return np.asarray(self._superlu().solve(b))
 
 
 def _variable_graph(info: sp.spmatrix, offsets: IntArray) -> sp.csr_matrix:
@@ -108,14 +149,26 @@ def _tridiagonal_blocks(
     info: sp.csc_matrix, offsets: IntArray, order: Sequence[int]
 ) -> tuple[list[FloatArray], list[FloatArray]]:
     """Diagonal blocks ``Σ_kk`` and neighbour blocks ``Σ_{k,k+1}`` of a block-tridiagonal inverse."""
-    info = sp.csr_matrix(info)
-
-    def block(a: int, b: int) -> FloatArray:
-        return info[offsets[a] : offsets[a + 1], :][:, offsets[b] : offsets[b + 1]].toarray()
-
     n = len(order)
-    D = [block(v, v) for v in order]
-    B = [block(order[k], order[k + 1]) for k in range(n - 1)]
+    n_var = len(offsets) - 1
+    pos = np.full(n_var, -1, dtype=np.int64)
+    pos[np.asarray(order, dtype=np.int64)] = np.arange(n)
+    dims = np.diff(offsets)
+    dmax = int(dims[np.asarray(order)].max())
+    coo = sp.coo_matrix(info)
+    var_of_col = np.repeat(np.arange(n_var), dims)
+    vr, vc = var_of_col[coo.row], var_of_col[coo.col]
+    pr, pc = pos[vr], pos[vc]
+    lr, lc = coo.row - offsets[vr], coo.col - offsets[vc]
+    Dp = np.zeros((n, dmax, dmax))
+    Bp = np.zeros((max(n - 1, 0), dmax, dmax))
+    on = (pr >= 0) & (pr == pc)
+    np.add.at(Dp, (pr[on], lr[on], lc[on]), coo.data[on])
+    up = (pr >= 0) & (pc == pr + 1)
+    np.add.at(Bp, (pr[up], lr[up], lc[up]), coo.data[up])
+    dk = dims[np.asarray(order)]
+    D = [Dp[k, : dk[k], : dk[k]] for k in range(n)]
+    B = [Bp[k, : dk[k], : dk[k + 1]] for k in range(n - 1)]
     S_inv: list[FloatArray] = []
     S = D[0]
     for k in range(n):
@@ -152,7 +205,7 @@ def covariance_blocks(
     info = sp.csc_matrix(info)
     pairs = list(dict.fromkeys((int(i), int(j)) for i, j in pairs))
     graph = _variable_graph(info, offsets)
-    n_comp, label = csgraph.connected_components(graph, directed=False)
+    _, label = csgraph.connected_components(graph, directed=False)
     members_of: dict[int, list[int]] = defaultdict(list)
     for v, c in enumerate(label):
         members_of[int(c)].append(v)
@@ -163,6 +216,11 @@ def covariance_blocks(
     tri: dict[int, tuple[dict[int, int], list[FloatArray], list[FloatArray]]] = {}
     for c in needed_comp:
         members = np.array(members_of[c], dtype=np.int64)
+        if len(members) == 1:
+            v = int(members[0])
+            blk = info[offsets[v] : offsets[v + 1], :][:, offsets[v] : offsets[v + 1]].toarray()
+            tri[c] = ({v: 0}, [np.linalg.inv(blk)], [])
+            continue
         order = _path_order(graph, members)
         if order is not None:
             diag, off = _tridiagonal_blocks(info, offsets, order)

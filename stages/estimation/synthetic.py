@@ -25,7 +25,7 @@ class PlanarProblem:
     poses: FloatArray
     """(T, 3) x, y, θ."""
     landmarks: FloatArray
-    """(n_landmarks, 2)."""
+    """(n_landmarks, 2); only the measured ones are in ``values``."""
     measurement_factors: list[int]
     """Indices (in ``graph``) of the bearing-range factors, in time order."""
     measured: list[tuple[int, int]]
@@ -60,10 +60,11 @@ def planar_problem(
     values = gtsam.Values()
     for i, (x, y, th) in enumerate(poses):
         values.insert(X(i), gtsam.Pose2(x, y, th))
-    for k, (x, y) in enumerate(landmarks):
-        values.insert(L(k), gtsam.Point2(x, y))
-    graph.add(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*poses[0]),
-                                     gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.001]))))
+    graph.add(
+        gtsam.PriorFactorPose2(
+            X(0), gtsam.Pose2(*poses[0]), gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.001]))
+        )
+    )
     odo = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(odometry_sigmas))
     for i in range(n_poses - 1):
         a, b = gtsam.Pose2(*poses[i]), gtsam.Pose2(*poses[i + 1])
@@ -82,4 +83,6 @@ def planar_problem(
         measurement_factors.append(graph.size())
         graph.add(gtsam.BearingRangeFactor2D(X(int(i)), L(k), p.bearing(pt), p.range(pt), br))
         measured.append((int(i), k))
+    for k in sorted({k for _, k in measured}):  # unmeasured landmarks are not in the graph
+        values.insert(L(k), gtsam.Point2(*landmarks[k]))
     return PlanarProblem(graph, values, poses, landmarks, measurement_factors, measured)
