@@ -9,6 +9,7 @@ converted here and checked against rendered ground truth in the tests.
 
 from __future__ import annotations
 
+import atexit
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -62,9 +63,16 @@ def shortest_side_px(corners: npt.NDArray[np.float64]) -> float:
     return float(np.min(np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)))
 
 
-# pupil-apriltags 1.0.4 corrupts the heap when a detector holding tag16h5 is destroyed, so detectors are
-# built once per process and settings, and kept for the life of the process.
-_AT3_DETECTORS: dict[tuple[object, ...], object] = {}
+# pupil-apriltags 1.0.4 corrupts the heap when it destroys a detector (it frees the tag families before
+# the detector that uses them; tag16h5 shows it at once). So detectors are built once per process and
+# settings, kept, and never destroyed: at exit their pointer is cleared so ``__del__`` does nothing.
+_AT3_DETECTORS: dict[tuple[object, ...], Any] = {}
+
+
+@atexit.register
+def _forget_apriltag3_detectors() -> None:
+    for det in _AT3_DETECTORS.values():
+        det.tag_detector_ptr = None
 
 
 class AprilTag3Detector:
