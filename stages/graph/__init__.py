@@ -1,0 +1,46 @@
+"""Stage ``graph``: the full SLAM factor graph of the run (odometry + every tag measurement), optimised,
+with the marginal covariance of every pose and landmark; and ``import_graph`` for existing graph files.
+
+Public API:
+    STAGE: the stage value for the registry.
+    GraphConfig: its settings.
+    import_graph(path, out_dir, name) -> Path: a run folder whose graph stage comes from a g2o / GTSAM file.
+    load_graph(graph_input) -> LoadedGraph and build_reduced(loaded, keep_factor_indices) (in ``stages.graph.load``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+from pipeline.stage import Stage
+from stages.graph.config import GraphConfig
+from stages.graph.imports import import_graph
+from stages.graph.load import LoadedGraph, build_reduced, load_graph
+from stages.graph.stage import run
+
+
+def blueprint() -> Any:
+    """The layout of ``graph.rrd``: the map from above, and the summary."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="/graph", name="full graph"),
+            rrb.TextDocumentView(origin="/graph/summary", name="summary"),
+            column_shares=[3, 1],
+        ),
+        rrb.TimePanel(play_state="paused", timeline="time"),
+    )
+
+
+STAGE: Final = Stage(
+    name="graph",
+    config_type=GraphConfig,
+    run=run,
+    inputs=("ingest", "detect"),
+    version="1",
+    blueprint=blueprint,
+    help="Build the full factor graph (odometry + every tag), optimise it and compute every marginal.",
+)
+
+__all__ = ["STAGE", "GraphConfig", "LoadedGraph", "blueprint", "build_reduced", "import_graph", "load_graph"]

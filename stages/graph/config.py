@@ -1,0 +1,86 @@
+"""Settings of the graph stage (YAML section ``graph``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class GraphConfig(BaseModel):
+    """The full factor graph: model, keyframes, noise, robust kernel and optimiser."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    model: Literal["planar", "3d"] = Field(
+        "planar",
+        description="planar: Pose2 robot poses and (x, y) tag landmarks (ground robots); "
+        "3d: Pose3 robot poses and Pose3 tags.",
+    )
+    # keyframes
+    keyframe_max_gap_s: float = Field(
+        1.0, gt=0, description="Add an odometry keyframe where no tag was seen for this long, s."
+    )
+    keyframe_max_distance_m: float = Field(
+        0.5, gt=0, description="Add an odometry keyframe where the robot moved this far without a tag frame, m."
+    )
+    keyframe_max_angle_rad: float = Field(
+        0.5, gt=0, description="Add an odometry keyframe where the robot turned this much without a tag frame, rad."
+    )
+    # odometry
+    odometry_noise: Literal["auto", "messages", "settings"] = Field(
+        "auto",
+        description="Noise of the odometry factors: from the messages' pose covariances (their growth between "
+        "keyframes), from the settings below, or auto (messages when filled in, else settings).",
+    )
+    odometry_sigma_m: float = Field(0.01, gt=0, description="Odometry translation noise floor per factor, m.")
+    odometry_sigma_per_m: float = Field(
+        0.05, ge=0, description="Odometry translation noise growth per metre travelled (fraction of distance)."
+    )
+    odometry_sigma_rad: float = Field(0.005, gt=0, description="Odometry heading noise floor per factor, rad.")
+    odometry_sigma_rad_per_rad: float = Field(
+        0.05, ge=0, description="Odometry heading noise growth per radian turned (fraction of angle)."
+    )
+    odometry_sigma_rad_per_m: float = Field(
+        0.01, ge=0, description="Odometry heading noise growth per metre travelled, rad/m."
+    )
+    # no odometry
+    motion_prior: bool = Field(
+        True, description="Without odometry, join consecutive keyframes with a weak zero-motion prior."
+    )
+    motion_prior_sigma_m: float = Field(1.0, gt=0, description="Zero-motion prior translation sigma, m.")
+    motion_prior_sigma_rad: float = Field(1.0, gt=0, description="Zero-motion prior rotation sigma, rad.")
+    # prior
+    prior_sigma_m: float = Field(1e-3, gt=0, description="Prior on the first pose: translation sigma, m.")
+    prior_sigma_rad: float = Field(1e-3, gt=0, description="Prior on the first pose: rotation sigma, rad.")
+    # tags
+    min_tag_observations: int = Field(
+        1, ge=1, description="Tags seen fewer times than this are left out of the graph (listed in the summary)."
+    )
+    drop_ambiguous: bool = Field(True, description="Leave out detections that detect flagged as ambiguous.")
+    max_reprojection_px: float = Field(
+        5.0, gt=0, description="Leave out detections whose corner RMS reprojection error exceeds this, px."
+    )
+    tag_covariance_scale: float = Field(
+        1.0, gt=0, description="Multiply the detections' 6x6 covariances by this (variance scale)."
+    )
+    tag_sigma_floor_m: float = Field(
+        0.005, ge=0, description="Floor added to the tag position sigma in every direction, m."
+    )
+    tag_sigma_floor_rad: float = Field(
+        0.005, ge=0, description="Floor added to the tag rotation sigma (3d model), rad."
+    )
+    robust_kernel: Literal["none", "huber", "cauchy"] = Field("none", description="Robust kernel on the tag factors.")
+    robust_threshold: float = Field(
+        1.345, gt=0, description="Robust kernel threshold, in whitened residual units (sigmas)."
+    )
+    # optimiser
+    optimizer: Literal["lm", "gn", "dogleg"] = Field(
+        "lm", description="Levenberg-Marquardt (lm), Gauss-Newton (gn) or Dogleg (dogleg)."
+    )
+    max_iterations: int = Field(100, ge=1, description="Maximum optimiser iterations.")
+    relative_error_tol: float = Field(1e-6, gt=0, description="Stop when the error falls by less than this fraction.")
+    # recording
+    pose_ellipse_stride: int = Field(
+        10, ge=1, description="Draw the covariance ellipse of every n-th pose in graph.rrd."
+    )

@@ -1,0 +1,187 @@
+"""Factors as table rows, and back: the one representation that the graph stage writes and later stages rebuild.
+
+A :class:`FactorRow` names a gtsam factor type, its keys, its measurement as plain numbers, its
+covariance, and an optional robust kernel. :func:`make_factor` turns it into the gtsam factor, so
+``factors.parquet`` rebuilds exactly the graph that was optimised.
+
+Measurement layouts per ``type``:
+
+| type | measurement | covariance (tangent order) |
+| --- | --- | --- |
+| ``PriorFactorPose2`` / ``BetweenFactorPose2`` | x, y, theta | 3x3 (x, y, theta) |
+| ``PriorFactorPose3`` / ``BetweenFactorPose3`` | x, y, z, qx, qy, qz, qw | 6x6 (rx, ry, rz, tx, ty, tz) |
+| ``BearingRangeFactor2D`` (Pose2 -> Point2) | bearing (rad), range (m) | 2x2 (bearing, range) |
+| ``BearingRangeFactor3D`` (Pose3 -> Point3) | ux, uy, uz (unit bearing), range (m) | 3x3 (Unit3 basis 2, range) |
+| ``PriorFactorPoint2`` / ``PriorFactorPoint3`` | x, y (, z) | 2x2 / 3x3 |
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+import pyarrow as pa
+
+from stages.geometry import pose3_from_vector
+
+KINDS = ("prior", "odometry", "loop", "motion_prior", "tag")
+"""Factor kinds: ``tag`` rows are the landmark measurements (the candidates of the selection stages);
+``loop`` is a pose-to-pose edge between non-consecutive poses of an imported graph."""
+
+FACTOR_DIMS = {
+    "PriorFactorPose2": 3,
+    "BetweenFactorPose2": 3,
+    "PriorFactorPose3": 6,
+    "BetweenFactorPose3": 6,
+    "BearingRangeFactor2D": 2,
+    "BearingRangeFactor3D": 3,
+    "PriorFactorPoint2": 2,
+    "PriorFactorPoint3": 3,
+}
+
+
+@dataclass
+class FactorRow:
+    """One factor of the graph as plain data (one row of ``factors.parquet``)."""
+
+    kind: str
+    type: str
+    keys: tuple[int, ...]
+    measurement: np.ndarray
+    covariance: np.ndarray
+    robust: str = "none"
+    robust_k: float = 0.0
+    tag_id: int | None = None
+    frame: int | None = None
+    stamp_ns: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the residual."""
+        return FACTOR_DIMS[self.type]
+
+
+def noise_model(cov: np.ndarray, robust: str = "none", robust_k: float = 0.0) -> gtsam.noiseModel.Base:
+    """A Gaussian noise model from a full covariance, wrapped in a Huber or Cauchy kernel if asked."""
+    C = np.asarray(cov, dtype=float)
+    C = 0.5 * (C + C.T)
+    base = gtsam.noiseModel.Gaussian.Covariance(C)
+    if robust == "none":
+        return base
+    if robust == "huber":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), base)
+    if robust == "cauchy":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(robust_k), base)
+    raise ValueError(f"unknown robust kernel {robust!r}; use none, huber or cauchy")
+
+
+def make_factor(row: FactorRow) -> gtsam.NonlinearFactor:
+    """The gtsam factor of a row."""
+    d = row.dim
+    cov = np.asarray(row.covariance, dtype=float).reshape(d, d)
+    noise = noise_model(cov, row.robust, row.robust_k)
+    m = np.asarray(row.measurement, dtype=float)
+    k = row.keys
+    t = row.type
+    if t == "PriorFactorPose2":
+        return gtsam.PriorFactorPose2(k[0], gtsam.Pose2(m[0], m[1], m[2]), noise)
+    if t == "BetweenFactorPose2":
+        return gtsam.BetweenFactorPose2(k[0], k[1], gtsam.Pose2(m[0], m[1], m[2]), noise)
+    if t == "PriorFactorPose3":
+        return gtsam.PriorFactorPose3(k[0], pose3_from_vector(m), noise)
+    if t == "BetweenFactorPose3":
+        return gtsam.BetweenFactorPose3(k[0], k[1], pose3_from_vector(m), noise)
+    if t == "BearingRangeFactor2D":
+        return gtsam.BearingRangeFactor2D(k[0], k[1], gtsam.Rot2(m[0]), float(m[1]), noise)
+    if t == "BearingRangeFactor3D":
+        return gtsam.BearingRangeFactor3D(k[0], k[1], gtsam.Unit3(m[:3]), float(m[3]), noise)
+    if t == "PriorFactorPoint2":
+        return gtsam.PriorFactorPoint2(k[0], m[:2], noise)
+    if t == "PriorFactorPoint3":
+        return gtsam.PriorFactorPoint3(k[0], m[:3], noise)
+    raise ValueError(f"unknown factor type {t!r}")
+
+
+def build_graph(rows: Iterable[FactorRow]) -> gtsam.NonlinearFactorGraph:
+    """A ``NonlinearFactorGraph`` with one factor per row, in row order (factor i is row i)."""
+    graph = gtsam.NonlinearFactorGraph()
+    for row in rows:
+        graph.add(make_factor(row))
+    return graph
+
+
+def key_name(key: int) -> str:
+    """``x12`` / ``l17`` for symbol keys, the number otherwise."""
+    sym = gtsam.Symbol(int(key))
+    ch = sym.chr()
+    if ch in (ord("x"), ord("l")):
+        return f"{chr(ch)}{sym.index()}"
+    return str(int(key))
+
+
+FACTOR_SCHEMA = pa.schema(
+    [
+        ("index", pa.int64()),
+        ("kind", pa.string()),
+        ("type", pa.string()),
+        ("keys", pa.list_(pa.uint64())),
+        ("key_names", pa.list_(pa.string())),
+        ("measurement", pa.list_(pa.float64())),
+        ("covariance", pa.list_(pa.float64())),
+        ("dim", pa.int32()),
+        ("robust", pa.string()),
+        ("robust_k", pa.float64()),
+        ("tag_id", pa.int64()),
+        ("frame", pa.int64()),
+        ("stamp_ns", pa.int64()),
+    ]
+)
+
+
+def rows_to_table(rows: Sequence[FactorRow]) -> pa.Table:
+    """``factors.parquet``: one row per factor, ``index`` = position in the graph."""
+    return pa.table(
+        {
+            "index": np.arange(len(rows), dtype=np.int64),
+            "kind": [r.kind for r in rows],
+            "type": [r.type for r in rows],
+            "keys": [[int(k) for k in r.keys] for r in rows],
+            "key_names": [[key_name(k) for k in r.keys] for r in rows],
+            "measurement": [np.asarray(r.measurement, dtype=float).tolist() for r in rows],
+            "covariance": [np.asarray(r.covariance, dtype=float).ravel().tolist() for r in rows],
+            "dim": np.array([r.dim for r in rows], dtype=np.int32),
+            "robust": [r.robust for r in rows],
+            "robust_k": np.array([r.robust_k for r in rows], dtype=float),
+            "tag_id": pa.array([r.tag_id for r in rows], type=pa.int64()),
+            "frame": pa.array([r.frame for r in rows], type=pa.int64()),
+            "stamp_ns": pa.array([r.stamp_ns for r in rows], type=pa.int64()),
+        },
+        schema=FACTOR_SCHEMA,
+    )
+
+
+def table_to_rows(table: pa.Table) -> list[FactorRow]:
+    """Inverse of :func:`rows_to_table` (rows in ``index`` order)."""
+    cols = table.sort_by("index").to_pydict()
+    rows = []
+    for i in range(table.num_rows):
+        d = int(cols["dim"][i])
+        rows.append(
+            FactorRow(
+                kind=cols["kind"][i],
+                type=cols["type"][i],
+                keys=tuple(int(k) for k in cols["keys"][i]),
+                measurement=np.asarray(cols["measurement"][i], dtype=float),
+                covariance=np.asarray(cols["covariance"][i], dtype=float).reshape(d, d),
+                robust=cols["robust"][i],
+                robust_k=float(cols["robust_k"][i]),
+                tag_id=cols["tag_id"][i],
+                frame=cols["frame"][i],
+                stamp_ns=cols["stamp_ns"][i],
+            )
+        )
+    return rows

@@ -1,0 +1,140 @@
+"""Read a finished graph stage back for the selection stages: the gtsam graph, its solution, its tables.
+
+```python
+loaded = load_graph(ctx.input("graph"))
+linear = loaded.graph.linearize(loaded.values)          # the full graph at the solution
+reduced = build_reduced(loaded, keep_factor_indices)     # a gtsam graph with only those factors
+```
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import pyarrow as pa
+
+from pipeline.artifacts import StageInput
+from pipeline.errors import InputError
+from stages.graph.factors import FactorRow, make_factor, table_to_rows
+from stages.graph.problem import arrays_to_values
+
+
+@dataclass
+class LoadedGraph:
+    """A finished graph stage in memory.
+
+    Attributes:
+        graph: the full ``NonlinearFactorGraph``; factor ``i`` is row ``index == i`` of ``factors``.
+        values: the optimised values of every variable.
+        initial: the initial values (dead reckoning and first sightings).
+        factors: ``factors.parquet`` as a pyarrow table.
+        rows: the same factors as :class:`FactorRow`.
+        pose_keys: pose keys in time order.
+        pose_stamps_ns: their stamps (imported graphs: vertex id x 1 s).
+        landmark_keys: landmark key by tag id (sorted by tag id).
+        var_types: gtsam type of each variable (``Pose2``, ``Pose3``, ``Point2``, ``Point3``), by key.
+        model: ``planar`` or ``3d``.
+        marginals: marginal covariance of each key (tangent space), from ``marginals.npz``.
+    """
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    initial: gtsam.Values
+    factors: pa.Table
+    rows: list[FactorRow]
+    pose_keys: list[int]
+    pose_stamps_ns: list[int]
+    landmark_keys: dict[int, int]
+    var_types: dict[int, str]
+    model: str
+    marginals: dict[int, np.ndarray]
+
+    @property
+    def tag_factor_indices(self) -> np.ndarray:
+        """Indices of the tag-measurement factors (the selection candidates)."""
+        return np.array([i for i, r in enumerate(self.rows) if r.kind == "tag"], dtype=np.int64)
+
+    @property
+    def fixed_factor_indices(self) -> np.ndarray:
+        """Indices of every other factor (priors, odometry, loops, motion priors)."""
+        return np.array([i for i, r in enumerate(self.rows) if r.kind != "tag"], dtype=np.int64)
+
+
+def load_graph(graph_input: StageInput) -> LoadedGraph:
+    """Rebuild the graph stage's factor graph and solution from its artifacts.
+
+    Raises:
+        InputError: an artifact is missing or inconsistent (re-run ``focusmap graph``).
+    """
+    factors = graph_input.read_table("factors.parquet")
+    rows = table_to_rows(factors)
+    vals = graph_input.read_npz("values.npz")
+    margs = graph_input.read_npz("marginals.npz")
+    poses = graph_input.read_table("poses.parquet", columns=["key", "stamp_ns"]).to_pydict()
+    lms = graph_input.read_table("landmarks.parquet", columns=["tag_id", "key"]).to_pydict()
+    keys = [int(k) for k in vals["keys"]]
+    types = [str(t) for t in vals["types"]]
+    var_types = dict(zip(keys, types, strict=True))
+    values = arrays_to_values(vals["keys"], vals["types"], vals["optimised"])
+    initial = arrays_to_values(vals["keys"], vals["types"], vals["initial"])
+    graph = gtsam.NonlinearFactorGraph()
+    for i, row in enumerate(rows):
+        for k in row.keys:
+            if k not in var_types:
+                raise InputError(f"graph factor {i} refers to key {k} missing from values.npz; re-run 'focusmap graph'")
+        graph.add(make_factor(row))
+    marginals = {
+        int(k): np.asarray(c[:d, :d]) for k, d, c in zip(margs["keys"], margs["dims"], margs["covariance"], strict=True)
+    }
+    pose_keys = [int(k) for k in poses["key"]]
+    model = "planar" if var_types.get(pose_keys[0]) == "Pose2" else "3d"
+    return LoadedGraph(
+        graph=graph,
+        values=values,
+        initial=initial,
+        factors=factors,
+        rows=rows,
+        pose_keys=pose_keys,
+        pose_stamps_ns=[int(s) for s in poses["stamp_ns"]],
+        landmark_keys={int(t): int(k) for t, k in zip(lms["tag_id"], lms["key"], strict=True)},
+        var_types=var_types,
+        model=model,
+        marginals=marginals,
+    )
+
+
+def build_reduced(
+    loaded: LoadedGraph, keep_factor_indices: Iterable[int]
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """A graph of only the given factors, with the optimised values of the variables they touch.
+
+    Variables that no kept factor touches are left out of the values (a dropped landmark), so the
+    pair can be optimised directly.
+    """
+    keep = sorted({int(i) for i in keep_factor_indices})
+    graph = gtsam.NonlinearFactorGraph()
+    used: set[int] = set()
+    for i in keep:
+        if not 0 <= i < len(loaded.rows):
+            raise IndexError(f"factor index {i} out of range (graph has {len(loaded.rows)} factors)")
+        graph.add(make_factor(loaded.rows[i]))
+        used.update(loaded.rows[i].keys)
+    values = gtsam.Values()
+    for k in loaded.var_types:
+        if k in used:
+            _copy_value(values, loaded.values, k, loaded.var_types[k])
+    return graph, values
+
+
+def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, var_type: str) -> None:
+    if var_type == "Pose2":
+        dst.insert(key, src.atPose2(key))
+    elif var_type == "Pose3":
+        dst.insert(key, src.atPose3(key))
+    elif var_type == "Point2":
+        dst.insert(key, src.atPoint2(key))
+    else:
+        dst.insert(key, src.atPoint3(key))

@@ -1,0 +1,181 @@
+"""Check a graph, optimise it, and compute the marginal covariance of every variable once.
+
+Problems found before optimising (NaNs, bad covariances, variables no factor touches, parts of
+the graph not connected to the prior) and GTSAM's indeterminant-system exception all become a
+one-line :class:`StageError` naming the variable (tag id or pose time) and the way out.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from pipeline.errors import StageError
+from stages.graph.factors import build_graph
+from stages.graph.problem import VAR_DIMS, GraphProblem
+
+_FIX = (
+    "add odometry or enable graph.motion_prior, drop the tag with graph.min_tag_observations, or check its detections"
+)
+
+
+def _row_label(problem: GraphProblem, i: int) -> str:
+    row = problem.rows[i]
+    where = f" of tag {row.tag_id} at stamp_ns {row.stamp_ns}" if row.tag_id is not None else ""
+    names = ", ".join(problem.describe(k) for k in row.keys)
+    return f"factor {i} ({row.kind}{where}; {names})"
+
+
+def check_problem(problem: GraphProblem) -> None:
+    """Raise a :class:`StageError` for the first problem that would make the graph meaningless or singular."""
+    if not problem.pose_keys:
+        raise StageError("the graph has no poses; the run needs detections or odometry")
+    for i, row in enumerate(problem.rows):
+        m = np.asarray(row.measurement, dtype=float)
+        C = np.asarray(row.covariance, dtype=float).reshape(row.dim, row.dim)
+        if not (np.all(np.isfinite(m)) and np.all(np.isfinite(C))):
+            raise StageError(f"{_row_label(problem, i)} has NaN or infinite numbers; check the input tables")
+        try:
+            np.linalg.cholesky(0.5 * (C + C.T))
+        except np.linalg.LinAlgError:
+            raise StageError(
+                f"{_row_label(problem, i)} has a covariance that is not positive definite; "
+                "check the detection/odometry covariances or set a floor in the graph settings"
+            ) from None
+        for k in row.keys:
+            if k not in problem.var_types:
+                raise StageError(f"{_row_label(problem, i)} refers to key {k} that has no initial value")
+    keys = list(problem.var_types)
+    for k in keys:
+        if not problem.initial.exists(k):
+            raise StageError(f"{problem.describe(k)} has no initial value")
+    # measurement dimension touching each variable, and connectivity to the prior
+    touched = dict.fromkeys(keys, 0)
+    parent = {k: k for k in keys}
+    anchor = -1
+    parent[anchor] = anchor
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for row in problem.rows:
+        for k in row.keys:
+            touched[k] += row.dim
+        ks = list(row.keys) if len(row.keys) > 1 else [row.keys[0], anchor]
+        root = find(ks[0])
+        for k in ks[1:]:
+            parent[find(k)] = root
+    for k in keys:
+        if touched[k] == 0:
+            raise StageError(f"{problem.describe(k)} is in no factor, so nothing constrains it; {_FIX}")
+        if touched[k] < VAR_DIMS[problem.var_types[k]]:
+            raise StageError(
+                f"{problem.describe(k)} is under-constrained ({touched[k]} measurement dimensions for "
+                f"{VAR_DIMS[problem.var_types[k]]} unknowns); {_FIX}"
+            )
+    root = find(anchor)
+    loose = [k for k in keys if find(k) != root]
+    if loose:
+        poses = [k for k in loose if k in set(problem.pose_keys)]
+        first = poses[0] if poses else loose[0]
+        raise StageError(
+            f"{len(loose)} variables are not connected to the first pose, starting with "
+            f"{problem.describe(first)}; {_FIX}"
+        )
+
+
+@dataclass
+class Solution:
+    """The optimised values and what it took."""
+
+    values: gtsam.Values
+    initial_error: float
+    final_error: float
+    iterations: int
+    optimizer: str
+    seconds: float
+
+
+_KEY_RE = re.compile(r"Symbol:\s*([a-zA-Z])(\d+)|variable\s*\n?\s*(\d+)")
+
+
+def indeterminant_message(problem: GraphProblem, err: Exception, during: str) -> str:
+    """One line naming the variable GTSAM found ill-posed."""
+    text = str(err)
+    m = _KEY_RE.search(text)
+    who = "an unknown variable"
+    if m:
+        if m.group(1):
+            who = problem.describe(int(gtsam.symbol(m.group(1), int(m.group(2)))))
+        else:
+            who = problem.describe(int(m.group(3)))
+    return f"the graph is singular near {who} ({during}: GTSAM found an indeterminant linear system); {_FIX}"
+
+
+def _is_indeterminant(err: Exception) -> bool:
+    t = str(err).lower()
+    return "indetermina" in t or "ill-posed" in t
+
+
+def optimise(
+    problem: GraphProblem,
+    graph: gtsam.NonlinearFactorGraph | None = None,
+    optimizer: str = "lm",
+    max_iterations: int = 100,
+    relative_error_tol: float = 1e-6,
+) -> Solution:
+    """Optimise the problem with Levenberg-Marquardt (``lm``), Gauss-Newton (``gn``) or Dogleg (``dogleg``)."""
+    graph = graph if graph is not None else build_graph(problem.rows)
+    start = time.perf_counter()
+    params: gtsam.NonlinearOptimizerParams
+    if optimizer == "lm":
+        params = gtsam.LevenbergMarquardtParams()
+    elif optimizer == "gn":
+        params = gtsam.GaussNewtonParams()
+    elif optimizer == "dogleg":
+        params = gtsam.DoglegParams()
+    else:
+        raise StageError(f"unknown optimizer {optimizer!r}; use lm, gn or dogleg")
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(relative_error_tol)
+    params.setAbsoluteErrorTol(1e-9)
+    initial_error = float(graph.error(problem.initial))
+    try:
+        if optimizer == "lm":
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, problem.initial, params)
+        elif optimizer == "gn":
+            opt = gtsam.GaussNewtonOptimizer(graph, problem.initial, params)
+        else:
+            opt = gtsam.DoglegOptimizer(graph, problem.initial, params)
+        values = opt.optimize()
+    except RuntimeError as err:
+        if _is_indeterminant(err):
+            raise StageError(indeterminant_message(problem, err, "optimising")) from err
+        raise
+    final_error = float(graph.error(values))
+    if not np.isfinite(final_error):
+        raise StageError("the optimised graph has a non-finite error; check the inputs for NaNs or zero covariances")
+    return Solution(values, initial_error, final_error, int(opt.iterations()), optimizer, time.perf_counter() - start)
+
+
+def marginal_covariances(
+    problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]
+) -> dict[int, np.ndarray]:
+    """Marginal covariance of each key, from one ``gtsam.Marginals`` (one factorisation, per-key queries).
+
+    Covariances are in each variable's tangent space (Pose3: (rx, ry, rz, tx, ty, tz), body frame).
+    """
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        return {k: np.asarray(marginals.marginalCovariance(k), dtype=float) for k in keys}
+    except RuntimeError as err:
+        if _is_indeterminant(err):
+            raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
+        raise

@@ -1,0 +1,44 @@
+"""Check, optimise, compute marginals, write and log: the common tail of the stage and of ``import_graph``."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import rerun as rr
+
+from pipeline.artifacts import StageOutput
+from stages.graph.config import GraphConfig
+from stages.graph.factors import build_graph
+from stages.graph.outputs import log_recording, write_artifacts
+from stages.graph.problem import GraphProblem
+from stages.graph.solve import check_problem, marginal_covariances, optimise
+
+
+def solve_and_write(
+    problem: GraphProblem, cfg: GraphConfig, out: StageOutput, rec: rr.RecordingStream | None, n_sigma: float
+) -> dict[str, Any]:
+    """Check the graph, optimise it, take every marginal from one factorisation, write the artifacts, log.
+
+    Returns:
+        The stage summary (counts, errors, iterations, timings, and the problem's notes).
+    """
+    t0 = time.perf_counter()
+    check_problem(problem)
+    graph = build_graph(problem.rows)
+    t1 = time.perf_counter()
+    solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+    t2 = time.perf_counter()
+    marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    t3 = time.perf_counter()
+    summary = write_artifacts(out, problem, solution, marginals)
+    if rec is not None:
+        log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride)
+    summary.update(problem.info)
+    summary["timing_s"] = {
+        "check_and_build": round(t1 - t0, 4),
+        "optimise": round(t2 - t1, 4),
+        "marginals": round(t3 - t2, 4),
+        "write": round(time.perf_counter() - t3, 4),
+    }
+    return summary
