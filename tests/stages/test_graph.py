@@ -204,7 +204,7 @@ def test_nan_measurement_is_named() -> None:
         FactorRow("tag", "BearingRangeFactor2D", (x0, l7), np.array([np.nan, 2.0]), np.eye(2), tag_id=7, stamp_ns=5),
     ]
     p = _tiny_problem(rows, {x0: gtsam.Pose2(), l7: np.array([2.0, 0.0])}, {x0: "Pose2", l7: "Point2"})
-    with pytest.raises(StageError, match="tag 7 at stamp_ns 5.*NaN"):
+    with pytest.raises(StageError, match=r"tag 7 at stamp_ns 5.*NaN"):
         check_problem(p)
 
 
@@ -290,7 +290,7 @@ def test_import_bad_files(tmp_path: Path) -> None:
     assert not (tmp_path / "bad").exists() or RunFolder(tmp_path / "bad").stage_entry("graph") is None
     garbled = tmp_path / "garbled.g2o"
     garbled.write_text("VERTEX_SE2 0 zero 0 0\n")
-    with pytest.raises(InputError, match="garbled.g2o:1"):
+    with pytest.raises(InputError, match=r"garbled\.g2o:1"):
         read_graph_file(garbled)
 
 
