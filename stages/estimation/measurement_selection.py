@@ -332,8 +332,9 @@ def select_information(
             put on every landmark variable in ``Λ₀``.
         refactor_every: picks between sparse refactorisations (in between, solves use the last
             factor plus a Woodbury correction over the picks since); 64 by default (measured best
-            on the Victoria-Park-sized benchmark); ``None`` is adaptive: refactorise once the Woodbury work since the last factorisation has cost as
-            much as that factorisation (at most 128 picks apart).
+            on the Victoria-Park-sized benchmark); ``None`` is adaptive: refactorise once the
+            Woodbury work since the last factorisation has cost as much as that factorisation
+            (at most 128 picks apart).
 
     Returns:
         The picks in order with their entropy reductions (nats).

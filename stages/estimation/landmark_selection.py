@@ -1,0 +1,442 @@
+"""Stage one of focused inference: choose the landmarks that matter (Mu et al. Alg. 2, Beinhofer et al., leverage).
+
+Conventions: planar poses are ``(x, y, θ)``; 3-D poses are gtsam ``Pose3`` tangents
+``(ω_x, ω_y, ω_z, t_x, t_y, t_z)`` (rotation first). Collision risk uses the position block.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg as sla
+from scipy.stats import norm
+
+FloatArray = npt.NDArray[np.float64]
+Measure = Literal["logdet", "trace", "max_eig"]
+
+
+# ------------------------------------------------------------------ belief stabilisation (eq. 19, 26)
+def riccati_steady_state(A: FloatArray, Q: FloatArray, H: FloatArray, R: FloatArray) -> FloatArray:
+    """Fixed point of eq. 19: ``Σ = Q + A(Σ − ΣHᵀ(HΣHᵀ + R)⁻¹HΣ)Aᵀ`` (``scipy.linalg.solve_discrete_are``)."""
+    S = sla.solve_discrete_are(A.T, H.T, Q, R)
+    return np.asarray(0.5 * (S + S.T))
+
+
+def riccati_iterate(
+    A: FloatArray, Q: FloatArray, H: FloatArray, R: FloatArray, sigma0: FloatArray, steps: int
+) -> FloatArray:
+    """Iterate the recursion of eq. 19 ``steps`` times from ``sigma0`` (for checking the fixed point)."""
+    S = sigma0
+    for _ in range(steps):
+        K = S @ H.T @ np.linalg.inv(H @ S @ H.T + R)
+        S = Q + A @ (S - K @ H @ S) @ A.T
+    return S
+
+
+def planar_range_bearing(
+    pose: FloatArray, landmark: FloatArray, landmark_cov: FloatArray, sigmas: tuple[float, float]
+) -> tuple[FloatArray, FloatArray]:
+    """Jacobian w.r.t. the pose (2×3) of (bearing, range) and the noise of eq. 26 ``R + M R_L Mᵀ``."""
+    dx, dy = landmark[0] - pose[0], landmark[1] - pose[1]
+    q = max(dx * dx + dy * dy, 1e-12)
+    r = np.sqrt(q)
+    H = np.array([[dy / q, -dx / q, -1.0], [-dx / r, -dy / r, 0.0]])
+    M = np.array([[-dy / q, dx / q], [dx / r, dy / r]])  # w.r.t. the landmark position
+    R = np.diag(np.square(sigmas)) + M @ landmark_cov @ M.T
+    return H, R
+
+
+def pose3_point(
+    rotation: FloatArray, translation: FloatArray, landmark: FloatArray, landmark_cov: FloatArray, sigma: float
+) -> tuple[FloatArray, FloatArray]:
+    """Landmark position in the body, ``z = Rᵀ(l − t)``: Jacobian (3×6, gtsam tangent order) and eq.-26 noise."""
+    z = rotation.T @ (landmark - translation)
+    skew = np.array([[0, -z[2], z[1]], [z[2], 0, -z[0]], [-z[1], z[0], 0]])
+    H = np.hstack([skew, -np.eye(3)])
+    M = rotation.T
+    return H, sigma**2 * np.eye(3) + M @ landmark_cov @ M.T
+
+
+def stabilised_covariance(
+    Q: FloatArray, H_R: Sequence[tuple[FloatArray, FloatArray]], cap_steps: int = 50
+) -> FloatArray:
+    """``Σ*`` at a pose held still (``A = I``) observing the given landmarks (stacked ``H``, block ``R̄``).
+
+    When the landmarks leave a direction unobservable (e.g. one range-bearing landmark and a
+    planar pose), ``A = I`` has no finite fixed point; then ``A = ρ I`` with
+    ``ρ = 1 − 1/(2·cap_steps)`` is used, so that unobservable directions saturate at about
+    ``cap_steps · Q``, the same cap as the dead-reckoning rule for poses that see no landmark.
+    """
+    H = np.vstack([h for h, _ in H_R])
+    R = sla.block_diag(*[r for _, r in H_R])
+    n = Q.shape[0]
+    try:
+        return riccati_steady_state(np.eye(n), Q, H, R)
+    except (np.linalg.LinAlgError, ValueError):
+        return riccati_steady_state((1.0 - 0.5 / cap_steps) * np.eye(n), Q, H, R)
+
+
+# ------------------------------------------------------------------ collision risk (half-plane, eq. 20)
+def halfplane_collision_probability(cov_pos: FloatArray, normal: FloatArray, clearance: float) -> float:
+    """``P = 1 − Φ(d / sqrt(nᵀΣn))``: probability that the position crosses the obstacle half-plane."""
+    s = float(np.sqrt(max(normal @ cov_pos @ normal, 1e-300)))
+    return float(norm.sf(clearance / s))
+
+
+def mahalanobis_to_obstacle(cov_pos: FloatArray, offset: FloatArray) -> float:
+    """Eq. 20: ``(x − x_obst)ᵀ Σ⁻¹ (x − x_obst)`` (squared standard deviations to the nearest return)."""
+    return float(offset @ np.linalg.solve(cov_pos, offset))
+
+
+# ------------------------------------------------------------------ Alg. 2
+@dataclass
+class LandmarkSelection:
+    """Result of a landmark selection."""
+
+    picks: list[int]
+    """Landmark indices in the order picked."""
+    scores: list[float]
+    """Score at each pick (strategy-specific; see the function)."""
+    status: Literal["ok", "budget_zero", "budget_exceeds_landmarks", "no_landmarks"] = "ok"
+    extra: dict[str, FloatArray] = field(default_factory=dict)
+
+
+def _status(budget: int, n: int) -> str | None:
+    if n == 0:
+        return "no_landmarks"
+    if budget <= 0:
+        return "budget_zero"
+    if budget > n:
+        return "budget_exceeds_landmarks"
+    return None
+
+
+def _propagate_unlocalised(
+    sigmas: FloatArray, localised: npt.NDArray[np.bool_], Q: FloatArray, cap_steps: int
+) -> FloatArray:
+    """Covariance of poses that see no selected landmark.
+
+    Rule: ``Σ(t) = Σ*(s) + min(|t − s|, cap_steps) · Q`` with ``s`` the nearest pose along the path
+    that does see one (dead reckoning from there, one odometry step of noise ``Q`` per pose);
+    if no pose is localised, ``cap_steps · Q``.
+    """
+    T = len(localised)
+    out = sigmas.copy()
+    idx = np.flatnonzero(localised)
+    if len(idx) == 0:
+        out[:] = cap_steps * Q
+        return out
+    t = np.arange(T)
+    pos = np.searchsorted(idx, t)
+    left = idx[np.clip(pos - 1, 0, len(idx) - 1)]
+    right = idx[np.clip(pos, 0, len(idx) - 1)]
+    nearest = np.where(np.abs(t - left) <= np.abs(right - t), left, right)
+    steps = np.minimum(np.abs(t - nearest), cap_steps)
+    un = ~localised
+    out[un] = sigmas[nearest[un]] + steps[un, None, None] * Q
+    return out
+
+
+def collision_risk(
+    poses_cov: FloatArray, clearance: FloatArray, normals: FloatArray, pos_idx: Sequence[int]
+) -> FloatArray:
+    """Half-plane collision probability of every pose (``pos_idx``: the position rows of the covariance)."""
+    P = poses_cov[:, pos_idx][:, :, pos_idx]
+    var = np.einsum("ti,tij,tj->t", normals, P, normals)
+    return np.asarray(norm.sf(clearance / np.sqrt(np.maximum(var, 1e-300))))
+
+
+def select_collision(
+    poses: FloatArray,
+    landmarks: FloatArray,
+    landmark_covs: FloatArray,
+    visible: npt.NDArray[np.bool_],
+    clearance: FloatArray,
+    normals: FloatArray,
+    Q: FloatArray,
+    budget: int,
+    bearing_range_sigmas: tuple[float, float] = (0.02, 0.1),
+    cap_steps: int = 50,
+) -> LandmarkSelection:
+    """Mu et al. Alg. 2 for planar poses: pick the landmark seen from the riskiest pose, repeat.
+
+    Args:
+        poses: (T, 3) x, y, θ of the keyframes, in time order.
+        landmarks: (L, 2) landmark positions; ``landmark_covs`` (L, 2, 2) their marginals.
+        visible: (T, L) whether landmark l is visible from pose t.
+        clearance: (T,) distance to the nearest laser return; ``normals`` (T, 2) unit vectors from
+            the pose towards it (world frame).
+        Q: (3, 3) odometry noise per step.
+        budget: number of landmarks to pick.
+        bearing_range_sigmas: measurement noise (rad, m).
+        cap_steps: cap of the dead-reckoning rule for poses that see no selected landmark.
+
+    Returns:
+        Picks with, as scores, the maximum collision probability along the path after each pick;
+        ``extra`` holds ``risk_before``/``risk_after`` (T,), ``sigma_after`` (T, 3, 3) and
+        ``mahalanobis_after`` (T,).
+    """
+    T, L = visible.shape
+    st = _status(budget, L)
+    sig = np.zeros((T, 3, 3))
+    localised = np.zeros(T, dtype=bool)
+    chosen: list[int] = []
+
+    def refresh(ts: npt.NDArray[np.int64]) -> None:
+        for t in ts:
+            ls = [l_ for l_ in chosen if visible[t, l_]]
+            if ls:
+                sig[t] = stabilised_covariance(
+                    Q,
+                    [
+                        planar_range_bearing(poses[t], landmarks[l_], landmark_covs[l_], bearing_range_sigmas)
+                        for l_ in ls
+                    ],
+                )
+                localised[t] = True
+
+    cov = _propagate_unlocalised(sig, localised, Q, cap_steps)
+    risk0 = collision_risk(cov, clearance, normals, [0, 1])
+    if st in ("no_landmarks", "budget_zero"):
+        return LandmarkSelection([], [], st, {"risk_before": risk0, "risk_after": risk0})
+    budget = min(budget, L)
+    risk = risk0
+    scores: list[float] = []
+    for _ in range(budget):
+        available = visible & ~np.isin(np.arange(L), chosen)[None, :]
+        cand_poses = np.flatnonzero(available.any(axis=1))
+        if len(cand_poses) == 0:  # remaining landmarks are seen from nowhere: append by index
+            rest = [l_ for l_ in range(L) if l_ not in chosen]
+            chosen.append(rest[0])
+            scores.append(float(risk.max()))
+            continue
+        t = cand_poses[np.argmax(risk[cand_poses])]
+        # among the landmarks seen from the riskiest pose, the one that lowers its risk most
+        best: tuple[float, int] | None = None
+        for l_ in np.flatnonzero(available[t]):
+            ls = [x for x in chosen if visible[t, x]] + [int(l_)]
+            s = stabilised_covariance(
+                Q, [planar_range_bearing(poses[t], landmarks[x], landmark_covs[x], bearing_range_sigmas) for x in ls]
+            )
+            p = halfplane_collision_probability(s[:2, :2], normals[t], clearance[t])
+            if best is None or p < best[0]:
+                best = (p, int(l_))
+        assert best is not None
+        chosen.append(best[1])
+        refresh(np.flatnonzero(visible[:, best[1]]))
+        cov = _propagate_unlocalised(sig, localised, Q, cap_steps)
+        risk = collision_risk(cov, clearance, normals, [0, 1])
+        scores.append(float(risk.max()))
+    maha = np.array([mahalanobis_to_obstacle(cov[t, :2, :2], clearance[t] * normals[t]) for t in range(T)])
+    return LandmarkSelection(
+        chosen,
+        scores,
+        st or "ok",
+        {"risk_before": risk0, "risk_after": risk, "sigma_after": cov, "mahalanobis_after": maha},
+    )
+
+
+# ------------------------------------------------------------------ mutual information (Beinhofer et al.)
+def schur_contribution(J_x: FloatArray, J_l: FloatArray, landmark_prior_info: float = 0.0) -> FloatArray:
+    """Information a landmark's measurements add to the trajectory, the landmark marginalised (Schur complement).
+
+    ``J_x`` (rows × trajectory cols on the landmark's support) and ``J_l`` (rows × landmark dim) are
+    the stacked whitened Jacobians of all of that landmark's measurements.
+    """
+    Hll = J_l.T @ J_l + landmark_prior_info * np.eye(J_l.shape[1])
+    Hxl = J_x.T @ J_l
+    out = J_x.T @ J_x - Hxl @ np.linalg.solve(Hll, Hxl.T)
+    return np.asarray(0.5 * (out + out.T))
+
+
+def _low_rank(block: FloatArray, tol: float = 1e-12) -> FloatArray:
+    w, V = np.linalg.eigh(block)
+    keep = w > tol * max(float(w.max(initial=0.0)), 1e-300)
+    return np.asarray(V[:, keep] * np.sqrt(w[keep]))
+
+
+def select_mutual_information(
+    info0: FloatArray,
+    contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    budget: int,
+    lazy: bool = True,
+) -> LandmarkSelection:
+    """Greedy ``F(A) = ½ log det(Λ₀ + Σ_{l∈A} Λ_l) − ½ log det Λ₀`` (monotone submodular; lazy is exact).
+
+    Args:
+        info0: (n, n) trajectory information from odometry and prior.
+        contributions: per landmark, ``(cols, Λ_l)`` with ``Λ_l`` the Schur-complement block on
+            the trajectory columns ``cols`` (see :func:`schur_contribution`).
+        budget: number of landmarks.
+        lazy: lazy evaluation (exact here, as every ``Λ_l`` is PSD).
+
+    Returns:
+        Picks with their marginal gains (nats); ``extra['objective']`` is ``F`` after each pick.
+    """
+    L = len(contributions)
+    st = _status(budget, L)
+    if st in ("no_landmarks", "budget_zero"):
+        return LandmarkSelection([], [], st)
+    budget = min(budget, L)
+    Sigma = np.linalg.inv(info0)
+    factors = [(np.asarray(c), _low_rank(b)) for c, b in contributions]
+
+    def gain(l_: int) -> float:
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return 0.0
+        M = np.eye(B.shape[1]) + B.T @ Sigma[np.ix_(cols, cols)] @ B
+        return 0.5 * float(np.linalg.slogdet(M)[1])
+
+    def add(l_: int) -> None:
+        nonlocal Sigma
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return
+        SB = Sigma[:, cols] @ B
+        Sigma = Sigma - SB @ np.linalg.solve(np.eye(B.shape[1]) + B.T @ SB[cols], SB.T)
+
+    picks: list[int] = []
+    gains: list[float] = []
+    if lazy:
+        heap = [(-gain(l_), l_) for l_ in range(L)]
+        heapq.heapify(heap)
+        fresh: set[int] = set(range(L))
+        while len(picks) < budget:
+            neg, l_ = heapq.heappop(heap)
+            if l_ in fresh:
+                picks.append(l_)
+                gains.append(-neg)
+                add(l_)
+                fresh = set()
+            else:
+                heapq.heappush(heap, (-gain(l_), l_))
+                fresh.add(l_)
+    else:
+        remaining = set(range(L))
+        while len(picks) < budget:
+            g = {l_: gain(l_) for l_ in sorted(remaining)}
+            l_ = max(g, key=lambda k: (g[k], -k))
+            picks.append(l_)
+            gains.append(g[l_])
+            remaining.discard(l_)
+            add(l_)
+    return LandmarkSelection(picks, gains, st or "ok", {"objective": np.cumsum(gains)})
+
+
+def mutual_information(
+    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], subset: Sequence[int]
+) -> float:
+    """``F(A)`` from scratch (dense), for brute force and checks."""
+    lam = info0.copy()
+    for l_ in subset:
+        cols, B = contributions[l_]
+        lam[np.ix_(cols, cols)] += B
+    return 0.5 * (np.linalg.slogdet(lam)[1] - np.linalg.slogdet(info0)[1])
+
+
+def brute_force_mutual_information(
+    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], budget: int
+) -> tuple[float, tuple[int, ...]]:
+    """Best ``F`` over all subsets of size ``budget`` (small problems only)."""
+    best = (-np.inf, ())
+    for sub in itertools.combinations(range(len(contributions)), budget):
+        v = mutual_information(info0, contributions, sub)
+        if v > best[0]:
+            best = (v, sub)
+    return best
+
+
+# ------------------------------------------------------------------ leverage, uniform, random
+def _measure(cov: FloatArray, measure: Measure) -> float:
+    if measure == "trace":
+        return float(np.trace(cov))
+    if measure == "max_eig":
+        return float(np.linalg.eigvalsh(cov)[-1])
+    return float(np.linalg.slogdet(cov)[1])
+
+
+def landmark_leverage_probabilities(
+    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+) -> FloatArray:
+    """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1)."""
+    n, N = info0.shape[0], len(contributions)
+    lam = info0.copy()
+    for cols, B in contributions:
+        lam[np.ix_(cols, cols)] += B
+    Sigma = np.linalg.inv(lam)
+    base = float(np.trace(Sigma @ info0)) / N
+    r = np.array([base + float(np.sum(Sigma[np.ix_(c, c)] * B)) for c, B in contributions])
+    return r / n
+
+
+def select_landmark_leverage(
+    info0: FloatArray,
+    contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    budget: int,
+    draws: int = 20,
+    measure: Measure = "logdet",
+    seed: int = 0,
+) -> LandmarkSelection:
+    """Leverage sampling: ``draws`` independent draws with replacement until ``budget`` distinct, keep the best.
+
+    Scores are the sampling probabilities of the picks; ``extra['measure']`` is the kept draw's value.
+    """
+    L = len(contributions)
+    st = _status(budget, L)
+    if st in ("no_landmarks", "budget_zero"):
+        return LandmarkSelection([], [], st)
+    budget = min(budget, L)
+    pi = landmark_leverage_probabilities(info0, contributions)
+    rng = np.random.default_rng(seed)
+    best: tuple[float, list[int]] | None = None
+    for _ in range(draws):
+        chosen: dict[int, None] = {}
+        while len(chosen) < budget:
+            chosen[int(rng.choice(L, p=pi))] = None
+        lam = info0.copy()
+        for l_ in chosen:
+            cols, B = contributions[l_]
+            lam[np.ix_(cols, cols)] += B
+        value = _measure(np.linalg.inv(lam), measure)
+        if best is None or value < best[0]:
+            best = (value, list(chosen))
+    assert best is not None
+    return LandmarkSelection(best[1], [float(pi[i]) for i in best[1]], st or "ok", {"measure": np.array([best[0]])})
+
+
+def select_landmark_uniform(positions: FloatArray, budget: int) -> LandmarkSelection:
+    """Spatially even: farthest-point sampling from the landmark nearest the centroid (deterministic).
+
+    Scores are the distance of each pick to the ones before it.
+    """
+    L = len(positions)
+    st = _status(budget, L)
+    if st in ("no_landmarks", "budget_zero"):
+        return LandmarkSelection([], [], st)
+    budget = min(budget, L)
+    first = int(np.argmin(np.linalg.norm(positions - positions.mean(axis=0), axis=1)))
+    picks, scores = [first], [float("inf")]
+    dist = np.linalg.norm(positions - positions[first], axis=1)
+    while len(picks) < budget:
+        nxt = int(np.argmax(dist))
+        picks.append(nxt)
+        scores.append(float(dist[nxt]))
+        dist = np.minimum(dist, np.linalg.norm(positions - positions[nxt], axis=1))
+    return LandmarkSelection(picks, scores, st or "ok")
+
+
+def select_landmark_random(n_landmarks: int, budget: int, seed: int = 0) -> LandmarkSelection:
+    """``budget`` landmarks uniformly at random without replacement (seeded)."""
+    st = _status(budget, n_landmarks)
+    if st in ("no_landmarks", "budget_zero"):
+        return LandmarkSelection([], [], st)
+    budget = min(budget, n_landmarks)
+    picks = [int(i) for i in np.random.default_rng(seed).choice(n_landmarks, size=budget, replace=False)]
+    return LandmarkSelection(picks, [float("nan")] * budget, st or "ok")

@@ -1,0 +1,145 @@
+"""Riccati steady state, collision probability, MI greedy vs brute force, leverage, Alg. 2."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.estimation.landmark_selection import (
+    brute_force_mutual_information,
+    halfplane_collision_probability,
+    landmark_leverage_probabilities,
+    mutual_information,
+    planar_range_bearing,
+    riccati_iterate,
+    riccati_steady_state,
+    select_collision,
+    select_landmark_leverage,
+    select_landmark_random,
+    select_landmark_uniform,
+    select_mutual_information,
+    stabilised_covariance,
+)
+
+Q = np.diag([0.02, 0.02, 0.005]) ** 2
+
+
+def _visible_at_pose():
+    pose = np.array([1.0, 2.0, 0.3])
+    lms = np.array([[4.0, 3.0], [2.0, -1.0]])
+    covs = np.stack([0.01 * np.eye(2), 0.04 * np.eye(2)])
+    HR = [planar_range_bearing(pose, lms[i], covs[i], (0.02, 0.1)) for i in range(2)]
+    return pose, HR
+
+
+def test_riccati_equals_iteration_and_ekf_converges() -> None:
+    _, HR = _visible_at_pose()
+    H = np.vstack([h for h, _ in HR])
+    R = np.block([[HR[0][1], np.zeros((2, 2))], [np.zeros((2, 2)), HR[1][1]]])
+    star = stabilised_covariance(Q, HR)
+    np.testing.assert_allclose(star, riccati_steady_state(np.eye(3), Q, H, R))
+    np.testing.assert_allclose(riccati_iterate(np.eye(3), Q, H, R, np.eye(3), 2000), star, rtol=1e-6, atol=1e-12)
+    # an EKF held at the pose: predict with Q, update with the landmarks; its prior covariance converges to Σ*
+    P = 4.0 * np.eye(3)
+    for _ in range(500):
+        P = P + Q
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+        P_post = (np.eye(3) - K @ H) @ P
+        P = P_post
+    np.testing.assert_allclose(P + Q, star, rtol=1e-6, atol=1e-12)
+
+
+def test_halfplane_probability_matches_monte_carlo_against_laser_points() -> None:
+    rng = np.random.default_rng(0)
+    cov = np.array([[0.04, 0.01], [0.01, 0.02]])
+    # a wall of laser returns at x = 0.3 (a line of points): the robot collides when it passes it
+    wall = np.column_stack([np.full(200, 0.3), np.linspace(-5, 5, 200)])
+    n = np.array([1.0, 0.0])
+    d = float(np.min(wall @ n))
+    p = halfplane_collision_probability(cov, n, d)
+    x = rng.multivariate_normal(np.zeros(2), cov, size=200_000)
+    crossed = x[:, 0] >= wall[:, 0].min()
+    mc = crossed.mean()
+    se = np.sqrt(p * (1 - p) / len(x))
+    assert abs(mc - p) < 4 * se
+    assert 0.05 < p < 0.1
+
+
+def _random_mi_problem(rng: np.random.Generator, T: int = 8, L: int = 15):
+    n = 3 * T
+    info0 = np.zeros((n, n))
+    info0[:3, :3] += 1e4 * np.eye(3)
+    for t in range(T - 1):
+        J = np.hstack([-np.eye(3), np.eye(3)]) * rng.uniform(3, 10)
+        idx = np.arange(3 * t, 3 * t + 6)
+        info0[np.ix_(idx, idx)] += J.T @ J
+    contrib = []
+    for _ in range(L):
+        poses = rng.choice(T, size=rng.integers(1, 4), replace=False)
+        cols = np.concatenate([np.arange(3 * p, 3 * p + 3) for p in sorted(poses)])
+        J = rng.normal(size=(2 * len(poses), len(cols))) * rng.uniform(0.5, 5)
+        contrib.append((cols, J.T @ J))
+    return info0, contrib
+
+
+def test_mi_greedy_near_brute_force_and_lazy_equals_plain() -> None:
+    rng = np.random.default_rng(1)
+    ratios = []
+    for _ in range(25):
+        info0, contrib = _random_mi_problem(rng)
+        lazy = select_mutual_information(info0, contrib, 5, lazy=True)
+        plain = select_mutual_information(info0, contrib, 5, lazy=False)
+        assert lazy.picks == plain.picks
+        np.testing.assert_allclose(lazy.scores, plain.scores, rtol=1e-9)
+        value = mutual_information(info0, contrib, lazy.picks)
+        assert value == pytest.approx(sum(lazy.scores), rel=1e-8)
+        opt, _ = brute_force_mutual_information(info0, contrib, 5)
+        ratios.append(value / opt)
+    ratios = np.array(ratios)
+    print(f"MI greedy / brute force over {len(ratios)} problems: mean {ratios.mean():.4f}, min {ratios.min():.4f}")
+    assert ratios.min() >= 1 - 1 / np.e
+    assert ratios.mean() > 0.95
+
+
+def test_landmark_leverage_probabilities_sum_to_one() -> None:
+    info0, contrib = _random_mi_problem(np.random.default_rng(2))
+    pi = landmark_leverage_probabilities(info0, contrib)
+    assert pi.sum() == pytest.approx(1.0, abs=1e-9)
+    sel = select_landmark_leverage(info0, contrib, 5, draws=10, seed=4)
+    assert sel.picks == select_landmark_leverage(info0, contrib, 5, draws=10, seed=4).picks
+    assert len(set(sel.picks)) == 5
+
+
+def _corridor():
+    """A straight path past a narrow door at x = 10 with landmarks along it."""
+    T = 41
+    poses = np.column_stack([np.linspace(0, 20, T), np.zeros(T), np.zeros(T)])
+    landmarks = np.array([[2.0, 2.0], [6.0, -2.0], [10.0, 1.5], [14.0, -2.0], [18.0, 2.0], [10.0, -1.5]])
+    covs = np.stack([0.01 * np.eye(2)] * len(landmarks))
+    dist = np.linalg.norm(poses[:, None, :2] - landmarks[None], axis=2)
+    visible = dist < 5.0
+    clearance = np.where(np.abs(poses[:, 0] - 10) < 1.5, 0.25, 2.0)
+    normals = np.tile([0.0, 1.0], (T, 1))
+    return poses, landmarks, covs, visible, clearance, normals
+
+
+def test_collision_greedy_picks_the_door_landmarks_first() -> None:
+    poses, landmarks, covs, visible, clearance, normals = _corridor()
+    sel = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 2)
+    door = np.flatnonzero(clearance < 1.0)
+    assert visible[door, sel.picks[0]].any()  # the first pick serves the probabilistically narrow door
+    assert sel.extra["risk_after"].max() < sel.extra["risk_before"].max()
+    assert sel.scores == sorted(sel.scores, reverse=True)
+    uni = select_landmark_uniform(landmarks, 2)
+    rnd = select_landmark_random(len(landmarks), 2, seed=0)
+    assert len(uni.picks) == 2 and len(rnd.picks) == 2
+
+
+def test_landmark_budget_edge_cases() -> None:
+    poses, landmarks, covs, visible, clearance, normals = _corridor()
+    assert select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 0).status == "budget_zero"
+    over = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 99)
+    assert over.status == "budget_exceeds_landmarks" and sorted(over.picks) == list(range(6))
+    info0, contrib = _random_mi_problem(np.random.default_rng(0), L=4)
+    assert select_mutual_information(info0, contrib, 0).picks == []
+    assert sorted(select_mutual_information(info0, contrib, 9).picks) == [0, 1, 2, 3]
