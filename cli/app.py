@@ -134,7 +134,7 @@ def _open_run(run_dir: Path) -> Any:
 def _print_result(result: Any) -> None:
     from rich.console import Console
 
-    console = Console(stderr=False, highlight=False)
+    console = Console(stderr=False, highlight=False, soft_wrap=True)
     keys = [k for k in result.summary if k not in ("seconds", "topics", "camera", "notes", "read_seconds")][:6]
     figures = "  ".join(f"{k}={result.summary[k]}" for k in keys if not isinstance(result.summary[k], dict | list))
     status = "up to date" if result.status == "skipped" else f"done in {result.seconds:.1f} s"

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib
 import json
 import platform
+import sys
 import time
 from dataclasses import dataclass, field
 from importlib import metadata
+from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
@@ -18,6 +22,7 @@ from pipeline.errors import StageError
 from pipeline.recording import close_recording, log_summary, open_recording
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder, source_identity, write_json_atomic
+from pipeline.stage import Stage
 
 _LIBRARIES = (
     "rosbags",
@@ -56,6 +61,24 @@ class StageResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
+@functools.cache
+def _code_digest(package: str) -> str:
+    """Hash of every Python source file of a top-level package: a changed stage re-runs."""
+    module = sys.modules.get(package) or importlib.import_module(package)
+    root = Path(module.__file__ or "").parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def code_version(stage: Stage) -> str:
+    """The stage's declared version plus a digest of the code it runs."""
+    package = stage.run.__module__.split(".")[0]
+    return f"{stage.version}:{_code_digest(package)[:16]}"
+
+
 def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Settings) -> str:
     """Hash of the stage, its code version, its settings, its inputs' fingerprints and its source file."""
     stage = registry[name]
@@ -65,7 +88,7 @@ def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Setting
         inputs[dep] = entry["fingerprint"] if entry else None
     payload = {
         "stage": stage.name,
-        "version": stage.version,
+        "version": code_version(stage),
         "focusmap": __version__,
         "settings": settings[stage.name].model_dump(mode="json"),
         "rerun": settings.rerun.model_dump(mode="json"),
@@ -120,6 +143,7 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
         {
             "fingerprint": fp,
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "code": code_version(stage),
             "seconds": round(seconds, 3),
             "settings": settings[stage.name].model_dump(mode="json"),
             "inputs": {d: (run.stage_entry(d) or {}).get("fingerprint") for d in stage.inputs},

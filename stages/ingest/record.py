@@ -47,6 +47,7 @@ def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any
     if scans.num_rows and len(poses):
         T_base_laser = np.asarray(sensors.get("laser", {}).get("T_base_sensor", np.eye(4)))
         s_stamps = scans.column("stamp_ns").to_numpy()
+        cloud = []
         for i in range(0, scans.num_rows, rr_cfg.scan_stride):
             row = scans.slice(i, 1).to_pylist()[0]
             r = np.asarray(row["ranges"], dtype=float)
@@ -57,6 +58,13 @@ def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any
             world = (poses[j] @ T_base_laser @ pts.T).T[:, :3]
             set_stamp(rec, int(s_stamps[i]))
             rec.log("/ingest/world/scan", rr.Points3D(world, colors=[[255, 120, 60]], radii=0.02))
+            cloud.append(world[::2])
+        # every logged scan at once, in the odometry frame: the walls as odometry (with its drift) sees them
+        rec.log(
+            "/ingest/world/scan_map",
+            rr.Points3D(np.concatenate(cloud), colors=[[150, 150, 150]], radii=0.01),
+            static=True,
+        )
 
     K = np.asarray(camera["K"], dtype=float).reshape(3, 3)
     rec.log(

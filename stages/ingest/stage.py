@@ -299,7 +299,15 @@ def _blueprint() -> Any:
 
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(name="map", origin="/ingest/world"),
+            rrb.Spatial3DView(
+                name="map",
+                origin="/ingest/world",
+                time_ranges=[
+                    rrb.VisibleTimeRange(
+                        "time", start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+                    )
+                ],
+            ),
             rrb.Vertical(
                 rrb.Spatial2DView(name="camera", origin="/ingest/camera"),
                 rrb.TextDocumentView(name="summary", origin="/ingest/summary"),
