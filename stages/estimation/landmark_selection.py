@@ -76,10 +76,9 @@ def stabilised_covariance(
     H = np.vstack([h for h, _ in H_R])
     R = sla.block_diag(*[r for _, r in H_R])
     n = Q.shape[0]
-    try:
-        return riccati_steady_state(np.eye(n), Q, H, R)
-    except (np.linalg.LinAlgError, ValueError):
-        return riccati_steady_state((1.0 - 0.5 / cap_steps) * np.eye(n), Q, H, R)
+    observable = np.linalg.matrix_rank(H) == n  # with A = I the observability matrix has the rank of H
+    rho = 1.0 if observable else 1.0 - 0.5 / cap_steps
+    return riccati_steady_state(rho * np.eye(n), Q, H, R)
 
 
 # ------------------------------------------------------------------ collision risk (half-plane, eq. 20)
