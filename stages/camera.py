@@ -20,8 +20,14 @@ if TYPE_CHECKING:
 
 CameraDict = dict[str, Any]
 
-_KALIBR_DISTORTION = {"radtan": "plumb_bob", "plumb_bob": "plumb_bob", "equidistant": "equidistant",
-                      "fisheye": "equidistant", "none": "none", "": "none"}
+_KALIBR_DISTORTION = {
+    "radtan": "plumb_bob",
+    "plumb_bob": "plumb_bob",
+    "equidistant": "equidistant",
+    "fisheye": "equidistant",
+    "none": "none",
+    "": "none",
+}
 
 
 def load_camera_file(path: Path, topic: str | None = None) -> CameraDict:

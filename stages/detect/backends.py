@@ -18,8 +18,12 @@ import numpy.typing as npt
 
 from stages.detect.config import DetectConfig
 
-ARUCO_DICTIONARIES = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h9",
-                      "tag16h5": "DICT_APRILTAG_16h5", "tag36h10": "DICT_APRILTAG_36h10"}
+ARUCO_DICTIONARIES = {
+    "tag36h11": "DICT_APRILTAG_36h11",
+    "tag25h9": "DICT_APRILTAG_25h9",
+    "tag16h5": "DICT_APRILTAG_16h5",
+    "tag36h10": "DICT_APRILTAG_36h10",
+}
 
 # AprilTag 3 corner i (as pupil-apriltags returns them) that is OpenCV corner k: opencv = apriltag[_AT3_TO_CV].
 _AT3_TO_CV = [1, 0, 3, 2]
@@ -117,8 +121,10 @@ class OpenCVDetector:
         aruco = cv2.aruco
         params = aruco.DetectorParameters()
         params.cornerRefinementMethod = {
-            "none": aruco.CORNER_REFINE_NONE, "subpix": aruco.CORNER_REFINE_SUBPIX,
-            "contour": aruco.CORNER_REFINE_CONTOUR, "apriltag": aruco.CORNER_REFINE_APRILTAG,
+            "none": aruco.CORNER_REFINE_NONE,
+            "subpix": aruco.CORNER_REFINE_SUBPIX,
+            "contour": aruco.CORNER_REFINE_CONTOUR,
+            "apriltag": aruco.CORNER_REFINE_APRILTAG,
         }[cfg.opencv_corner_refinement if cfg.refine_edges else "none"]
         params.aprilTagQuadDecimate = float(cfg.decimation)
         params.aprilTagQuadSigma = float(cfg.blur_sigma)
@@ -144,8 +150,9 @@ class OpenCVDetector:
         return out
 
 
-def _read_bits(gray: npt.NDArray[np.uint8], corners: npt.NDArray[np.float64], dictionary: object,
-               tag_id: int) -> tuple[int, float]:
+def _read_bits(
+    gray: npt.NDArray[np.uint8], corners: npt.NDArray[np.float64], dictionary: object, tag_id: int
+) -> tuple[int, float]:
     """Hamming distance of the sampled data bits to ``tag_id``'s code, and the grey-level decision margin."""
     import cv2
 

@@ -51,7 +51,11 @@ class BatchResult:
 
 
 def observations_to_rows(
-    observations: list[TagObservation], job: FrameJob, cfg: DetectConfig, camera: object, dropped: Counter[str],
+    observations: list[TagObservation],
+    job: FrameJob,
+    cfg: DetectConfig,
+    camera: object,
+    dropped: Counter[str],
     apply_quality: bool = True,
 ) -> list[Row]:
     """Filter observations by the settings and estimate each one's pose; one row per kept tag."""
@@ -79,30 +83,38 @@ def observations_to_rows(
             dropped["reprojection"] += 1
             continue
         alt = pose.alt_T_camera_tag if pose.alt_T_camera_tag is not None else np.full((4, 4), np.nan)
-        rows.append({
-            "frame": job.frame,
-            "stamp_ns": job.stamp_ns,
-            "camera": job.camera,
-            "tag_id": obs.tag_id,
-            "family": obs.family,
-            "corners": np.asarray(obs.corners, float).ravel().tolist(),
-            "size_m": size,
-            "T_camera_tag": pose.T_camera_tag.ravel().tolist(),
-            "alt_T_camera_tag": alt.ravel().tolist(),
-            "pose_cov_unit": pose.cov_unit.ravel().tolist(),
-            "position_cov_unit": pose.position_cov_unit.ravel().tolist(),
-            "sse_px2": pose.sse_px2,
-            "side_px": side,
-            "reprojection_px": pose.reprojection_px,
-            "ambiguity_ratio": pose.ambiguity_ratio,
-            "decision_margin": obs.decision_margin,
-            "hamming": obs.hamming,
-        })
+        rows.append(
+            {
+                "frame": job.frame,
+                "stamp_ns": job.stamp_ns,
+                "camera": job.camera,
+                "tag_id": obs.tag_id,
+                "family": obs.family,
+                "corners": np.asarray(obs.corners, float).ravel().tolist(),
+                "size_m": size,
+                "T_camera_tag": pose.T_camera_tag.ravel().tolist(),
+                "alt_T_camera_tag": alt.ravel().tolist(),
+                "pose_cov_unit": pose.cov_unit.ravel().tolist(),
+                "position_cov_unit": pose.position_cov_unit.ravel().tolist(),
+                "sse_px2": pose.sse_px2,
+                "side_px": side,
+                "reprojection_px": pose.reprojection_px,
+                "ambiguity_ratio": pose.ambiguity_ratio,
+                "decision_margin": obs.decision_margin,
+                "hamming": obs.hamming,
+            }
+        )
     return rows
 
 
-def detect_image(gray: npt.NDArray[np.uint8], detector: Detector, camera: object, cfg: DetectConfig,
-                 job: FrameJob | None = None, dropped: Counter[str] | None = None) -> list[Row]:
+def detect_image(
+    gray: npt.NDArray[np.uint8],
+    detector: Detector,
+    camera: object,
+    cfg: DetectConfig,
+    job: FrameJob | None = None,
+    dropped: Counter[str] | None = None,
+) -> list[Row]:
     """Rows for the tags in one grayscale image (an image without tags gives no rows)."""
     job = job or FrameJob(frame=0, stamp_ns=0, camera="")
     return observations_to_rows(detector.detect(gray), job, cfg, camera, dropped if dropped is not None else Counter())
@@ -122,8 +134,9 @@ class FrameProcessor:
         for job in jobs:
             result.frames += 1
             if job.observations is not None:
-                result.rows += observations_to_rows(job.observations, job, self.cfg, self.camera, result.dropped,
-                                                    apply_quality=False)
+                result.rows += observations_to_rows(
+                    job.observations, job, self.cfg, self.camera, result.dropped, apply_quality=False
+                )
                 continue
             try:
                 gray = decode_frame(job.format, job.width, job.height, job.step, job.data or b"")

@@ -57,6 +57,10 @@ def decode_frame(fmt: str, width: int, height: int, step: int, data: bytes) -> n
     pix = np.ascontiguousarray(rows).reshape(height, width, channels)
     if channels == 1:
         return pix[:, :, 0].copy()
-    code = {"bgr8": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY, "bgra8": cv2.COLOR_BGRA2GRAY,
-            "rgba8": cv2.COLOR_RGBA2GRAY}[fmt]
+    code = {
+        "bgr8": cv2.COLOR_BGR2GRAY,
+        "rgb8": cv2.COLOR_RGB2GRAY,
+        "bgra8": cv2.COLOR_BGRA2GRAY,
+        "rgba8": cv2.COLOR_RGBA2GRAY,
+    }[fmt]
     return cv2.cvtColor(pix, code)

@@ -91,8 +91,9 @@ def _refine(camera: object, corners: Array, obj: Array, R: Array, t: Array) -> t
     import pycolmap
 
     start = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(R), translation=t)
-    res = pycolmap.refine_absolute_pose(start, corners, obj, np.ones(4, bool), camera, _refinement_options(),
-                                        return_covariance=True)
+    res = pycolmap.refine_absolute_pose(
+        start, corners, obj, np.ones(4, bool), camera, _refinement_options(), return_covariance=True
+    )
     if res is None:
         return None
     pose = res["cam_from_world"]
@@ -120,8 +121,9 @@ def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPo
     if not np.all(np.isfinite(normalized)):
         return None
     try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, normalized.reshape(4, 1, 2), np.eye(3), None,
-                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            obj, normalized.reshape(4, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
     except cv2.error:
         return None
     candidates = []

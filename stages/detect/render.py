@@ -17,8 +17,12 @@ import numpy.typing as npt
 
 from stages.detect.pose import tag_object_points
 
-_ARUCO_DICTS = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h9",
-                "tag16h5": "DICT_APRILTAG_16h5", "tag36h10": "DICT_APRILTAG_36h10"}
+_ARUCO_DICTS = {
+    "tag36h11": "DICT_APRILTAG_36h11",
+    "tag25h9": "DICT_APRILTAG_25h9",
+    "tag16h5": "DICT_APRILTAG_16h5",
+    "tag36h10": "DICT_APRILTAG_36h10",
+}
 
 
 @dataclass(frozen=True)
@@ -132,8 +136,13 @@ def render_frame(
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def look_at_tag(distance_m: float, yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg: float = 0.0,
-                offset: tuple[float, float] = (0.0, 0.0)) -> npt.NDArray[np.float64]:
+def look_at_tag(
+    distance_m: float,
+    yaw_deg: float = 0.0,
+    pitch_deg: float = 0.0,
+    roll_deg: float = 0.0,
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> npt.NDArray[np.float64]:
     """``T_camera_tag`` of a tag ``distance_m`` ahead, facing the camera, turned by yaw/pitch/roll (degrees).
 
     ``offset`` shifts the tag sideways and down in the camera frame (metres).

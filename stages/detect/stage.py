@@ -28,33 +28,45 @@ log = logging.getLogger(__name__)
 # apriltag_ros / TagSLAM publish the AprilTag library's corner order; this picks the OpenCV order from it.
 _APRILTAG_TO_OPENCV = [1, 0, 3, 2]
 
-DETECTIONS_SCHEMA = pa.schema([
-    ("frame", pa.int64()),
-    ("stamp_ns", pa.int64()),
-    ("camera", pa.string()),
-    ("tag_id", pa.int32()),
-    ("family", pa.string()),
-    ("corners", pa.list_(pa.float64(), 8)),
-    ("size_m", pa.float64()),
-    ("T_camera_tag", pa.list_(pa.float64(), 16)),
-    ("alt_T_camera_tag", pa.list_(pa.float64(), 16)),
-    ("pose_cov", pa.list_(pa.float64(), 36)),
-    ("position_cov", pa.list_(pa.float64(), 9)),
-    ("reprojection_px", pa.float64()),
-    ("ambiguity_ratio", pa.float64()),
-    ("ambiguous", pa.bool_()),
-    ("decision_margin", pa.float64()),
-    ("hamming", pa.int32()),
-])
+DETECTIONS_SCHEMA = pa.schema(
+    [
+        ("frame", pa.int64()),
+        ("stamp_ns", pa.int64()),
+        ("camera", pa.string()),
+        ("tag_id", pa.int32()),
+        ("family", pa.string()),
+        ("corners", pa.list_(pa.float64(), 8)),
+        ("size_m", pa.float64()),
+        ("T_camera_tag", pa.list_(pa.float64(), 16)),
+        ("alt_T_camera_tag", pa.list_(pa.float64(), 16)),
+        ("pose_cov", pa.list_(pa.float64(), 36)),
+        ("position_cov", pa.list_(pa.float64(), 9)),
+        ("reprojection_px", pa.float64()),
+        ("ambiguity_ratio", pa.float64()),
+        ("ambiguous", pa.bool_()),
+        ("decision_margin", pa.float64()),
+        ("hamming", pa.int32()),
+    ]
+)
 
 
 def _frame_jobs(path: Any, batch_frames: int) -> Iterator[list[FrameJob]]:
     columns = ["frame", "stamp_ns", "topic", "format", "width", "height", "step", "data"]
     for batch in pq.ParquetFile(path).iter_batches(batch_size=batch_frames, columns=columns):
         d = batch.to_pydict()
-        yield [FrameJob(frame=int(d["frame"][i]), stamp_ns=int(d["stamp_ns"][i]), camera=str(d["topic"][i]),
-                        format=str(d["format"][i]), width=int(d["width"][i]), height=int(d["height"][i]),
-                        step=int(d["step"][i] or 0), data=d["data"][i]) for i in range(batch.num_rows)]
+        yield [
+            FrameJob(
+                frame=int(d["frame"][i]),
+                stamp_ns=int(d["stamp_ns"][i]),
+                camera=str(d["topic"][i]),
+                format=str(d["format"][i]),
+                width=int(d["width"][i]),
+                height=int(d["height"][i]),
+                step=int(d["step"][i] or 0),
+                data=d["data"][i],
+            )
+            for i in range(batch.num_rows)
+        ]
 
 
 def bag_detection_jobs(table: pa.Table, cfg: DetectConfig) -> list[FrameJob]:
@@ -63,19 +75,25 @@ def bag_detection_jobs(table: pa.Table, cfg: DetectConfig) -> list[FrameJob]:
     by_frame: dict[tuple[str, int], FrameJob] = {}
     for i in range(table.num_rows):
         key = (str(d["topic"][i]), int(d["frame"][i]))
-        job = by_frame.setdefault(key, FrameJob(frame=key[1], stamp_ns=int(d["stamp_ns"][i]), camera=key[0],
-                                                observations=[]))
+        job = by_frame.setdefault(
+            key, FrameJob(frame=key[1], stamp_ns=int(d["stamp_ns"][i]), camera=key[0], observations=[])
+        )
         corners = np.asarray(d["corners"][i], float).reshape(4, 2)
         if cfg.bag_corner_order == "apriltag":
             corners = corners[_APRILTAG_TO_OPENCV]
         assert job.observations is not None
-        job.observations.append(TagObservation(int(d["tag_id"][i]), str(d["family"][i] or cfg.families[0]),
-                                               corners, float("nan"), 0))
+        job.observations.append(
+            TagObservation(int(d["tag_id"][i]), str(d["family"][i] or cfg.families[0]), corners, float("nan"), 0)
+        )
     return sorted(by_frame.values(), key=lambda j: (j.stamp_ns, j.camera, j.frame))
 
 
-def _bounded_map(fn: Callable[[list[FrameJob]], BatchResult], items: Iterable[list[FrameJob]],
-                 pool: ProcessPoolExecutor | None, in_flight: int) -> Iterator[tuple[list[FrameJob], BatchResult]]:
+def _bounded_map(
+    fn: Callable[[list[FrameJob]], BatchResult],
+    items: Iterable[list[FrameJob]],
+    pool: ProcessPoolExecutor | None,
+    in_flight: int,
+) -> Iterator[tuple[list[FrameJob], BatchResult]]:
     """``fn`` over ``items`` in order, at most ``in_flight`` batches queued in the pool at once."""
     if pool is None:
         for item in items:
@@ -122,8 +140,12 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         workers = cfg.workers
     pool = None
     if workers > 1:
-        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker,
-                                   initargs=(cfg.model_dump(mode="json"), camera, not from_bag))
+        pool = ProcessPoolExecutor(
+            workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=init_worker,
+            initargs=(cfg.model_dump(mode="json"), camera, not from_bag),
+        )
         fn = process_in_worker
     else:
         fn = FrameProcessor(cfg, camera, with_detector=not from_bag).process
@@ -157,8 +179,9 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         "frames": n_frames,
         "detections": table.num_rows,
         "distinct_tags": len(np.unique(tags)),
-        "frames_with_tags": len(set(zip(table.column("camera").to_pylist(), table.column("frame").to_pylist(),
-                                        strict=True))),
+        "frames_with_tags": len(
+            set(zip(table.column("camera").to_pylist(), table.column("frame").to_pylist(), strict=True))
+        ),
         "detector": "bag" if from_bag else cfg.backend,
         "source": "tag_detections" if from_bag else "images",
         "families": list(cfg.families),
@@ -166,8 +189,10 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         "corrupt_frame_ids": [f for f, _ in corrupt][:100],
         "dropped": {k: int(dropped.get(k, 0)) for k in DROP_REASONS} | {"ambiguous": n_dropped_ambiguous},
         "ambiguous": n_ambiguous,
-        "corner_sigma_px": {f"{lo:g}-{hi:g}": round(v, 4)
-                            for lo, hi, v in zip(SIDE_BANDS_PX[:-1], SIDE_BANDS_PX[1:], sigma, strict=True)},
+        "corner_sigma_px": {
+            f"{lo:g}-{hi:g}": round(v, 4)
+            for lo, hi, v in zip(SIDE_BANDS_PX[:-1], SIDE_BANDS_PX[1:], sigma, strict=True)
+        },
         "corner_sigma_source": sigma_source,
         "reprojection_px_median": round(float(np.median(reproj)), 4),
         "detect_seconds": round(seconds, 3),
@@ -220,22 +245,44 @@ def _table(rows: list[Row], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.
         if ambiguous and cfg.ambiguous == "drop":
             n_dropped += 1
             continue
-        for key in ("frame", "stamp_ns", "camera", "tag_id", "family", "corners", "size_m", "T_camera_tag",
-                    "alt_T_camera_tag", "reprojection_px", "ambiguity_ratio", "decision_margin", "hamming"):
+        for key in (
+            "frame",
+            "stamp_ns",
+            "camera",
+            "tag_id",
+            "family",
+            "corners",
+            "size_m",
+            "T_camera_tag",
+            "alt_T_camera_tag",
+            "reprojection_px",
+            "ambiguity_ratio",
+            "decision_margin",
+            "hamming",
+        ):
             out[key].append(r[key])
         out["pose_cov"].append([var * v for v in r["pose_cov_unit"]])
         out["position_cov"].append([var * v for v in r["position_cov_unit"]])
         out["ambiguous"].append(ambiguous)
     if n_ambiguous:
-        log.info("%d ambiguous detections (ratio > %.2f) %s", n_ambiguous, cfg.max_ambiguity_ratio,
-                 "dropped" if cfg.ambiguous == "drop" else "kept, flagged")
+        log.info(
+            "%d ambiguous detections (ratio > %.2f) %s",
+            n_ambiguous,
+            cfg.max_ambiguity_ratio,
+            "dropped" if cfg.ambiguous == "drop" else "kept, flagged",
+        )
     return pa.table(out, schema=DETECTIONS_SCHEMA), n_ambiguous, n_dropped
 
 
 def _log_static(rec: rr.RecordingStream, camera: CameraDict) -> None:
     K = np.asarray(camera["K"], float).reshape(3, 3)
-    rec.log("/detect/camera", rr.Pinhole(image_from_camera=K, resolution=[camera["width"], camera["height"]],
-                                         camera_xyz=rr.ViewCoordinates.RDF), static=True)
+    rec.log(
+        "/detect/camera",
+        rr.Pinhole(
+            image_from_camera=K, resolution=[camera["width"], camera["height"]], camera_xyz=rr.ViewCoordinates.RDF
+        ),
+        static=True,
+    )
 
 
 def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResult, stride: int) -> None:
@@ -263,9 +310,15 @@ def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResu
                 rec.log("/detect/camera/image", rr.Image(pix if ch == 3 else pix[:, :, 0], color_model=model))
         strips = [np.vstack([np.reshape(r["corners"], (4, 2)), np.reshape(r["corners"], (4, 2))[:1]]) for r in rows]
         ids = np.array([r["tag_id"] for r in rows])
-        rec.log("/detect/camera/image/tags", rr.LineStrips2D(
-            strips, labels=[str(i) for i in ids], colors=colormap(ids % 16, 0, 15) if len(ids) else None,
-            radii=rr.Radius.ui_points(2.0)))
+        rec.log(
+            "/detect/camera/image/tags",
+            rr.LineStrips2D(
+                strips,
+                labels=[str(i) for i in ids],
+                colors=colormap(ids % 16, 0, 15) if len(ids) else None,
+                radii=rr.Radius.ui_points(2.0),
+            ),
+        )
 
 
 def _log_tags(rec: rr.RecordingStream, table: pa.Table, n_sigma: float) -> None:

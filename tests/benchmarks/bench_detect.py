@@ -105,8 +105,10 @@ def bench_sim(frames: list[np.ndarray], truth: list[dict[str, Any]], camera: dic
             amb.append(r["ambiguity_ratio"] > cfg.max_ambiguity_ratio)
         nees_a, dist_a, amb_a = np.array(nees), np.array(dist), np.array(amb)
         corner = np.sqrt(np.mean(sq)) if sq else float("nan")
-        print(f"| {name} | {hits}/{n_truth} = {hits / max(n_truth, 1):.3f} | {corner:.3f} "
-              f"| {false} | {nees_a.mean():.2f} | {nees_a[~amb_a].mean():.2f} |")
+        print(
+            f"| {name} | {hits}/{n_truth} = {hits / max(n_truth, 1):.3f} | {corner:.3f} "
+            f"| {false} | {nees_a.mean():.2f} | {nees_a[~amb_a].mean():.2f} |"
+        )
         cells = []
         for lo, hi in bands:
             m = (dist_a >= lo) & (dist_a < hi)
@@ -186,15 +188,32 @@ def throughput(cfg: DetectConfig, camera: dict[str, Any], frames: list[np.ndarra
 def synthetic_frames(width: int, height: int, n: int) -> tuple[list[np.ndarray], dict[str, Any]]:
     """``n`` rendered frames of 4 tags at 0.8-3 m, size ``width`` x ``height``."""
     f = 0.65 * width
-    camera = {"width": width, "height": height, "K": [f, 0, width / 2, 0, f, height / 2, 0, 0, 1],
-              "distortion_model": "plumb_bob", "D": [-0.06, 0.012, 0.0006, -0.0004, 0.0]}
+    camera = {
+        "width": width,
+        "height": height,
+        "K": [f, 0, width / 2, 0, f, height / 2, 0, 0, 1],
+        "distortion_model": "plumb_bob",
+        "D": [-0.06, 0.012, 0.0006, -0.0004, 0.0],
+    }
     cam = colmap_camera(camera)
     rng = np.random.default_rng(0)
     frames = []
     for _ in range(n):
-        tags = [TagPlacement(int(rng.integers(0, 500)), "tag36h11", 0.16,
-                             look_at_tag(rng.uniform(0.8, 3.0), rng.uniform(-40, 40), rng.uniform(-20, 20), 0,
-                                         ((k % 2 - 0.5) * 0.6, (k // 2 - 0.5) * 0.4))) for k in range(4)]
+        tags = [
+            TagPlacement(
+                int(rng.integers(0, 500)),
+                "tag36h11",
+                0.16,
+                look_at_tag(
+                    rng.uniform(0.8, 3.0),
+                    rng.uniform(-40, 40),
+                    rng.uniform(-20, 20),
+                    0,
+                    ((k % 2 - 0.5) * 0.6, (k // 2 - 0.5) * 0.4),
+                ),
+            )
+            for k in range(4)
+        ]
         frames.append(render_frame(cam, tags, noise_sigma=2.0, rng=rng))
     return frames, camera
 

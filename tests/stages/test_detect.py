@@ -37,11 +37,19 @@ def _shared(name: str) -> Path:
 
 
 def _camera(model: str = "plumb_bob", width: int = 640, height: int = 480) -> dict:
-    D = {"none": [], "plumb_bob": [-0.12, 0.02, 0.0008, -0.0005, 0.0],
-         "equidistant": [-0.02, 0.015, -0.009, 0.0017]}[model]
+    D = {"none": [], "plumb_bob": [-0.12, 0.02, 0.0008, -0.0005, 0.0], "equidistant": [-0.02, 0.015, -0.009, 0.0017]}[
+        model
+    ]
     f = 420.0 if model != "equidistant" else 300.0
-    return {"width": width, "height": height, "K": [f, 0, 318.3, 0, f * 1.002, 241.7, 0, 0, 1],
-            "distortion_model": model, "D": D, "frame_id": "cam", "topic": "/cam"}
+    return {
+        "width": width,
+        "height": height,
+        "K": [f, 0, 318.3, 0, f * 1.002, 241.7, 0, 0, 1],
+        "distortion_model": model,
+        "D": D,
+        "frame_id": "cam",
+        "topic": "/cam",
+    }
 
 
 # --------------------------------------------------------------------------- frames
@@ -65,8 +73,9 @@ def test_decode_frame_every_encoding() -> None:
     assert np.abs(decode_frame("mono16", 5, 6, 10, mono16).astype(int) - (gray * (255 / gray.max()))).max() <= 1
 
 
-@pytest.mark.parametrize(("fmt", "data"), [("jpeg", b"\xff\xd8garbage"), ("png", b""), ("mono8", b"\x00" * 10),
-                                           ("yuv422", b"\x00" * 60)])
+@pytest.mark.parametrize(
+    ("fmt", "data"), [("jpeg", b"\xff\xd8garbage"), ("png", b""), ("mono8", b"\x00" * 10), ("yuv422", b"\x00" * 60)]
+)
 def test_decode_frame_corrupt_raises(fmt: str, data: bytes) -> None:
     with pytest.raises(CorruptFrameError):
         decode_frame(fmt, 5, 6, 0, data)
@@ -126,8 +135,9 @@ def test_every_reference_bitmap_decodes_to_its_id(backend: str, family: str, cou
     pitch = {"tag36h11": 11, "tag25h9": 10, "tag16h5": 9}[family]  # tag with white border + 1 px separator
     per_row = (gray.shape[1] + 1) // pitch
     scale = 6
-    big = cv2.resize(np.pad(gray, pitch, constant_values=255), None, fx=scale, fy=scale,
-                     interpolation=cv2.INTER_NEAREST)
+    big = cv2.resize(
+        np.pad(gray, pitch, constant_values=255), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST
+    )
     cfg = DetectConfig(backend=backend, families=(family,), decimation=1.0, max_hamming=0)
     seen: dict[int, int] = {}
     for obs in make_detector(cfg).detect(big):
@@ -252,12 +262,21 @@ def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: dict, w:
     folder = run.stage_dir("ingest")
     folder.mkdir(parents=True, exist_ok=True)
     n = len(jobs)
-    pq.write_table(pa.table({
-        "frame": pa.array(range(n), pa.int64()),
-        "stamp_ns": pa.array([10**18 + i * 10**8 for i in range(n)], pa.int64()),
-        "topic": ["/cam/image"] * n, "format": [f for f, _ in jobs], "width": pa.array([w] * n, pa.int32()),
-        "height": pa.array([h] * n, pa.int32()), "step": pa.array([0] * n, pa.int32()),
-        "data": pa.array([d for _, d in jobs], pa.binary())}), folder / "frames.parquet")
+    pq.write_table(
+        pa.table(
+            {
+                "frame": pa.array(range(n), pa.int64()),
+                "stamp_ns": pa.array([10**18 + i * 10**8 for i in range(n)], pa.int64()),
+                "topic": ["/cam/image"] * n,
+                "format": [f for f, _ in jobs],
+                "width": pa.array([w] * n, pa.int32()),
+                "height": pa.array([h] * n, pa.int32()),
+                "step": pa.array([0] * n, pa.int32()),
+                "data": pa.array([d for _, d in jobs], pa.binary()),
+            }
+        ),
+        folder / "frames.parquet",
+    )
     (folder / "camera.json").write_text(json.dumps(camera))
     run.record("ingest", {"fingerprint": "test", "summary": {}})
     return run
@@ -266,25 +285,42 @@ def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: dict, w:
 def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) -> None:
     cam_dict = _camera()
     cam = colmap_camera(cam_dict)
-    tags = [TagPlacement(4, "tag36h11", 0.1, look_at_tag(0.7, 20, 0, 0, (-0.1, 0))),
-            TagPlacement(9, "tag36h11", 0.1, look_at_tag(0.9, -25, 10, 0, (0.15, 0.05)))]
+    tags = [
+        TagPlacement(4, "tag36h11", 0.1, look_at_tag(0.7, 20, 0, 0, (-0.1, 0))),
+        TagPlacement(9, "tag36h11", 0.1, look_at_tag(0.9, -25, 10, 0, (0.15, 0.05))),
+    ]
     jobs = []
     for k in range(4):
         img = render_frame(cam, tags if k != 2 else [], noise_sigma=2.0, rng=np.random.default_rng(k))
         jobs.append(("png", cv2.imencode(".png", img)[1].tobytes()))
     jobs.append(("jpeg", b"\xff\xd8 not a jpeg"))
     run = _fake_ingest(tmp_path, jobs, cam_dict, 640, 480)
-    settings = load_settings(REGISTRY.models(), None, ["detect.tag_size_m=0.1", "detect.workers=2",
-                                                       "detect.batch_frames=2"])
+    settings = load_settings(
+        REGISTRY.models(), None, ["detect.tag_size_m=0.1", "detect.workers=2", "detect.batch_frames=2"]
+    )
     result = run_stage(run, REGISTRY, "detect", settings)
     summary = result.summary
     assert summary["frames"] == 5 and summary["corrupt_frames"] == 1 and summary["corrupt_frame_ids"] == [4]
     table = pq.read_table(run.stage_dir("detect") / "detections.parquet")
     assert table.num_rows == 6 and summary["detections"] == 6 and summary["distinct_tags"] == 2
     assert 2 not in table.column("frame").to_pylist()
-    assert {f.name for f in table.schema} >= {"frame", "stamp_ns", "camera", "tag_id", "family", "corners", "size_m",
-                                              "T_camera_tag", "pose_cov", "position_cov", "reprojection_px",
-                                              "ambiguity_ratio", "ambiguous", "decision_margin", "hamming"}
+    assert {f.name for f in table.schema} >= {
+        "frame",
+        "stamp_ns",
+        "camera",
+        "tag_id",
+        "family",
+        "corners",
+        "size_m",
+        "T_camera_tag",
+        "pose_cov",
+        "position_cov",
+        "reprojection_px",
+        "ambiguity_ratio",
+        "ambiguous",
+        "decision_margin",
+        "hamming",
+    }
     rows = table.to_pylist()
     truth = {t.tag_id: t for t in tags}
     for r in rows:
@@ -309,8 +345,9 @@ def test_stage_reads_detections_the_bag_holds(tmp_path: Path) -> None:
         for i, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
             per_msg[i] = len(reader.deserialize(raw, conn.msgtype).apriltags)
     run = RunFolder.create(tmp_path / "run", bag)
-    settings = load_settings(REGISTRY.models(), None, [f"ingest.camera_file={folder / 'cameras.yaml'}",
-                                                       "detect.tag_size_m=0.225"])
+    settings = load_settings(
+        REGISTRY.models(), None, [f"ingest.camera_file={folder / 'cameras.yaml'}", "detect.tag_size_m=0.225"]
+    )
     run_stage(run, REGISTRY, "ingest", settings)
     summary = run_stage(run, REGISTRY, "detect", settings).summary
     assert summary["source"] == "tag_detections"
