@@ -187,11 +187,6 @@ def bearing_range_to_relative_position_3d(
     return rng * d, rotate_covariance(cov, J)
 
 
-def se3_from_ros(x: float, y: float, z: float, qx: float, qy: float, qz: float, qw: float) -> gtsam.Pose3:
-    """A ``Pose3`` from ROS pose fields."""
-    return pose3_from_xyz_quat([x, y, z], [qx, qy, qz, qw])
-
-
 def umeyama_alignment(
     source: npt.ArrayLike, target: npt.ArrayLike, with_scale: bool = False
 ) -> tuple[FloatArray, FloatArray, float]:

@@ -55,6 +55,7 @@ def import_graph(
     recording = recording or RecordingSettings()
     path = Path(path)
     problem = read_graph_file(path, cfg.prior_sigma_m, cfg.prior_sigma_rad)
+    cfg = cfg.model_copy(update={"model": problem.model})
     run = RunFolder.create(Path(out_dir) / (name or path.stem), path, kind="graph")
     scratch, rrd = run.begin(STAGE_NAME)
     rec = open_recording(run.run_id, rrd, _blueprint())

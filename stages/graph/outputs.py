@@ -17,7 +17,7 @@ import rerun as rr
 
 from pipeline.artifacts import StageOutput
 from pipeline.recording import ellipses_2d, ellipsoids, set_stamp
-from stages.geometry import pose3_from_pose2
+from stages.geometry import pose3_from_pose2, pose3_to_vector
 from stages.graph.factors import rows_to_table
 from stages.graph.g2o import write_g2o
 from stages.graph.problem import VAR_DIMS, GraphProblem, value_vector, values_to_arrays
@@ -82,12 +82,7 @@ def write_artifacts(
     pose_type = problem.var_types[problem.pose_keys[0]]
     poses3 = [_pose3(solution.values, k, pose_type) for k in problem.pose_keys]
     init3 = [_pose3(problem.initial, k, pose_type) for k in problem.pose_keys]
-    vec = np.array(
-        [
-            np.concatenate([np.asarray(p.translation()), value_vector(gtsam_values_single(p), 0, "Pose3")[3:7]])
-            for p in poses3
-        ]
-    )
+    vec = np.array([pose3_to_vector(p) for p in poses3]).reshape(-1, 7)
     pos_cov = [
         position_cov_in_map(
             pose_type, solution.values.atPose3(k) if pose_type == "Pose3" else solution.values.atPose2(k), marginals[k]
@@ -194,13 +189,6 @@ def write_artifacts(
         "iterations": solution.iterations,
         "optimise_seconds": round(solution.seconds, 4),
     }
-
-
-def gtsam_values_single(p: gtsam.Pose3) -> gtsam.Values:
-    """A ``Values`` holding one Pose3 at key 0 (for :func:`value_vector`)."""
-    v = gtsam.Values()
-    v.insert(0, p)
-    return v
 
 
 def log_recording(
