@@ -215,6 +215,32 @@ for _stage in list(_registry())[1:]:
     _stage_command(_stage.name, _stage.help or f"Run the {_stage.command} stage on a run folder.")
 
 
+@app.command(name="import-graph")
+@handled
+def import_graph_command(
+    graph_file: Annotated[
+        Path,
+        typer.Argument(
+            help="A g2o file (2D or 3D, with landmark vertices and edges) or a GTSAM text dataset (.graph).",
+            show_default=False,
+        ),
+    ],
+    out: OutOpt = Path("runs"),
+    name: NameOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Make a run folder whose graph stage comes from an existing factor graph instead of a bag."""
+    from stages.graph.imports import import_graph
+
+    if not graph_file.is_file():
+        raise InputError(f"{str(graph_file)!r} does not exist; pass a .g2o or GTSAM .graph file")
+    settings = _settings(config, set_)
+    run_dir = import_graph(graph_file, out, name, settings["graph"], settings.rerun)
+    typer.echo(f"run folder: {run_dir}")
+    typer.echo("the stages after graph that need no camera or laser run on it, e.g. focusmap select-landmarks")
+
+
 @app.command(name="run")
 @handled
 def run_pipeline(
