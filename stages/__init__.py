@@ -8,6 +8,6 @@ from __future__ import annotations
 from typing import Final
 
 from pipeline.registry import Registry
-from stages import detect, ingest
+from stages import detect, graph, ingest
 
-REGISTRY: Final = Registry([ingest.STAGE, detect.STAGE])
+REGISTRY: Final = Registry([ingest.STAGE, detect.STAGE, graph.STAGE])
