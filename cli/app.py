@@ -313,6 +313,11 @@ def show_config(
     typer.echo(yaml.safe_dump(settings.dump(), sort_keys=False), nl=False)
 
 
+from cli import batch as _batch  # noqa: E402
+
+_batch.register(app)
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

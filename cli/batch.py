@@ -1,0 +1,117 @@
+"""``focusmap batch``: the pipeline over many recordings, in local worker processes or on a Dask cluster."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from cli.options import ConfigOpt, ForceOpt, SetOpt
+
+REGISTRY_SPEC = "stages:REGISTRY"
+PREFLIGHT_SPEC = "stages.ingest.bags:detect_format"
+
+RecordingsArg = Annotated[
+    list[str],
+    typer.Argument(
+        help="Recordings (ROS 1 .bag, ROS 2 bag folder, .db3, .mcap) or glob patterns such as 'bags/**/*.bag' "
+        "(quote a pattern to let focusmap expand it).",
+        show_default=False,
+    ),
+]
+BatchOutOpt = Annotated[
+    Path,
+    typer.Option(
+        "--out",
+        "-o",
+        help="Folder that holds one run folder per recording and batch_summary.parquet (created if absent). "
+        "With --scheduler, the Dask workers write here: it must be storage every worker shares, at the same path.",
+    ),
+]
+UntilOpt = Annotated[str | None, typer.Option("--until", help="Last stage to run (default: every stage).")]
+WorkersOpt = Annotated[
+    int | None,
+    typer.Option("--workers", "-j", min=1, help="Recordings processed at once on this machine; default: CPU cores."),
+]
+SchedulerOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--scheduler",
+        help="Address of a running dask.distributed scheduler (tcp://host:8786): run the recordings on its workers "
+        "instead of locally. Recordings and --out must be on storage the workers share, at the same paths.",
+    ),
+]
+
+
+BATCH_HELP = (
+    "Run the pipeline over many recordings: one run folder each, a summary table, resumable.\n\n"
+    "Each recording gets the run folder 'focusmap run' would give it (OUT/<file name without extension>, or the "
+    "folder's name for a ROS 2 bag); two recordings with the same name are an error before anything runs. "
+    "Stages already up to date are skipped, so running the same batch again finishes what an interrupted one left "
+    "and skips what is complete. A broken recording is listed as failed with its reason and the others go on; "
+    "the exit code is 1 if any failed. The table is also written to OUT/batch_summary.parquet.\n\n"
+    "Locally, --workers recordings run at once, each in its own process. With --scheduler they run on an existing "
+    "dask.distributed cluster, whose workers write the run folders: recordings and --out must be on storage every "
+    "worker shares, at the same paths."
+)
+
+
+def batch(
+    recordings: RecordingsArg,
+    out: BatchOutOpt = Path("runs"),
+    until: UntilOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    workers: WorkersOpt = None,
+    scheduler: SchedulerOpt = None,
+    force: ForceOpt = False,
+) -> None:
+    """Run the pipeline over many recordings: one run folder each, a summary table, resumable."""
+    from rich.console import Console
+
+    from pipeline.batch import collect_recordings, plan_tasks, print_summary, run_batch, summary_table, write_summary
+    from pipeline.config import load_settings
+    from stages import REGISTRY
+
+    settings = load_settings(REGISTRY.models(), config, set_ or [])
+    stages = [s.name for s in REGISTRY.between(None, until)]
+    tasks = plan_tasks(
+        collect_recordings(recordings),
+        out,
+        stages,
+        settings,
+        force=force,
+        registry=REGISTRY_SPEC,
+        preflight=PREFLIGHT_SPEC,
+    )
+    where = (
+        f"on the Dask cluster at {scheduler}" if scheduler else f"with {min(workers or _cores(), len(tasks))} workers"
+    )
+    console = Console(highlight=False, soft_wrap=False)
+    console.print(f"batch: {len(tasks)} recordings, stages {', '.join(stages)}, {where}")
+    result = run_batch(tasks, workers=workers, scheduler=scheduler)
+    table = summary_table(result.outcomes, stages)
+    path = write_summary(table, out.expanduser().resolve())
+    print_summary(table, console)
+    console.print(f"summary: {path}")
+    if result.interrupted:
+        typer.echo("error: interrupted; finished stages are kept, run the same batch again to finish", err=True)
+        raise typer.Exit(130)
+    if result.failed:
+        typer.echo(f"error: {result.failed} of {len(tasks)} recordings failed (see the table above)", err=True)
+        raise typer.Exit(1)
+
+
+def _cores() -> int:
+    import os
+
+    return os.cpu_count() or 1
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``batch`` command to the focusmap application."""
+    from cli.app import handled  # cli.app calls register() at its end, after defining handled
+
+    command: Any = handled(batch)
+    app.command(name="batch", help=BATCH_HELP)(command)
