@@ -1,0 +1,164 @@
+"""LQG navigation: tracking, collisions against map quality, Wilson interval, obstacles, ground-truth frames."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.navigation import (
+    GroundTruth,
+    LandmarkMap,
+    NavigationParams,
+    SegmentWalls,
+    ground_truth_file,
+    lqr_gains,
+    nominal_path,
+    occupancy_grid,
+    scan_endpoints,
+    se2,
+    simulate,
+    visibility_schedule,
+    wilson_interval,
+)
+
+HALF_WIDTH = 0.6
+
+
+@pytest.fixture(scope="module")
+def corridor():
+    """A straight 1.2 m corridor along x, landmarks on both walls every metre, 12 m at 0.3 m/s."""
+    t = np.arange(0, 41) * 1.0
+    stamps = (t * 1e9).astype(np.int64)
+    poses = np.column_stack([0.3 * t, np.zeros_like(t), np.zeros_like(t)])
+    path = nominal_path(stamps, poses, 0.2)
+    gains = lqr_gains(path, np.diag([10.0, 10.0, 1.0]), np.eye(2))
+    ids = np.arange(14)
+    xy = np.column_stack([ids * 1.0, np.where(ids % 2 == 0, HALF_WIDTH, -HALF_WIDTH)])
+    vis = [ids[np.abs(xy[:, 0] - p[0]) < 3.0] for p in path.poses]
+    walls = SegmentWalls(np.array([[-5, HALF_WIDTH, 20, HALF_WIDTH], [-5, -HALF_WIDTH, 20, -HALF_WIDTH]], dtype=float))
+    truth = {int(i): xy[i] for i in ids}
+    return path, gains, ids, xy, vis, walls, truth
+
+
+def _map(ids, xy, sigma):
+    return LandmarkMap(ids, xy, np.repeat(np.eye(2)[None] * sigma**2, len(ids), 0))
+
+
+def test_nominal_path_controls_reproduce_the_path(corridor) -> None:
+    path = corridor[0]
+    assert len(path) == 201 and path.dt_s == pytest.approx(0.2)
+    np.testing.assert_allclose(path.controls[:, 0], 0.3, atol=1e-9)
+    np.testing.assert_allclose(path.controls[:, 1], 0.0, atol=1e-12)
+
+
+def test_lqg_tracks_a_straight_corridor_without_noise(corridor) -> None:
+    path, gains, ids, xy, vis, walls, truth = corridor
+    params = NavigationParams(
+        trials=8,
+        speed_sigma_mps=0.0,
+        yaw_rate_sigma_radps=0.0,
+        bearing_sigma_rad=1e-9,
+        range_sigma_m=1e-9,
+        initial_sigma_m=0.0,
+        initial_sigma_rad=0.0,
+    )
+    res = simulate(path, gains, _map(ids, xy, 1e-6), truth, vis, walls, params)
+    assert res.collisions == 0 and res.collision_rate == 0.0
+    assert res.rms_tracking_error_m < 1e-6 and res.rms_estimation_error_m < 1e-6
+    np.testing.assert_allclose(res.sample_paths[0, -1], path.poses[-1, :2], atol=1e-6)
+
+
+def test_lqg_recovers_from_an_initial_offset(corridor) -> None:
+    path, gains, ids, xy, vis, walls, truth = corridor
+    params = NavigationParams(trials=50, initial_sigma_m=0.1, initial_sigma_rad=0.05, keep_paths=50)
+    res = simulate(path, gains, _map(ids, xy, 0.01), truth, vis, walls, params, seed=1)
+    assert res.collisions == 0
+    final = np.linalg.norm(res.sample_paths[:, -1] - path.poses[-1, :2], axis=1)
+    assert final.max() < 0.1
+
+
+def test_collision_rate_rises_when_the_map_is_worse(corridor) -> None:
+    path, gains, ids, xy, vis, walls, truth = corridor
+    params = NavigationParams(trials=60)
+    good = simulate(path, gains, _map(ids, xy, 0.01), truth, vis, walls, params, seed=2)
+    rng = np.random.default_rng(0)
+    # a map that is wrong and overconfident: every landmark off by ~0.5 m with a stated 1 cm sigma
+    bad_xy = xy + rng.normal(0.0, 0.5, xy.shape)
+    bad = simulate(path, gains, _map(ids, bad_xy, 0.01), truth, vis, walls, params, seed=2)
+    # the same wrong positions with an honest covariance: eq. 26 discounts them
+    honest = simulate(path, gains, _map(ids, bad_xy, 0.5), truth, vis, walls, params, seed=2)
+    none = simulate(path, gains, _map(ids[:0], xy[:0], 1.0), truth, vis, walls, params, seed=2)
+    assert good.collision_rate == 0.0
+    assert bad.collision_rate > good.collision_rate + 0.2
+    assert bad.rms_tracking_error_m > 3 * good.rms_tracking_error_m
+    assert honest.collision_rate < bad.collision_rate
+    assert none.collision_rate > good.collision_rate
+    assert bad.ci_low <= bad.collision_rate <= bad.ci_high
+
+
+def test_same_seed_same_result(corridor) -> None:
+    path, gains, ids, xy, vis, walls, truth = corridor
+    params = NavigationParams(trials=10)
+    a = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, walls, params, seed=5)
+    b = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, walls, params, seed=5)
+    np.testing.assert_array_equal(a.sample_paths, b.sample_paths)
+
+
+def test_wilson_interval() -> None:
+    lo, hi = wilson_interval(0, 50)
+    assert lo == pytest.approx(0.0, abs=1e-12) and hi == pytest.approx(0.0713, abs=1e-3)
+    lo, hi = wilson_interval(5, 10)
+    assert lo == pytest.approx(0.2366, abs=1e-3) and hi == pytest.approx(0.7634, abs=1e-3)
+    lo, hi = wilson_interval(50, 50)
+    assert hi == 1.0 and lo == pytest.approx(1 - 0.0713, abs=1e-3)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    # coverage: the 95 % interval contains p in about 95 % of binomial draws
+    rng = np.random.default_rng(0)
+    draws = rng.binomial(40, 0.1, size=2000)
+    cover = np.mean([lo <= 0.1 <= hi for lo, hi in (wilson_interval(int(k), 40) for k in draws)])
+    assert 0.92 < cover < 0.99
+
+
+def test_occupancy_grid_from_scans_matches_the_walls() -> None:
+    walls = SegmentWalls(np.array([[0.0, 1.0, 10.0, 1.0], [0.0, -1.0, 10.0, -1.0]]))
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    pts = []
+    for x in np.arange(1.0, 9.0, 0.5):
+        T = se2(x, 0.0, 0.3)
+        ranges = []
+        for a in angles:  # exact ray cast to y = ±1
+            s = np.sin(a + 0.3)
+            ranges.append(1.0 / abs(s) if abs(s) > 0.15 else np.inf)
+        pts.append(scan_endpoints(T, np.array(ranges), -np.pi, 2 * np.pi / 360, 0.05, 8.0))
+    grid = occupancy_grid(np.vstack(pts), resolution=0.05, min_hits=1)
+    q = np.column_stack([np.linspace(2, 8, 30), np.linspace(-0.8, 0.8, 30)])
+    np.testing.assert_allclose(grid.distance(q), walls.distance(q), atol=0.06)
+
+
+def test_visibility_schedule_uses_the_window() -> None:
+    vis = visibility_schedule([0, 10**9, 2 * 10**9], [0, 0, 10**9 + 4 * 10**8], [3, 4, 5], window_s=0.5)
+    assert [v.tolist() for v in vis] == [[3, 4], [5], []]
+
+
+def test_ground_truth_in_the_map_frame(tmp_path: Path) -> None:
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    gt = {
+        "world": {"walls": [[0, 0, 4, 0]]},
+        "tags": [{"id": 1, "position": [2.0, 1.0, 0.4]}],
+        "poses": [
+            {"stamp_ns": 0, "x": 1.0, "y": 1.0, "yaw": np.pi / 2},
+            {"stamp_ns": 10, "x": 1.0, "y": 2.0, "yaw": np.pi / 2},
+        ],
+    }
+    (tmp_path / "run.ground_truth.json").write_text(json.dumps(gt))
+    assert ground_truth_file(bag) == tmp_path / "run.ground_truth.json"
+    assert ground_truth_file(tmp_path / "other.bag") is None
+    truth = GroundTruth.load(ground_truth_file(bag)).in_map(0)
+    np.testing.assert_allclose(truth.poses[0], [0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(truth.poses[1], [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(truth.tags[1], [0, -1], atol=1e-12)  # 1 m ahead-right: x forward, y left
+    np.testing.assert_allclose(truth.walls[0], [-1, 1, -1, -3], atol=1e-12)
