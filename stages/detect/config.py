@@ -60,6 +60,20 @@ class DetectConfig(BaseModel):
     min_corner_sigma_px: float = Field(
         0.1, gt=0, description="Floor of the estimated corner noise, px (ignored when corner_sigma_px is set)."
     )
+    corner_bias_px: float = Field(
+        0.0,
+        ge=0,
+        description="Standard deviation of a correlated edge bias, px: all four corners moving together "
+        "outwards/inwards along their diagonals (a scale error that the pose absorbs and the residuals cannot "
+        "show). Corner noise = corner_sigma^2 I + corner_bias^2 s s^T. Fitted on simulator seeds 1-2: 0 "
+        "(docs/detect.md); raise it for blurred or strongly compressed images.",
+    )
+    ambiguity_mixture: bool = Field(
+        True,
+        description="Report the covariance of the two-mode mixture of both planar (IPPE) solutions, weighted by "
+        "their evidence, about the chosen one: a view that may be flipped says so. Off = the chosen solution's "
+        "local covariance only (overconfident beyond ~2 m on the simulator: NEES/6 of 5-140).",
+    )
     max_reprojection_px: float = Field(
         3.0, gt=0, description="Detections whose RMS corner reprojection error exceeds this are dropped, px."
     )

@@ -83,6 +83,7 @@ def observations_to_rows(
             dropped["reprojection"] += 1
             continue
         alt = pose.alt_T_camera_tag if pose.alt_T_camera_tag is not None else np.full((4, 4), np.nan)
+        has_alt = pose.alt_cov_unit is not None
         rows.append(
             {
                 "frame": job.frame,
@@ -97,6 +98,11 @@ def observations_to_rows(
                 "pose_cov_unit": pose.cov_unit.ravel().tolist(),
                 "position_cov_unit": pose.position_cov_unit.ravel().tolist(),
                 "sse_px2": pose.sse_px2,
+                "scale_dir": pose.scale_dir.tolist(),
+                "alt_pose_cov_unit": pose.alt_cov_unit.ravel().tolist() if has_alt else None,
+                "alt_scale_dir": pose.alt_scale_dir.tolist() if has_alt else None,
+                "alt_offset": pose.alt_offset.tolist() if has_alt else None,
+                "alt_sse_px2": pose.alt_sse_px2,
                 "side_px": side,
                 "reprojection_px": pose.reprojection_px,
                 "ambiguity_ratio": pose.ambiguity_ratio,

@@ -11,7 +11,7 @@ Conventions:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -36,6 +36,11 @@ class TagPose:
         sse_px2: sum of squared corner reprojection errors of the chosen solution, px^2.
         alt_T_camera_tag: the other planar solution (None when IPPE gave only one).
         alt_sse_px2: its sum of squared reprojection errors, px^2 (inf without it).
+        scale_dir: 6-vector ``(J^T J)^-1 J^T s``: the pose change caused by moving every corner 1 px outwards
+            along its diagonal (``s``, a correlated edge bias); its covariance term is ``beta^2 a a^T``.
+        alt_cov_unit: 6x6 covariance of the other solution for 1 px corner noise (None without it).
+        alt_scale_dir: ``scale_dir`` of the other solution (None without it).
+        alt_offset: ``Log(T^-1 T_alt)`` in the GTSAM tangent (None without it): where the other mode lies.
     """
 
     T_camera_tag: Array
@@ -43,6 +48,10 @@ class TagPose:
     sse_px2: float
     alt_T_camera_tag: Array | None  # noqa: N815 (frames in names, as everywhere)
     alt_sse_px2: float
+    scale_dir: Array = field(default_factory=lambda: np.zeros(6))
+    alt_cov_unit: Array | None = None
+    alt_scale_dir: Array | None = None
+    alt_offset: Array | None = None
 
     @property
     def reprojection_px(self) -> float:
@@ -103,7 +112,57 @@ def _refine(camera: object, corners: Array, obj: Array, R: Array, t: Array) -> t
         return None
     proj = np.asarray(camera.img_from_cam(obj @ T[:3, :3].T + T[:3, 3], check_cheirality=False))  # type: ignore[attr-defined]
     sse = float(np.sum((proj - corners) ** 2))
-    return T, colmap_to_gtsam_cov(np.asarray(res["covariance"]), T[:3, :3]), sse
+    cov = colmap_to_gtsam_cov(np.asarray(res["covariance"]), T[:3, :3])
+    J = corner_jacobian(camera, T, obj)
+    return T, cov, sse, cov @ J.T @ scale_mode(proj)
+
+
+def _skew(w: Array) -> Array:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def so3_exp(w: Array) -> Array:
+    """Rotation matrix of the rotation vector ``w``."""
+    theta = float(np.linalg.norm(w))
+    K = _skew(w)
+    if theta < 1e-8:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+
+
+def se3_log(T: Array) -> Array:
+    """GTSAM's ``Pose3.Logmap`` (rx, ry, rz, tx, ty, tz) of a 4x4 pose."""
+    import cv2
+
+    w = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0].ravel()
+    theta = float(np.linalg.norm(w))
+    K = _skew(w)
+    if theta < 1e-8:
+        V = np.eye(3) + 0.5 * K
+    else:
+        V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * K @ K
+    return np.concatenate([w, np.linalg.solve(V, T[:3, 3])])
+
+
+def corner_jacobian(camera: object, T: Array, obj: Array, h: float = 1e-6) -> Array:
+    """8 x 6 derivative of the distorted corners (x0 y0 .. x3 y3) by the right perturbation ``T Exp(xi)``."""
+    R, t = T[:3, :3], T[:3, 3]
+    pts = []
+    for k in range(6):
+        for sign in (1.0, -1.0):
+            xi = np.zeros(6)
+            xi[k] = sign * h
+            Rk = R @ so3_exp(xi[:3])
+            pts.append(obj @ Rk.T + t + R @ xi[3:])
+    proj = np.asarray(camera.img_from_cam(np.vstack(pts), check_cheirality=False)).reshape(6, 2, 8)  # type: ignore[attr-defined]
+    return ((proj[:, 0] - proj[:, 1]) / (2 * h)).T
+
+
+def scale_mode(corners: Array) -> Array:
+    """8-vector: every corner moved 1 px outwards along the line from the quad's centre (a scale change)."""
+    c = np.asarray(corners, float).reshape(4, 2)
+    d = c - c.mean(axis=0)
+    return (d / np.linalg.norm(d, axis=1, keepdims=True)).ravel()
 
 
 def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPose | None:
@@ -135,9 +194,52 @@ def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPo
     if not candidates:
         return None
     candidates.sort(key=lambda c: c[2])
-    T, cov, sse = candidates[0]
+    T, cov, sse, scale_dir = candidates[0]
     alt = candidates[1] if len(candidates) > 1 else None
     # Two refinements may converge to the same minimum; then the view is not ambiguous.
     if alt is not None and np.linalg.norm(alt[0][:3, :3] - T[:3, :3]) < 1e-6:
         alt = None
-    return TagPose(T, cov, sse, alt[0] if alt else None, alt[2] if alt else float("inf"))
+    if alt is None:
+        return TagPose(T, cov, sse, None, float("inf"), scale_dir)
+    offset = se3_log(np.linalg.solve(T, alt[0]))
+    return TagPose(T, cov, sse, alt[0], alt[2], scale_dir, alt[1], alt[3], offset)
+
+
+def pose_covariance(
+    cov_unit: Array,
+    scale_dir: Array,
+    sigma_px: float,
+    beta_px: float,
+    sse_px2: float = 0.0,
+    alt: tuple[Array, Array, Array, float] | None = None,
+    mixture: bool = True,
+) -> tuple[Array, float]:
+    """The reported 6x6 pose covariance and the probability that the other planar solution is the true one.
+
+    Corner noise ``Sigma_c = sigma^2 I + beta^2 s s^T`` (white noise plus a correlated outward/inward edge
+    bias along the scale mode ``s``) propagated through the least-squares solution:
+    ``(J^T J)^-1 J^T Sigma_c J (J^T J)^-1 = sigma^2 (J^T J)^-1 + beta^2 a a^T``.
+
+    With the other planar (IPPE) solution ``alt = (cov_unit, scale_dir, offset, sse_px2)`` and ``mixture``,
+    the two solutions are weighted by their Laplace evidence ``exp(-SSE / 2 sigma^2) sqrt(det C)`` and the
+    covariance is the second moment of that two-mode mixture about the chosen solution:
+    ``(1 - p) C + p (C_alt + d d^T)`` with ``d = Log(T^-1 T_alt)``. Views where both solutions fit alike
+    (small, far, near-frontal tags) thus report the flip they may be; clear views are unchanged.
+    """
+    sigma2 = sigma_px**2
+    a = np.asarray(scale_dir, float)
+    cov = sigma2 * np.asarray(cov_unit, float) + beta_px**2 * np.outer(a, a)
+    if alt is None or not mixture:
+        return cov, 0.0
+    alt_unit, alt_dir, offset, alt_sse = alt
+    b = np.asarray(alt_dir, float)
+    cov_alt = sigma2 * np.asarray(alt_unit, float) + beta_px**2 * np.outer(b, b)
+    sign, logdet = np.linalg.slogdet(cov)
+    sign_a, logdet_a = np.linalg.slogdet(cov_alt)
+    if sign <= 0 or sign_a <= 0 or not np.isfinite(alt_sse):
+        return cov, 0.0
+    log_odds = (alt_sse - sse_px2) / (2.0 * sigma2) - 0.5 * (logdet_a - logdet)
+    p = float(1.0 / (1.0 + np.exp(min(log_odds, 700.0))))
+    d = np.asarray(offset, float)
+    out = (1.0 - p) * cov + p * (cov_alt + np.outer(d, d))
+    return 0.5 * (out + out.T), p

@@ -22,6 +22,7 @@ from stages.camera import CameraDict
 from stages.detect.backends import TagObservation
 from stages.detect.config import DetectConfig
 from stages.detect.core import DROP_REASONS, BatchResult, FrameJob, FrameProcessor, Row, init_worker, process_in_worker
+from stages.detect.pose import pose_covariance
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,7 @@ DETECTIONS_SCHEMA = pa.schema(
         ("position_cov", pa.list_(pa.float64(), 9)),
         ("reprojection_px", pa.float64()),
         ("ambiguity_ratio", pa.float64()),
+        ("alt_probability", pa.float64()),
         ("ambiguous", pa.bool_()),
         ("decision_margin", pa.float64()),
         ("hamming", pa.int32()),
@@ -235,6 +237,28 @@ def _corner_sigma(rows: list[Row], cfg: DetectConfig) -> tuple[list[float], str]
     return [float(v) for v in np.maximum(per_band, cfg.min_corner_sigma_px)], "residuals"
 
 
+def row_pose_cov(r: Row, sigma_px: float, cfg: DetectConfig) -> tuple[np.ndarray, float]:
+    """The 6x6 pose covariance of one detection row for corner noise ``sigma_px`` and the probability that
+    the other planar solution is the true one (see ``stages.detect.pose.pose_covariance``)."""
+    alt = None
+    if r.get("alt_pose_cov_unit") is not None:
+        alt = (
+            np.reshape(r["alt_pose_cov_unit"], (6, 6)),
+            np.asarray(r["alt_scale_dir"]),
+            np.asarray(r["alt_offset"]),
+            float(r["alt_sse_px2"]),
+        )
+    return pose_covariance(
+        np.reshape(r["pose_cov_unit"], (6, 6)),
+        np.asarray(r.get("scale_dir", np.zeros(6))),
+        sigma_px,
+        cfg.corner_bias_px,
+        float(r["sse_px2"]),
+        alt,
+        cfg.ambiguity_mixture,
+    )
+
+
 def _table(rows: list[Row], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.Table, int, int]:
     out: dict[str, list[Any]] = {f.name: [] for f in DETECTIONS_SCHEMA}
     n_ambiguous = n_dropped = 0
@@ -261,8 +285,11 @@ def _table(rows: list[Row], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.
             "hamming",
         ):
             out[key].append(r[key])
-        out["pose_cov"].append([var * v for v in r["pose_cov_unit"]])
-        out["position_cov"].append([var * v for v in r["position_cov_unit"]])
+        cov, p_alt = row_pose_cov(r, float(np.sqrt(var)), cfg)
+        out["alt_probability"].append(p_alt)
+        R = np.reshape(r["T_camera_tag"], (4, 4))[:3, :3]
+        out["pose_cov"].append(cov.ravel().tolist())
+        out["position_cov"].append((R @ cov[3:, 3:] @ R.T).ravel().tolist())
         out["ambiguous"].append(ambiguous)
     if n_ambiguous:
         log.info(
