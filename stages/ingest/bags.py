@@ -252,12 +252,15 @@ class _Ros1(_Impl):
         for conn in reader.connections:
             info = self.topics.setdefault(conn.topic, TopicInfo(conn.topic, _normalise_type(conn.msgtype)))
             info.count += conn.msgcount
-        # first/last stamps per topic from the index (cheap: no deserialisation)
-        for raw in self._iter(None):
-            info = self.topics[raw.topic]
-            if info.first_ns is None:
-                info.first_ns = raw.log_time_ns
-            info.last_ns = raw.log_time_ns
+        # first/last stamps per topic from the bag's index (no pass over the messages)
+        for conn in reader.connections:
+            index = getattr(conn.owner, "indexes", {}).get(conn.id) or []
+            if not index:
+                continue
+            info = self.topics[conn.topic]
+            first, last = min(i.time for i in index), max(i.time for i in index)
+            info.first_ns = first if info.first_ns is None else min(info.first_ns, first)
+            info.last_ns = last if info.last_ns is None else max(info.last_ns, last)
 
     def _iter(self, topics: set[str] | None) -> Iterator[RawMessage]:
         reader = self.reader

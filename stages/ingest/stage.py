@@ -225,6 +225,8 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
                 continue
             if raw.log_time_ns < start_ns or (end_ns is not None and raw.log_time_ns > end_ns):
                 continue
+            if topic == topics["camera_info"] and camera is not None:
+                continue  # the first calibration in the window is the one used
             msg = raw.decode()
             if topic == topics["camera_info"]:
                 if camera is None:
