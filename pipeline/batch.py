@@ -537,7 +537,7 @@ def run_dask(
             for i, task in enumerate(tasks)
         }
         try:
-            for future in as_completed(futures):
+            for future in as_completed(futures, loop=client.loop):
                 i = futures[future]
                 try:
                     outcome: Outcome = future.result()

@@ -1,0 +1,320 @@
+"""focusmap batch: planning, the summary, local vs Dask on generated bags, resuming after a kill.
+
+The end-to-end tests run ``--until detect`` (ingest and detect only) on 2-second simulated
+recordings at 320x240, so the whole file stays well under a minute and a half on two cores; the
+machinery they check (tasks, run folders, manifests, resuming) is the same for every stage.
+
+The batches run in subprocesses on a snapshot of ``pipeline/``, ``stages/`` and ``cli/`` taken when
+the module starts: the runner's fingerprints hash the stage code, so an edit to a stage while the
+test runs would otherwise make every stage look out of date.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.batch import (
+    HEADLINES,
+    LOCK_FILE,
+    SUMMARY_FILE,
+    Outcome,
+    collect_recordings,
+    plan_tasks,
+    run_name,
+    summary_table,
+)
+from pipeline.config import load_settings
+from pipeline.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+UNTIL = "detect"
+FORMATS = (("s1.bag", "ros1"), ("s2", "ros2-sqlite"), ("s3", "ros2-mcap"))
+TIMING = re.compile(r"seconds|timing|per_second|_s$")
+
+
+# --- helpers -----------------------------------------------------------------------------------------
+def _stable(value: Any) -> Any:
+    """A stage summary without its timings (which differ from run to run)."""
+    if isinstance(value, dict):
+        return {k: _stable(v) for k, v in value.items() if not TIMING.search(k)}
+    if isinstance(value, list):
+        return [_stable(v) for v in value]
+    return value
+
+
+def _manifests(out: Path) -> dict[str, dict[str, Any]]:
+    """Per run folder: per stage, its fingerprint and summary without timings."""
+    result = {}
+    for manifest in sorted(out.glob("*/manifest.json")):
+        stages = json.loads(manifest.read_text())["stages"]
+        result[manifest.parent.name] = {
+            name: {"fingerprint": e["fingerprint"], "summary": _stable(e["summary"])} for name, e in stages.items()
+        }
+    return result
+
+
+def _rows(out: Path) -> list[dict[str, Any]]:
+    """The summary rows without timings and the worker's host."""
+    table = pq.read_table(out / SUMMARY_FILE)
+    return [{k: v for k, v in r.items() if not k.startswith("seconds") and k != "host"} for r in table.to_pylist()]
+
+
+def _registry() -> Any:
+    from stages import REGISTRY
+
+    return REGISTRY
+
+
+def _cli(*args: str) -> list[str]:
+    """The command line of ``focusmap ARGS`` run with the interpreter of the tests."""
+    return [sys.executable, "-c", "from cli.app import main; main()", *args]
+
+
+DASK_SCRIPT = """
+import json, os, sys
+from pathlib import Path
+from distributed import LocalCluster
+from pipeline.batch import collect_recordings, plan_tasks, run_batch, summary_table, write_summary
+from pipeline.config import load_settings
+from stages import REGISTRY
+
+out, until, *bags = sys.argv[1:]
+stages = [s.name for s in REGISTRY.between(None, until)]
+tasks = plan_tasks(collect_recordings(bags), Path(out), stages, load_settings(REGISTRY.models()),
+                   preflight="stages.ingest.bags:detect_format")
+with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", processes=True, dashboard_address=None) as c:
+    result = run_batch(tasks, scheduler=c.scheduler_address, progress=False)
+write_summary(summary_table(result.outcomes, stages), Path(out))
+print(json.dumps({"client_pid": os.getpid(), "hosts": [o.host for o in result.outcomes]}))
+"""
+
+
+# --- fixtures --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Three short recordings (seeds 1-3; ROS 1, ROS 2 SQLite, ROS 2 MCAP) and one truncated ROS 1 bag."""
+    from sample_data.simulate import SimConfig, simulate, write_bag
+
+    root = tmp_path_factory.mktemp("bags")
+    paths = []
+    for seed, (name, fmt) in enumerate(FORMATS, start=1):
+        rec = simulate(SimConfig(seed=seed, path="corridor", duration_s=2.0, image_width=320, image_height=240))
+        paths.append(write_bag(rec, root / name, fmt))  # type: ignore[arg-type]
+    broken = root / "broken.bag"
+    broken.write_bytes(paths[0].read_bytes()[:3000])  # cut inside the first chunk
+    return [*paths, broken]
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """Environment whose PYTHONPATH puts a snapshot of the code first (fingerprints stay put)."""
+    root = tmp_path_factory.mktemp("code")
+    for package in ("pipeline", "stages", "cli"):
+        shutil.copytree(ROOT / package, root / package, ignore=shutil.ignore_patterns("__pycache__"))
+    return {**os.environ, "PYTHONPATH": str(root), "FOCUSMAP_PROGRESS": "0", "COLUMNS": "200"}
+
+
+@pytest.fixture(scope="module")
+def local_out(
+    bags: list[Path], env: dict[str, str], tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Path, subprocess.CompletedProcess[str]]:
+    """``focusmap batch`` (local pool, 2 workers) over the bags; returns OUT and the finished process."""
+    out = tmp_path_factory.mktemp("local") / "runs"
+    cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2")
+    return out, subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+
+
+# --- planning ----------------------------------------------------------------------------------------------
+def test_collect_recordings_globs_dedupes_and_names_the_missing(tmp_path: Path) -> None:
+    (tmp_path / "a.bag").write_bytes(b"x")
+    (tmp_path / "b.bag").write_bytes(b"x")
+    (tmp_path / "ros2").mkdir()
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "c.mcap").write_bytes(b"x")
+    found = collect_recordings([str(tmp_path / "*.bag"), str(tmp_path / "a.bag"), str(tmp_path / "**" / "*.mcap")])
+    assert [p.name for p in found] == ["a.bag", "b.bag", "c.mcap"]
+    assert [run_name(p) for p in collect_recordings([str(tmp_path / "ros2")])] == ["ros2"]
+    with pytest.raises(InputError, match="does not exist"):
+        collect_recordings([str(tmp_path / "nope.bag")])
+    with pytest.raises(InputError, match="no recording matches"):
+        collect_recordings([str(tmp_path / "*.db3")])
+
+
+def test_two_recordings_with_one_name_are_an_error_before_anything_runs(tmp_path: Path) -> None:
+    for d in ("x", "y"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "day.bag").write_bytes(b"x")
+    settings = load_settings(_registry().models())
+    recs = [tmp_path / "x" / "day.bag", tmp_path / "y" / "day.bag"]
+    with pytest.raises(InputError, match=r"would all write run folder .*day'; rename them"):
+        plan_tasks(recs, tmp_path / "runs", ["ingest"], settings)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None:
+    stages = ["graph", "select_landmarks", "evaluate"]
+    full = Outcome(
+        recording="/r/a.bag",
+        run="a",
+        run_dir="/o/a",
+        status="done",
+        stages_run=["graph"],
+        stages={
+            "graph": {"seconds": 1.5, "summary": {"landmarks": 24}},
+            "select_landmarks": {"seconds": 0.5, "summary": {"tag_ids": [1, 2, 3], "max_collision_probability": 0.02}},
+            "evaluate": {"seconds": 2.0, "summary": {"collision_rate": 0.1, "focused_entropy": -3.5}},
+        },
+    )
+    failed = Outcome(
+        recording="/r/b.bag", run="b", run_dir="/o/b", status="failed", reason="broken", failed_stage="graph"
+    )
+    rows = summary_table([full, failed], stages).to_pylist()
+    assert rows[0]["landmarks"] == 24
+    assert rows[0]["focused_landmarks"] == 3  # a list of tag ids counts
+    assert rows[0]["max_collision_probability"] == pytest.approx(0.02)
+    assert rows[0]["collision_rate"] == pytest.approx(0.1)
+    assert rows[0]["focused_entropy"] == pytest.approx(-3.5)  # found by the column's own name
+    assert rows[0]["measurements_kept"] is None
+    assert rows[0]["seconds_graph"] == 1.5
+    assert rows[1] | {"recording": None} == {
+        "recording": None,
+        "run": "b",
+        "run_dir": "/o/b",
+        "status": "failed",
+        "reason": "broken",
+        "failed_stage": "graph",
+        "seconds": 0.0,
+        "stages_run": [],
+        "host": None,
+        **{f"seconds_{s}": None for s in stages},
+        **dict.fromkeys(HEADLINES),
+    }
+
+
+# --- end to end ----------------------------------------------------------------------------------------------
+def test_local_batch_runs_the_good_recordings_and_reports_the_broken_one(
+    local_out: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    out, result = local_out
+    assert result.returncode == 1, result.stderr
+    assert "1 of 4 recordings failed" in result.stderr
+    assert "broken" in result.stdout and "failed (ingest)" in result.stdout
+    rows = {r["run"]: r for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
+    assert set(rows) == {"s1", "s2", "s3", "broken"}
+    for name in ("s1", "s2", "s3"):
+        assert rows[name]["status"] == "done" and rows[name]["reason"] is None
+        assert rows[name]["stages_run"] == ["ingest", "detect"]
+        assert rows[name]["seconds_ingest"] > 0 and rows[name]["seconds_detect"] > 0
+        manifest = json.loads((out / name / "manifest.json").read_text())
+        assert list(manifest["stages"]) == ["ingest", "detect"]
+        assert manifest["stages"]["detect"]["summary"]["detections"] > 0
+        assert not (out / name / ".partial").exists()
+    broken = rows["broken"]
+    assert broken["status"] == "failed" and broken["failed_stage"] == "ingest"
+    assert "truncated or damaged" in broken["reason"] and "\n" not in broken["reason"]
+    assert broken["seconds_ingest"] is None and broken["landmarks"] is None
+
+
+def test_dask_cluster_gives_the_same_run_folders_and_summary(
+    bags: list[Path], env: dict[str, str], local_out: tuple[Path, Any], tmp_path: Path
+) -> None:
+    out, _ = local_out
+    dask_out = tmp_path / "runs"
+    cmd = [sys.executable, "-c", DASK_SCRIPT, str(dask_out), UNTIL, *map(str, bags)]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert str(report["client_pid"]) not in {h.split(":")[1] for h in report["hosts"]}  # ran on the workers
+    assert sorted(p.name for p in dask_out.iterdir()) == sorted(p.name for p in out.iterdir())
+    assert _manifests(dask_out) == _manifests(out)
+    local_rows, dask_rows = _rows(out), _rows(dask_out)
+    for row in (*local_rows, *dask_rows):
+        row.pop("run_dir")
+    assert dask_rows == local_rows
+
+
+def test_second_call_skips_what_is_up_to_date(
+    bags: list[Path], env: dict[str, str], local_out: tuple[Path, Any]
+) -> None:
+    out, _ = local_out
+    before = {p.parent.name: p.read_text() for p in out.glob("*/manifest.json")}
+    cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2")
+    result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1, result.stderr
+    status = {r["run"]: (r["status"], r["stages_run"]) for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
+    assert status == {"s1": ("skipped", []), "s2": ("skipped", []), "s3": ("skipped", []), "broken": ("failed", [])}
+    assert {p.parent.name: p.read_text() for p in out.glob("*/manifest.json")} == before
+
+
+def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
+    bags: list[Path], env: dict[str, str], tmp_path: Path
+) -> None:
+    good = [str(b) for b in bags[:3]]
+    out = tmp_path / "runs"
+    cmd = _cli("batch", *good, "--out", str(out), "--until", UNTIL, "--workers", "1")
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
+    finished: dict[tuple[str, str], tuple[str, str, int]] = {}
+    deadline = time.monotonic() + 60
+    while not finished and time.monotonic() < deadline and proc.poll() is None:
+        for manifest in out.glob("*/manifest.json"):
+            try:
+                stages = json.loads(manifest.read_text())["stages"]
+            except (json.JSONDecodeError, FileNotFoundError):
+                continue
+            for name in stages:
+                finished[(manifest.parent.name, name)] = ("", "", 0)
+        time.sleep(0.02)
+    assert proc.poll() is None, "the batch ended before any stage finished; the test needs slower recordings"
+    assert finished, "no stage finished within 60 s"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    # What the kill left: every finished stage whole; record what the second call must not redo.
+    finished.clear()
+    for manifest in out.glob("*/manifest.json"):
+        for name, entry in json.loads(manifest.read_text())["stages"].items():
+            folder = manifest.parent / name
+            assert (folder / "summary.json").is_file()
+            finished[(manifest.parent.name, name)] = (entry["fingerprint"], entry["finished"], folder.stat().st_ino)
+    assert len(finished) < 2 * len(good), "the batch finished before the kill"
+    # The batch's worker died with it: its run folder lock is free again (within a moment).
+    for lock in out.glob(f"*/{LOCK_FILE}"):
+        fd = os.open(lock, os.O_RDWR)
+        try:
+            for _ in range(50):
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    time.sleep(0.1)
+            else:
+                pytest.fail(f"{lock} is still held after the batch was killed: an orphaned worker is running")
+        finally:
+            os.close(fd)
+
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert again.returncode == 0, again.stderr
+    rows = {r["run"]: r for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
+    for (run, stage), (fingerprint, when, inode) in finished.items():
+        entry = json.loads((out / run / "manifest.json").read_text())["stages"][stage]
+        assert (entry["fingerprint"], entry["finished"]) == (fingerprint, when), f"{run}/{stage} was re-run"
+        assert (out / run / stage).stat().st_ino == inode, f"{run}/{stage} was replaced"
+        assert stage not in rows[run]["stages_run"]
+    for name in ("s1", "s2", "s3"):
+        assert rows[name]["status"] in ("done", "skipped")
+        assert list(json.loads((out / name / "manifest.json").read_text())["stages"]) == ["ingest", "detect"]
+        assert not (out / name / ".partial").exists()
+    assert any(r["status"] == "done" for r in rows.values())
+    shutil.rmtree(out)
