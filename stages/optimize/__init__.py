@@ -1,0 +1,69 @@
+"""Stage ``optimize``: the reduced graph (odometry + prior + the selected measurements of the focused landmarks),
+re-optimised with Levenberg-Marquardt, with marginals, the focused entropy, errors against the full graph and the
+ground truth, the collision risk recomputed with the reduced map, and the size of the map against the full one.
+
+Public API:
+    STAGE, OptimizeConfig.
+    solve_reduced(loaded, focused_tag_ids, selected_factor_indices, ...) -> ReducedMap (``stages.optimize.core``).
+    landmark_errors(estimate, reference, tag_ids), map_size(loaded, reduced), gaussian_entropy(cov),
+    risk_params(settings_sections), landmark_heights(graph_landmarks_table).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+from pipeline.stage import Stage
+from stages.optimize.config import OptimizeConfig
+from stages.optimize.core import (
+    ReducedMap,
+    gaussian_entropy,
+    landmark_errors,
+    landmark_heights,
+    map_size,
+    risk_params,
+    solve_reduced,
+)
+from stages.optimize.stage import run
+
+
+def blueprint() -> Any:
+    """The layout of ``optimize.rrd``: the maps from above, risk along the path, the summary."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="/optimize", name="reduced vs full map"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="/optimize/risk", name="collision probability"),
+                rrb.TextDocumentView(origin="/optimize/summary", name="summary"),
+            ),
+            column_shares=[3, 1],
+        ),
+        rrb.TimePanel(play_state="paused", timeline="time"),
+    )
+
+
+STAGE: Final = Stage(
+    name="optimize",
+    config_type=OptimizeConfig,
+    run=run,
+    inputs=("graph", "select_landmarks", "select_measurements"),
+    optional_inputs=("ingest", "detect"),
+    version="1",
+    blueprint=blueprint,
+    help="Re-optimise the reduced graph (focused landmarks, selected measurements); entropy, errors, risk, size.",
+)
+
+__all__ = [
+    "STAGE",
+    "OptimizeConfig",
+    "ReducedMap",
+    "blueprint",
+    "gaussian_entropy",
+    "landmark_errors",
+    "landmark_heights",
+    "map_size",
+    "risk_params",
+    "solve_reduced",
+]

@@ -1,0 +1,259 @@
+"""The reduced graph, solved: pure functions shared by the optimize stage and evaluate (no run folder needed).
+
+```python
+loaded = load_graph(ctx.input("graph"))
+reduced = solve_reduced(loaded, focused_tag_ids, selected_factor_indices, heights)
+reduced.landmark_map          # stages.risk.LandmarkMap of the observed landmarks (reduced marginals)
+reduced.focused_entropy       # ½ log det(2πe Σ_F), nats, over every focused landmark
+```
+
+Entropy convention (Mu et al. Table I's "entropy on focused landmarks"): the differential entropy of
+the joint Gaussian of the focused landmark variables, ``H = ½ log det Σ_F + (d/2) log(2πe)`` nats,
+``d`` = their total tangent dimension (2 per planar landmark). A focused landmark that keeps no
+measurement is not in the reduced graph; it enters with an independent isotropic prior of standard
+deviation ``unobserved_sigma_m`` per dimension (100 m by default, the selection's weak landmark
+prior), so cases that lose focused landmarks are charged for it. ``focused_entropy_observed`` is the
+same over the observed focused landmarks only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+import numpy.typing as npt
+
+from pipeline.errors import StageError
+from stages.graph.factors import build_graph
+from stages.graph.load import LoadedGraph
+from stages.graph.problem import VAR_DIMS, GraphProblem, insert_value, value_vector
+from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
+from stages.risk import LandmarkMap, RiskParams
+
+FloatArray = npt.NDArray[np.float64]
+_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
+
+
+@dataclass
+class ReducedMap:
+    """A solved reduced graph and what the metrics need."""
+
+    problem: GraphProblem
+    solution: Solution
+    marginals: dict[int, FloatArray]
+    full_index: npt.NDArray[np.int64]
+    """Factor ``i`` of the reduced graph is factor ``full_index[i]`` of the full graph."""
+    focused_tag_ids: list[int]
+    observed_tag_ids: list[int]
+    """Landmarks with at least one kept measurement (the map the robot carries)."""
+    landmark_map: LandmarkMap
+    focused_entropy: float
+    focused_entropy_observed: float
+    focused_dim: int
+    n_measurements: int
+    """Kept landmark measurements (tag factors)."""
+    dropped_unfocused: int
+    """Selected measurements of landmarks outside the focused set (left out)."""
+    timing_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def focused_observed(self) -> list[int]:
+        """Focused landmarks that kept at least one measurement."""
+        obs = set(self.observed_tag_ids)
+        return [t for t in self.focused_tag_ids if t in obs]
+
+
+def gaussian_entropy(cov: FloatArray) -> float:
+    """``½ log det(2πe Σ)`` nats (0 for an empty matrix)."""
+    d = cov.shape[0]
+    if d == 0:
+        return 0.0
+    sign, logdet = np.linalg.slogdet(0.5 * (cov + cov.T))
+    if sign <= 0:
+        return float("-inf")
+    return 0.5 * (float(logdet) + d * _LOG_2PI_E)
+
+
+def solve_reduced(
+    loaded: LoadedGraph,
+    focused_tag_ids: Iterable[int],
+    selected_factor_indices: Iterable[int],
+    landmark_heights: Mapping[int, tuple[float, float]] | None = None,
+    initialise_from: str = "dead_reckoning",
+    max_iterations: int = 100,
+    relative_error_tol: float = 1e-6,
+    unobserved_sigma_m: float = 100.0,
+) -> ReducedMap:
+    """Build the reduced graph (every non-tag factor + the selected tag factors of focused landmarks), solve it.
+
+    Args:
+        loaded: the full graph (:func:`stages.graph.load.load_graph`).
+        focused_tag_ids: the focused landmarks (select_landmarks' ``tag_ids``).
+        selected_factor_indices: full-graph indices of the kept measurements (select_measurements'
+            ``factor_index``); those of unfocused landmarks and non-tag factors are ignored.
+        landmark_heights: planar graphs: tag id to (z, var z) for the written landmarks (graph's table).
+        initialise_from: ``dead_reckoning`` (the full graph's initial values) or ``full_solution``.
+        max_iterations, relative_error_tol: Levenberg-Marquardt settings.
+        unobserved_sigma_m: prior sigma of focused landmarks without measurements, in the entropy.
+
+    Raises:
+        StageError: the reduced graph is singular (names the variable).
+    """
+    t0 = time.perf_counter()
+    focused = sorted({int(t) for t in focused_tag_ids})
+    unknown = [t for t in focused if t not in loaded.landmark_keys]
+    if unknown:
+        raise StageError(
+            f"focused tags {unknown[:5]} are not landmarks of the graph; re-run 'focusmap select-landmarks' "
+            "after 'focusmap graph'"
+        )
+    fset = set(focused)
+    selected = sorted({int(i) for i in selected_factor_indices})
+    bad = [i for i in selected if not 0 <= i < len(loaded.rows)]
+    if bad:
+        raise StageError(
+            f"selected factor indices {bad[:5]} are outside the graph ({len(loaded.rows)} factors); "
+            "re-run 'focusmap select-measurements'"
+        )
+    kept_tags = [i for i in selected if loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id in fset]
+    dropped = sum(1 for i in selected if loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id not in fset)
+    keep = np.array(sorted(set(loaded.fixed_factor_indices.tolist()) | set(kept_tags)), dtype=np.int64)
+    rows = [loaded.rows[i] for i in keep]
+    used = {k for r in rows for k in r.keys}
+    src = loaded.initial if initialise_from == "dead_reckoning" else loaded.values
+    initial = gtsam.Values()
+    var_types: dict[int, str] = {}
+    for k, t in loaded.var_types.items():
+        if k in used:
+            insert_value(initial, k, t, value_vector(src, k, t))
+            var_types[k] = t
+    observed = sorted(t for t, k in loaded.landmark_keys.items() if k in used)
+    problem = GraphProblem(
+        model="planar" if loaded.model == "planar" else "3d",
+        rows=rows,
+        initial=initial,
+        var_types=var_types,
+        pose_keys=list(loaded.pose_keys),
+        pose_stamps_ns=list(loaded.pose_stamps_ns),
+        landmark_keys={t: loaded.landmark_keys[t] for t in observed},
+        landmark_heights={t: h for t, h in (landmark_heights or {}).items() if t in set(observed)},
+    )
+    check_problem(problem)
+    graph = build_graph(rows)
+    t1 = time.perf_counter()
+    solution = optimise(problem, graph, "lm", max_iterations, relative_error_tol)
+    t2 = time.perf_counter()
+    focused_obs = [t for t in focused if t in set(observed)]
+    try:
+        marg = gtsam.Marginals(graph, solution.values)
+        marginals = {k: np.asarray(marg.marginalCovariance(k), dtype=float) for k in var_types}
+        if focused_obs:
+            kv = gtsam.KeyVector([problem.landmark_keys[t] for t in focused_obs])
+            joint = np.asarray(marg.jointMarginalCovariance(kv).fullMatrix(), dtype=float)
+        else:
+            joint = np.zeros((0, 0))
+    except RuntimeError as err:
+        raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
+    t3 = time.perf_counter()
+    h_obs = gaussian_entropy(joint)
+    missing_dim = sum(VAR_DIMS[loaded.var_types[loaded.landmark_keys[t]]] for t in focused if t not in set(observed))
+    h_missing = 0.5 * missing_dim * (np.log(unobserved_sigma_m**2) + _LOG_2PI_E)
+    lmap = LandmarkMap.from_graph(loaded, solution.values, marginals)
+    return ReducedMap(
+        problem=problem,
+        solution=solution,
+        marginals=marginals,
+        full_index=keep,
+        focused_tag_ids=focused,
+        observed_tag_ids=observed,
+        landmark_map=lmap,
+        focused_entropy=float(h_obs + h_missing),
+        focused_entropy_observed=float(h_obs),
+        focused_dim=int(joint.shape[0] + missing_dim),
+        n_measurements=len(kept_tags),
+        dropped_unfocused=int(dropped),
+        timing_s={
+            "build": round(t1 - t0, 4),
+            "optimise": round(t2 - t1, 4),
+            "marginals": round(t3 - t2, 4),
+        },
+    )
+
+
+def landmark_errors(
+    estimate: LandmarkMap, reference: Mapping[int, FloatArray], tag_ids: Iterable[int] | None = None
+) -> dict[int, float]:
+    """Planar (x, y) distance between estimated and reference landmark positions, by tag id.
+
+    Only tags present in both are returned; ``tag_ids`` restricts them further.
+    """
+    want = None if tag_ids is None else {int(t) for t in tag_ids}
+    out = {}
+    for t, p in zip(estimate.tag_ids.tolist(), estimate.positions, strict=True):
+        if (want is None or t in want) and t in reference:
+            out[int(t)] = float(np.linalg.norm(np.asarray(p[:2]) - np.asarray(reference[t])[:2]))
+    return out
+
+
+def mean_or_nan(values: Iterable[float]) -> float:
+    """Mean of the values (NaN when there are none)."""
+    v = list(values)
+    return float(np.mean(v)) if v else float("nan")
+
+
+def map_bytes(var_types: Iterable[str]) -> int:
+    """Bytes of a landmark map stored as float64: per landmark an id, its mean and its covariance."""
+    return int(sum(8 * (1 + VAR_DIMS[t] + VAR_DIMS[t] ** 2) for t in var_types))
+
+
+def measurement_bytes(dims: Iterable[int]) -> int:
+    """Bytes of landmark measurements stored as float64: per factor two keys, the measurement and its covariance."""
+    return int(sum(8 * (2 + d + d * d) for d in dims))
+
+
+def map_size(loaded: LoadedGraph, reduced: ReducedMap) -> dict[str, int | float]:
+    """What the robot carries, reduced against full: landmarks, measurements, bytes."""
+    full_tags = [r for r in loaded.rows if r.kind == "tag"]
+    red_tags = [r for r in reduced.problem.rows if r.kind == "tag"]
+    full_lm = [loaded.var_types[k] for k in loaded.landmark_keys.values()]
+    red_lm = [loaded.var_types[loaded.landmark_keys[t]] for t in reduced.observed_tag_ids]
+    out: dict[str, int | float] = {
+        "landmarks": len(red_lm),
+        "landmarks_full": len(full_lm),
+        "measurements": len(red_tags),
+        "measurements_full": len(full_tags),
+        "map_bytes": map_bytes(red_lm),
+        "map_bytes_full": map_bytes(full_lm),
+        "measurement_bytes": measurement_bytes(r.dim for r in red_tags),
+        "measurement_bytes_full": measurement_bytes(r.dim for r in full_tags),
+    }
+    full_total = out["map_bytes_full"] + out["measurement_bytes_full"]
+    out["bytes_fraction"] = (out["map_bytes"] + out["measurement_bytes"]) / full_total if full_total else float("nan")
+    return out
+
+
+def risk_params(sections: Mapping[str, object]) -> RiskParams:
+    """The risk model's settings, taken from the ``select_landmarks`` section when present.
+
+    Optimize and evaluate recompute the collision probability with the same robot radius, windows
+    and noise as the landmark selection, so their numbers are comparable with its ``risk.parquet``.
+    """
+    names = {f.name for f in dataclasses.fields(RiskParams)}
+    section = sections.get("select_landmarks")
+    if section is None or not hasattr(section, "model_dump"):
+        return RiskParams()
+    values = section.model_dump()
+    return RiskParams(**{k: v for k, v in values.items() if k in names})
+
+
+def landmark_heights(graph_landmarks: object) -> dict[int, tuple[float, float]]:
+    """Tag id to (z, var z) from the graph's ``landmarks.parquet`` (planar graphs keep the height aside)."""
+    cols = graph_landmarks.to_pydict()  # type: ignore[attr-defined]
+    return {
+        int(t): (float(z), float(pc[8]) if pc and len(pc) == 9 else 0.0)
+        for t, z, pc in zip(cols["tag_id"], cols["z"], cols["position_cov"], strict=True)
+    }

@@ -1,0 +1,253 @@
+"""The optimize stage: the reduced graph re-optimised, its map, entropy, errors, risk and size."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+
+from pipeline.context import StageContext
+from pipeline.recording import colormap, ellipsoids, set_stamp
+from stages.graph.load import LoadedGraph, load_graph
+from stages.graph.outputs import write_artifacts
+from stages.navigation.truth import GroundTruth, MapTruth, ground_truth_file
+from stages.optimize.config import OptimizeConfig
+from stages.optimize.core import (
+    ReducedMap,
+    landmark_errors,
+    landmark_heights,
+    map_size,
+    mean_or_nan,
+    risk_params,
+    solve_reduced,
+)
+from stages.risk import LandmarkMap, PathGeometry, PathRisk, path_geometry, path_risk
+
+ENTITY = "/optimize"
+
+
+def load_truth(ctx: StageContext, loaded: LoadedGraph) -> MapTruth | None:
+    """The run's ground truth in the map frame, if a ``<name>.ground_truth.json`` sits beside its source."""
+    path = ground_truth_file(ctx.run.source)
+    return GroundTruth.load(path).in_map(loaded.pose_stamps_ns[0]) if path is not None else None
+
+
+def load_geometry(ctx: StageContext, loaded: LoadedGraph) -> PathGeometry:
+    """Clearances and visibility of the recorded path (scans from ingest, detections from detect when present)."""
+    params = risk_params(ctx.settings.sections)
+    scans = T_base_laser = detections = None
+    if ctx.has_input("ingest"):
+        ingest = ctx.input("ingest")
+        if ingest.exists("scans.parquet"):
+            scans = ingest.read_table("scans.parquet")
+        if ingest.exists("extrinsics.json"):
+            laser = ingest.read_json("extrinsics.json").get("sensors", {}).get("laser")
+            if laser is not None:
+                T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float)
+    if ctx.has_input("detect") and ctx.input("detect").exists("detections.parquet"):
+        detections = ctx.input("detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
+    return path_geometry(loaded, scans, T_base_laser, detections, params)
+
+
+def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
+    """Build and solve the reduced graph; write graph-like artifacts plus entropy, errors, risk and size."""
+    t0 = time.perf_counter()
+    graph_in = ctx.input("graph")
+    loaded = load_graph(graph_in)
+    focused_doc = ctx.input("select_landmarks").read_json("focused.json")
+    selected = ctx.input("select_measurements").read_table("selected.parquet", columns=["factor_index"])
+    reduced = solve_reduced(
+        loaded,
+        focused_doc["tag_ids"],
+        selected.column("factor_index").to_pylist(),
+        landmark_heights(graph_in.read_table("landmarks.parquet")),
+        cfg.initialise_from,
+        cfg.max_iterations,
+        cfg.relative_error_tol,
+        cfg.unobserved_sigma_m,
+    )
+    summary = write_artifacts(ctx.output, reduced.problem, reduced.solution, reduced.marginals)
+    ctx.output.write_table(
+        "kept.parquet",
+        {"index": np.arange(len(reduced.full_index), dtype=np.int64), "full_index": reduced.full_index},
+    )
+    full_map = LandmarkMap.from_graph(loaded)
+    truth = load_truth(ctx, loaded)
+    lm_table, errors = error_table(reduced, full_map, truth)
+    ctx.output.write_table("landmark_errors.parquet", lm_table)
+
+    params = risk_params(ctx.settings.sections)
+    geometry = load_geometry(ctx, loaded)
+    risk_reduced = path_risk(geometry, reduced.landmark_map, reduced.focused_observed, params)
+    risk_full = path_risk(geometry, full_map, full_map.tag_ids.tolist(), params)
+    ctx.output.write_table("risk.parquet", risk_rows(geometry, risk_reduced, risk_full))
+    size = map_size(loaded, reduced)
+    log_recording(
+        ctx.rec, loaded, reduced, full_map, truth, geometry, risk_reduced, ctx.n_sigma, cfg.pose_ellipse_stride
+    )
+
+    summary.update(
+        {
+            "focused_strategy": focused_doc.get("strategy"),
+            "focused_landmarks": len(reduced.focused_tag_ids),
+            "focused_observed": len(reduced.focused_observed),
+            "observed_landmarks": len(reduced.observed_tag_ids),
+            "focused_entropy": reduced.focused_entropy,
+            "focused_entropy_observed": reduced.focused_entropy_observed,
+            "focused_dim": reduced.focused_dim,
+            "entropy_convention": "0.5*logdet(Sigma_F) + (d/2)*log(2*pi*e) nats; unobserved focused landmarks "
+            f"enter with sigma {cfg.unobserved_sigma_m} m per dimension",
+            **errors,
+            "reference": "ground_truth" if truth is not None else "full_graph",
+            "max_collision_probability": risk_reduced.max,
+            "mean_collision_probability": risk_reduced.mean,
+            "max_collision_probability_full": risk_full.max,
+            "mean_collision_probability_full": risk_full.mean,
+            "map_size": size,
+            "dropped_unfocused_measurements": reduced.dropped_unfocused,
+            "initialise_from": cfg.initialise_from,
+            "timing_s": {**reduced.timing_s, "total": round(time.perf_counter() - t0, 4)},
+        }
+    )
+    return summary
+
+
+def error_table(
+    reduced: ReducedMap, full_map: LandmarkMap, truth: MapTruth | None
+) -> tuple[pa.Table, dict[str, float]]:
+    """Per observed landmark: errors against the full graph and the truth; and their means for the summary."""
+    lmap = reduced.landmark_map
+    vs_full = landmark_errors(lmap, dict(zip(full_map.tag_ids.tolist(), full_map.positions, strict=True)))
+    vs_truth = landmark_errors(lmap, truth.tags) if truth is not None else {}
+    focused = set(reduced.focused_tag_ids)
+    tags = lmap.tag_ids.tolist()
+    n_meas: dict[int, int] = {}
+    for r in reduced.problem.rows:
+        if r.kind == "tag" and r.tag_id is not None:
+            n_meas[int(r.tag_id)] = n_meas.get(int(r.tag_id), 0) + 1
+    table = pa.table(
+        {
+            "tag_id": pa.array(tags, pa.int64()),
+            "focused": [t in focused for t in tags],
+            "n_measurements": pa.array([n_meas.get(t, 0) for t in tags], pa.int64()),
+            "x": lmap.positions[:, 0],
+            "y": lmap.positions[:, 1],
+            "sigma_m": np.sqrt(np.trace(lmap.covariances, axis1=1, axis2=2)),
+            "error_vs_full_m": [vs_full.get(t, float("nan")) for t in tags],
+            "error_vs_truth_m": [vs_truth.get(t, float("nan")) for t in tags],
+        }
+    )
+    ref = vs_truth if truth is not None else vs_full
+    errors = {
+        "error_all_m": mean_or_nan(ref.values()),
+        "focused_error_m": mean_or_nan(v for t, v in ref.items() if t in focused),
+        "error_all_vs_full_m": mean_or_nan(vs_full.values()),
+        "focused_error_vs_full_m": mean_or_nan(v for t, v in vs_full.items() if t in focused),
+    }
+    if truth is not None:
+        errors["error_all_vs_truth_m"] = mean_or_nan(vs_truth.values())
+        errors["focused_error_vs_truth_m"] = mean_or_nan(v for t, v in vs_truth.items() if t in focused)
+    return table, errors
+
+
+def risk_rows(geometry: PathGeometry, reduced: PathRisk, full: PathRisk) -> pa.Table:
+    """``risk.parquet``: per keyframe, Σ* (x, y block) and collision probability with the reduced and full maps."""
+    return pa.table(
+        {
+            "stamp_ns": pa.array(geometry.stamps_ns, pa.int64()),
+            "x": geometry.poses[:, 0],
+            "y": geometry.poses[:, 1],
+            "yaw": geometry.poses[:, 2],
+            "clearance_m": geometry.clearance_m,
+            "localised": reduced.localised,
+            "sigma_star": pa.array([s[:2, :2].ravel().tolist() for s in reduced.sigma], pa.list_(pa.float64())),
+            "p_collision": reduced.p_collision,
+            "mahalanobis": reduced.mahalanobis,
+            "p_collision_full": full.p_collision,
+        }
+    )
+
+
+def _lm_xyz(lmap: LandmarkMap) -> np.ndarray:
+    return np.column_stack([lmap.positions, lmap.heights])
+
+
+def _cov3(lmap: LandmarkMap) -> list[np.ndarray]:
+    out = []
+    for c in lmap.covariances:
+        m = np.zeros((3, 3))
+        m[:2, :2] = c
+        out.append(m)
+    return out
+
+
+def log_recording(
+    rec: rr.RecordingStream,
+    loaded: LoadedGraph,
+    reduced: ReducedMap,
+    full_map: LandmarkMap,
+    truth: MapTruth | None,
+    geometry: PathGeometry,
+    risk: PathRisk,
+    n_sigma: float,
+    stride: int,
+) -> None:
+    """``optimize.rrd``: the reduced map beside the full one (ellipses), the path coloured by risk, risk over time."""
+    rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    if len(full_map):
+        rec.log(
+            f"{ENTITY}/full/landmarks",
+            ellipsoids(
+                _lm_xyz(full_map),
+                _cov3(full_map),
+                n_sigma,
+                colors=[[150, 150, 150]],
+                labels=[str(t) for t in full_map.tag_ids],
+            ),
+            static=True,
+        )
+    lmap = reduced.landmark_map
+    if len(lmap):
+        focused = set(reduced.focused_tag_ids)
+        colors = [[255, 120, 0] if int(t) in focused else [60, 140, 255] for t in lmap.tag_ids]
+        rec.log(
+            f"{ENTITY}/reduced/landmarks",
+            ellipsoids(_lm_xyz(lmap), _cov3(lmap), n_sigma, colors=colors, labels=[str(t) for t in lmap.tag_ids]),
+            static=True,
+        )
+    if truth is not None:
+        walls = [[[w[0], w[1], 0.0], [w[2], w[3], 0.0]] for w in truth.walls]
+        rec.log(f"{ENTITY}/truth/walls", rr.LineStrips3D(walls, colors=[[90, 90, 90]]), static=True)
+        pts = np.array([[*p[:2], 0.0] for p in truth.tags.values()]).reshape(-1, 3)
+        rec.log(f"{ENTITY}/truth/landmarks", rr.Points3D(pts, colors=[[0, 200, 0]], radii=0.02), static=True)
+    # path coloured by the reduced map's collision probability
+    xy = geometry.poses[:, :2]
+    p = np.nan_to_num(risk.p_collision, nan=0.0)
+    if len(xy) > 1:
+        segs = [[[*xy[i], 0.0], [*xy[i + 1], 0.0]] for i in range(len(xy) - 1)]
+        rec.log(
+            f"{ENTITY}/path",
+            rr.LineStrips3D(segs, colors=colormap(p[:-1], 0.0, max(float(p.max()), 1e-9))),
+            static=True,
+        )
+    # kept measurements as edges
+    pose_xy = {k: xy[i] for i, k in enumerate(loaded.pose_keys)}
+    lm_xy = {int(loaded.landmark_keys[int(t)]): lmap.positions[i] for i, t in enumerate(lmap.tag_ids)}
+    edges = [
+        [[*pose_xy[r.keys[0]], 0.0], [*lm_xy[r.keys[1]], 0.0]]
+        for r in reduced.problem.rows
+        if r.kind == "tag" and r.keys[0] in pose_xy and r.keys[1] in lm_xy
+    ]
+    if edges:
+        rec.log(
+            f"{ENTITY}/reduced/measurements",
+            rr.LineStrips3D(edges, colors=[[255, 200, 0, 120]], radii=0.004),
+            static=True,
+        )
+    for i in range(0, len(geometry.stamps_ns), max(1, stride)):
+        set_stamp(rec, int(geometry.stamps_ns[i]))
+        rec.log(f"{ENTITY}/risk/p_collision", rr.Scalars(float(p[i])))
+        rec.log(f"{ENTITY}/pose", rr.Points3D([[*xy[i], 0.0]], radii=0.06, colors=colormap(p[i : i + 1], 0.0, 1.0)))
