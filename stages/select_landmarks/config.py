@@ -1,0 +1,87 @@
+"""Settings of the select_landmarks stage (YAML section ``select_landmarks``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from stages.risk import RiskParams
+
+LandmarkStrategy = Literal["collision", "mutual-information", "leverage", "uniform", "random", "all"]
+STRATEGIES: tuple[str, ...] = ("collision", "mutual-information", "leverage", "uniform", "random", "all")
+NEEDS_LASER: tuple[str, ...] = ("collision",)
+
+
+class SelectLandmarksConfig(BaseModel):
+    """Stage one of focused inference: which landmarks to keep, and the collision-risk model."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    strategy: LandmarkStrategy = Field(
+        "collision",
+        description="collision: Mu et al. Alg. 2 (needs laser scans); mutual-information: Beinhofer et al. greedy; "
+        "leverage: Mousavi & Motee sampling; uniform: spatially even; random: seeded; all: every landmark.",
+    )
+    budget: int = Field(30, ge=0, description="Number of landmarks to keep (alpha); 0 keeps none.")
+    seed: int = Field(0, description="Seed of the random and leverage strategies.")
+    leverage_draws: int = Field(20, ge=1, description="leverage: independent draws; the best one is kept.")
+    leverage_measure: Literal["logdet", "trace", "max_eig"] = Field(
+        "logdet", description="leverage: measure of the trajectory covariance that picks the best draw."
+    )
+    landmark_prior_sigma_m: float = Field(
+        100.0,
+        gt=0,
+        description="mutual-information and leverage: weak prior on a landmark when its measurements are "
+        "marginalised (Schur complement), m.",
+    )
+    max_trajectory_dim: int = Field(
+        12000,
+        ge=1,
+        description="mutual-information and leverage work on the dense trajectory information; refuse larger "
+        "trajectories (poses x pose dimension) than this.",
+    )
+    robot_radius_m: float = Field(
+        0.25, ge=0, description="Robot footprint radius: the collision margin is laser clearance minus this, m."
+    )
+    visibility_window_s: float = Field(
+        1.0, ge=0, description="A landmark is visible from a keyframe if measured from a keyframe this close, s."
+    )
+    max_scan_gap_s: float = Field(
+        0.25, gt=0, description="The laser scan used for a keyframe is at most this far from it in time, s."
+    )
+    cap_steps: int = Field(
+        50,
+        ge=1,
+        description="A keyframe that sees no focused landmark gets dead reckoning from the nearest localised one, "
+        "capped at this many odometry steps.",
+    )
+    bearing_sigma_rad: float | None = Field(
+        None, gt=0, description="Bearing noise of the risk model, rad; null = median of the graph's tag factors."
+    )
+    range_sigma_m: float | None = Field(
+        None, gt=0, description="Range noise of the risk model, m; null = median of the graph's tag factors."
+    )
+    odometry_sigma_m: float | None = Field(
+        None, gt=0, description="Translation noise per keyframe step, m; null = from the graph's odometry factors."
+    )
+    odometry_sigma_rad: float | None = Field(
+        None, gt=0, description="Heading noise per keyframe step, rad; null = from the graph's odometry factors."
+    )
+    ellipse_stride: int = Field(5, ge=1, description="Draw the Sigma* ellipse of every n-th keyframe in the recording.")
+    max_replay_steps: int = Field(
+        100, ge=0, description="Replay at most this many greedy picks on the selection_step timeline."
+    )
+
+    def risk_params(self) -> RiskParams:
+        """The risk model of these settings (for :func:`stages.risk.path_risk`)."""
+        return RiskParams(
+            robot_radius_m=self.robot_radius_m,
+            visibility_window_s=self.visibility_window_s,
+            max_scan_gap_s=self.max_scan_gap_s,
+            cap_steps=self.cap_steps,
+            bearing_sigma_rad=self.bearing_sigma_rad,
+            range_sigma_m=self.range_sigma_m,
+            odometry_sigma_m=self.odometry_sigma_m,
+            odometry_sigma_rad=self.odometry_sigma_rad,
+        )

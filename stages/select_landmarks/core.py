@@ -1,0 +1,288 @@
+"""Landmark selection without a run folder: load the inputs once, then run any strategy with :func:`choose`.
+
+```python
+inputs = LandmarkInputs.load(ctx, cfg)                      # or LandmarkInputs.from_pieces(loaded, scans, ...)
+choice = choose(inputs, cfg)                                # LandmarkChoice: tag_ids in pick order, scores, risk
+choice = choose(inputs, cfg.model_copy(update={"strategy": "uniform"}))
+```
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+import pyarrow as pa
+
+from pipeline.errors import StageError
+from stages.estimation.landmark_selection import (
+    LandmarkSelection,
+    schur_contribution,
+    select_collision,
+    select_landmark_leverage,
+    select_landmark_random,
+    select_landmark_uniform,
+    select_mutual_information,
+)
+from stages.risk import LandmarkMap, PathGeometry, PathRisk, RiskParams, path_geometry, path_risk
+from stages.select_landmarks.config import NEEDS_LASER, SelectLandmarksConfig
+
+if TYPE_CHECKING:
+    from pipeline.context import StageContext
+    from stages.graph.load import LoadedGraph
+
+FloatArray = npt.NDArray[np.float64]
+Contributions = list[tuple[npt.NDArray[np.int64], FloatArray]]
+
+
+@dataclass
+class LandmarkInputs:
+    """Everything the strategies read, loaded once (the graph, its landmark map and the path geometry)."""
+
+    loaded: LoadedGraph
+    landmarks: LandmarkMap
+    geometry: PathGeometry
+    params: RiskParams
+    laser_note: str = ""
+    """Why there is no laser (empty when there is)."""
+    sigma_cache: dict[tuple[int, frozenset[int]], FloatArray] = field(default_factory=dict, repr=False)
+    """Σ* by (keyframe, visible focused landmarks), shared by the :func:`stages.risk.path_risk` calls on these."""
+    _trajectory: tuple[FloatArray, Contributions] | None = field(default=None, repr=False)
+    _trajectory_prior: float | None = field(default=None, repr=False)
+
+    @classmethod
+    def from_pieces(
+        cls,
+        loaded: LoadedGraph,
+        scans: pa.Table | None = None,
+        T_base_laser: FloatArray | None = None,
+        detections: pa.Table | None = None,
+        cfg: SelectLandmarksConfig | None = None,
+        laser_note: str = "",
+    ) -> LandmarkInputs:
+        """Inputs from explicit pieces: a loaded graph, ingest's scans and laser extrinsics, detect's detections."""
+        cfg = cfg or SelectLandmarksConfig()
+        params = cfg.risk_params()
+        if scans is not None and scans.num_rows == 0:
+            scans, laser_note = None, laser_note or "the run's scans.parquet is empty"
+        if scans is None and not laser_note:
+            laser_note = "no laser scans were given"
+        if not loaded.landmark_keys:
+            raise StageError("the graph has no landmarks, so there is nothing to select; check 'focusmap graph'")
+        geometry = path_geometry(loaded, scans, T_base_laser, detections, params)
+        return cls(loaded, LandmarkMap.from_graph(loaded), geometry, params, laser_note)
+
+    @classmethod
+    def load(cls, ctx: StageContext, cfg: SelectLandmarksConfig) -> LandmarkInputs:
+        """Inputs from a run folder: graph (required), ingest's scans and extrinsics and detect's detections if run."""
+        from stages.graph.load import load_graph
+
+        loaded = load_graph(ctx.input("graph"))
+        scans = T_base_laser = detections = None
+        note = ""
+        if ctx.has_input("ingest"):
+            ingest = ctx.input("ingest")
+            if ingest.exists("scans.parquet"):
+                scans = ingest.read_table("scans.parquet")
+                if scans.num_rows == 0:
+                    note = "ingest found no laser scans in the recording"
+            else:
+                note = "ingest wrote no scans.parquet (the recording has no LaserScan topic)"
+            if ingest.exists("extrinsics.json"):
+                sensors = ingest.read_json("extrinsics.json").get("sensors", {})
+                laser = sensors.get("laser")
+                if laser is not None:
+                    T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float)
+        else:
+            note = "the run has no ingest stage (a graph from 'focusmap import-graph')"
+        if ctx.has_input("detect") and ctx.input("detect").exists("detections.parquet"):
+            detections = ctx.input("detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
+        return cls.from_pieces(loaded, scans, T_base_laser, detections, cfg, note)
+
+    @property
+    def has_laser(self) -> bool:
+        """Whether the collision strategy can run."""
+        return self.geometry.has_laser
+
+    def trajectory_information(self, landmark_prior_sigma: float, max_dim: int) -> tuple[FloatArray, Contributions]:
+        """Dense ``Λ₀`` of the trajectory (odometry and priors) and each landmark's Schur contribution.
+
+        Contributions are in landmark-map order (``self.landmarks.tag_ids``); cached per prior.
+        """
+        if self._trajectory is not None and self._trajectory_prior == landmark_prior_sigma:
+            return self._trajectory
+        from stages.estimation.linear_system import LinearSystem
+
+        loaded = self.loaded
+        system = LinearSystem.from_gtsam(
+            loaded.graph, loaded.values, is_landmark=set(loaded.landmark_keys.values()).__contains__
+        )
+        pose_vars = [system.index_of_key(k) for k in loaded.pose_keys]
+        pose_cols = system.columns(pose_vars)
+        n = len(pose_cols)
+        if n > max_dim:
+            raise StageError(
+                f"mutual-information and leverage need the dense {n}x{n} trajectory information, above "
+                f"select_landmarks.max_trajectory_dim={max_dim}; use --set select_landmarks.strategy=collision "
+                "(or raise the limit if memory allows)"
+            )
+        col_in_traj = np.full(system.dim, -1, dtype=np.int64)
+        col_in_traj[pose_cols] = np.arange(n)
+        fixed = [int(i) for i in loaded.fixed_factor_indices]
+        full_info = system.information(fixed)
+        info0 = full_info[pose_cols][:, pose_cols].toarray()
+        by_landmark: dict[int, list[int]] = {k: [] for k in loaded.landmark_keys.values()}
+        for i in loaded.tag_factor_indices:
+            keys = loaded.rows[int(i)].keys
+            for k in keys:
+                if k in by_landmark:
+                    by_landmark[k].append(int(i))
+        contributions: Contributions = []
+        for tag in self.landmarks.tag_ids:
+            lkey = loaded.landmark_keys[int(tag)]
+            lvar = system.index_of_key(lkey)
+            lcols = system.columns([lvar])
+            fids = by_landmark[lkey]
+            if not fids:
+                contributions.append((np.zeros(0, dtype=np.int64), np.zeros((0, 0))))
+                continue
+            J = system.jacobian(fids).tocsc()
+            support = np.unique(np.concatenate([system.factor_columns(f) for f in fids]))
+            support = support[col_in_traj[support] >= 0]
+            J_x = J[:, support].toarray()
+            J_l = J[:, lcols].toarray()
+            B = schur_contribution(J_x, J_l, 1.0 / landmark_prior_sigma**2)
+            contributions.append((col_in_traj[support], B))
+        self._trajectory = (info0, contributions)
+        self._trajectory_prior = landmark_prior_sigma
+        return self._trajectory
+
+
+@dataclass
+class LandmarkChoice:
+    """The result of one landmark selection, with the collision risk of the path before and after."""
+
+    strategy: str
+    budget: int
+    tag_ids: list[int]
+    """Selected tag ids in the order picked."""
+    scores: list[float]
+    """Score at each pick: collision: max collision probability along the path after the pick; mutual-information:
+    marginal gain (nats); leverage: sampling probability; uniform: distance to the earlier picks (m); else NaN."""
+    status: str
+    """ok | budget_zero | budget_exceeds_landmarks | no_landmarks."""
+    message: str
+    n_landmarks: int
+    seconds: float
+    risk_none: PathRisk | None = None
+    """Risk with no landmark (dead reckoning everywhere); None when not computed."""
+    risk_all: PathRisk | None = None
+    """Risk with every landmark."""
+    risk_focused: PathRisk | None = None
+    """Risk with the selected landmarks."""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def focused_json(self) -> dict[str, Any]:
+        """The content of ``focused.json`` (NaN and inf scores become null)."""
+        return {
+            "strategy": self.strategy,
+            "budget": self.budget,
+            "tag_ids": [int(t) for t in self.tag_ids],
+            "scores": [float(s) if np.isfinite(s) else None for s in self.scores],
+            "status": self.status,
+            "message": self.message,
+            "n_landmarks": self.n_landmarks,
+        }
+
+
+def _message(status: str, budget: int, n: int, picked: int, strategy: str) -> str:
+    if status == "budget_zero":
+        return "budget 0: no landmark selected (every keyframe dead-reckons)"
+    if status == "budget_exceeds_landmarks":
+        return f"budget {budget} exceeds the {n} landmarks: all {picked} kept"
+    if status == "no_landmarks":
+        return "the graph has no landmarks"
+    if strategy == "all":
+        return f"all {n} landmarks kept"
+    return f"{picked} of {n} landmarks selected by {strategy}"
+
+
+def choose(inputs: LandmarkInputs, cfg: SelectLandmarksConfig, with_risk: bool = True) -> LandmarkChoice:
+    """Run one landmark-selection strategy on loaded inputs.
+
+    Args:
+        inputs: from :meth:`LandmarkInputs.load` or :meth:`LandmarkInputs.from_pieces`.
+        cfg: the settings (``strategy``, ``budget``, ``seed``, the risk model).
+        with_risk: also compute the path risk with no, all and the selected landmarks (needs laser for the
+            probabilities; Σ* is computed either way).
+
+    Raises:
+        StageError: ``collision`` on a run without laser scans; a trajectory too large for the dense strategies.
+    """
+    t0 = time.perf_counter()
+    lm = inputs.landmarks
+    L = len(lm.tag_ids)
+    strategy = cfg.strategy
+    if strategy in NEEDS_LASER and not inputs.has_laser:
+        others = "mutual-information, leverage, uniform, random or all"
+        raise StageError(
+            f"strategy {strategy!r} needs laser scans, and this run has none ({inputs.laser_note}); only {others} "
+            f"can run here: --set select_landmarks.strategy=mutual-information"
+        )
+    params = inputs.params
+    geo = inputs.geometry
+    if strategy == "collision":
+        sel = select_collision(
+            geo.poses,
+            lm.positions,
+            lm.covariances,
+            geo.visible,
+            geo.margin(params),
+            geo.normals,
+            geo.Q,
+            cfg.budget,
+            geo.sigmas,
+            params.cap_steps,
+        )
+    elif strategy in ("mutual-information", "leverage"):
+        if cfg.budget <= 0:
+            sel = LandmarkSelection([], [], "budget_zero")
+        else:
+            info0, contributions = inputs.trajectory_information(cfg.landmark_prior_sigma_m, cfg.max_trajectory_dim)
+            if strategy == "mutual-information":
+                sel = select_mutual_information(info0, contributions, cfg.budget)
+            else:
+                sel = select_landmark_leverage(
+                    info0, contributions, cfg.budget, cfg.leverage_draws, cfg.leverage_measure, cfg.seed
+                )
+    elif strategy == "uniform":
+        sel = select_landmark_uniform(lm.positions, cfg.budget)
+    elif strategy == "random":
+        sel = select_landmark_random(L, cfg.budget, cfg.seed)
+    else:
+        sel = LandmarkSelection(list(range(L)), [float("nan")] * L, "ok" if L else "no_landmarks")
+    if strategy != "all" and sel.status == "ok" and cfg.budget > L:
+        sel.status = "budget_exceeds_landmarks"
+    tag_ids = [int(lm.tag_ids[i]) for i in sel.picks]
+    budget = L if strategy == "all" else cfg.budget
+    choice = LandmarkChoice(
+        strategy=strategy,
+        budget=budget,
+        tag_ids=tag_ids,
+        scores=[float(s) for s in sel.scores],
+        status=sel.status,
+        message=_message(sel.status, cfg.budget, L, len(tag_ids), strategy),
+        n_landmarks=L,
+        seconds=0.0,
+        extra={k: v for k, v in sel.extra.items() if k in ("objective", "measure")},
+    )
+    choice.seconds = time.perf_counter() - t0
+    if with_risk:
+        cache = inputs.sigma_cache
+        choice.risk_none = path_risk(geo, lm, [], params, cache)
+        choice.risk_all = path_risk(geo, lm, lm.tag_ids, params, cache)
+        choice.risk_focused = path_risk(geo, lm, tag_ids, params, cache)
+    return choice
