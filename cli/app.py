@@ -284,6 +284,8 @@ def view(
     files = sorted(str(p) for p in run.path.glob("*.rrd"))
     if not files:
         raise InputError(f"no .rrd recordings in {str(run.path)!r}; run a stage first")
+    if (run.path / "focusmap.rbl").is_file():
+        files.append(str(run.path / "focusmap.rbl"))
     exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
     cmd = [exe, *files]
     if print_only:

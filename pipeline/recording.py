@@ -25,6 +25,40 @@ def open_recording(run_id: str, path: Path, blueprint: Any = None) -> rr.Recordi
     return rec
 
 
+def run_blueprint(blueprints: Sequence[tuple[str, Any]], active: str | None = None) -> Any:
+    """One blueprint for a whole run: a tab per stage (each stage's own layout), paused on ``time``.
+
+    Every stage's recording carries it (with its own tab active), so however the viewer is given
+    the run's files, the layout shows every stage.
+    """
+    import rerun.blueprint as rrb
+
+    tabs = []
+    active_index = None
+    for name, bp in blueprints:
+        root = getattr(bp, "root_container", None)
+        if root is None:
+            continue
+        root.name = name
+        if name == active:
+            active_index = len(tabs)
+        tabs.append(root)
+    if not tabs:
+        return None
+    return rrb.Blueprint(
+        rrb.Tabs(*tabs, active_tab=active_index if active_index is not None else len(tabs) - 1),
+        rrb.TimePanel(play_state="paused", timeline="time"),
+        collapse_panels=True,
+    )
+
+
+def save_blueprint(blueprint: Any, path: Path) -> None:
+    """Write a blueprint file (``.rbl``) that the viewer opens beside the recordings."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    blueprint.save(APPLICATION_ID, tmp)
+    tmp.replace(path)
+
+
 def close_recording(rec: rr.RecordingStream) -> None:
     """Flush everything to disk and close the file sink."""
     rec.flush()

@@ -19,7 +19,7 @@ from pipeline.artifacts import StageOutput
 from pipeline.config import Settings
 from pipeline.context import StageContext
 from pipeline.errors import StageError
-from pipeline.recording import close_recording, log_summary, open_recording
+from pipeline.recording import close_recording, log_summary, open_recording, run_blueprint, save_blueprint
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder, source_identity, write_json_atomic
 from pipeline.stage import Stage
@@ -120,7 +120,12 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
     if not force and entry is not None and entry.get("fingerprint") == fp:
         return StageResult(stage.name, "skipped", 0.0, entry.get("summary", {}))
     scratch, rrd = run.begin(stage.name)
-    blueprint = stage.blueprint() if stage.blueprint is not None else None
+    try:
+        blueprint = run_blueprint(
+            [(s.name, s.blueprint()) for s in registry if s.blueprint is not None], active=stage.name
+        )
+    except Exception:  # a layout problem must not stop a stage; the viewer then lays out itself
+        blueprint = None
     rec = open_recording(run.run_id, rrd, blueprint)
     start = time.perf_counter()
     try:
@@ -152,7 +157,23 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
             "summary": summary,
         },
     )
+    try:
+        write_run_blueprint(run, registry)
+    except Exception as err:  # a layout problem must not fail a finished stage
+        summary.setdefault("notes", []).append(f"run blueprint not written: {err}")
     return StageResult(stage.name, "done", seconds, summary)
+
+
+BLUEPRINT_FILE = "focusmap.rbl"
+
+
+def write_run_blueprint(run: RunFolder, registry: Registry) -> None:
+    """``RUN/focusmap.rbl``: a tab per finished stage, so ``rerun RUN/*.rrd RUN/focusmap.rbl`` shows them all."""
+    finished = [s for s in registry if run.rrd_path(s.name).exists()]
+    parts = [(s.name, s.blueprint()) for s in registry if s.blueprint is not None]
+    bp = run_blueprint(parts, active=finished[-1].name if finished else None)
+    if bp is not None:
+        save_blueprint(bp, run.path / BLUEPRINT_FILE)
 
 
 def write_resolved_settings(run: RunFolder, settings: Settings) -> None:
