@@ -197,7 +197,7 @@ def log_recording(
 ) -> None:
     """``optimize.rrd``: the reduced map beside the full one (ellipses), the path coloured by risk, risk over time."""
     rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    if len(full_map):
+    if len(full_map.tag_ids):
         rec.log(
             f"{ENTITY}/full/landmarks",
             ellipsoids(
@@ -210,7 +210,7 @@ def log_recording(
             static=True,
         )
     lmap = reduced.landmark_map
-    if len(lmap):
+    if len(lmap.tag_ids):
         focused = set(reduced.focused_tag_ids)
         colors = [[255, 120, 0] if int(t) in focused else [60, 140, 255] for t in lmap.tag_ids]
         rec.log(

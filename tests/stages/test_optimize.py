@@ -1,0 +1,238 @@
+"""The optimize stage: the reduced graph's artifacts and values, on a synthetic run with laser scans and truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from pydantic import BaseModel, ConfigDict
+
+from pipeline.artifacts import StageInput
+from pipeline.config import load_settings
+from pipeline.errors import StageError
+from pipeline.registry import Registry
+from pipeline.run_folder import RunFolder
+from pipeline.runner import run_stage
+from pipeline.stage import Stage
+from stages import graph as graph_stage
+from stages import optimize as optimize_stage
+from stages.graph.load import load_graph
+from stages.graph.synthetic import SyntheticRun, synthetic_run
+from stages.optimize import gaussian_entropy, landmark_heights, solve_reduced
+from stages.risk import LandmarkMap
+
+ROOM = (8.0, 6.0)
+
+
+class _Dummy(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def room_walls(room: tuple[float, float] = ROOM) -> np.ndarray:
+    W, H = room
+    return np.array([[0, 0, W, 0], [W, 0, W, H], [W, H, 0, H], [0, H, 0, 0]], dtype=float)
+
+
+def synthetic_scans(sim: SyntheticRun, room: tuple[float, float] = ROOM, rate_hz: float = 10.0) -> pa.Table:
+    """360-beam scans of the rectangular room from the true poses (laser at the base origin)."""
+    W, H = room
+    t0, t1 = int(sim.true_stamps_ns[0]), int(sim.true_stamps_ns[-1])
+    stamps = np.arange(t0, t1, int(1e9 / rate_hz), dtype=np.int64)
+    poses = sim.true_pose_at(stamps)
+    angles = -np.pi + np.arange(360) * (2 * np.pi / 360)
+    ranges = []
+    for x, y, yaw in poses:
+        a = angles + yaw
+        c, s = np.cos(a), np.sin(a)
+        with np.errstate(divide="ignore"):
+            tx = np.where(c > 0, (W - x) / c, np.where(c < 0, -x / c, np.inf))
+            ty = np.where(s > 0, (H - y) / s, np.where(s < 0, -y / s, np.inf))
+        ranges.append(np.minimum(tx, ty).astype(np.float32).tolist())
+    n = len(stamps)
+    return pa.table(
+        {
+            "stamp_ns": stamps,
+            "frame_id": ["laser"] * n,
+            "angle_min": np.full(n, -np.pi),
+            "angle_max": np.full(n, np.pi - 2 * np.pi / 360),
+            "angle_increment": np.full(n, 2 * np.pi / 360),
+            "range_min": np.full(n, 0.05),
+            "range_max": np.full(n, 20.0),
+            "ranges": pa.array(ranges, pa.list_(pa.float32())),
+        }
+    )
+
+
+def write_ground_truth(sim: SyntheticRun, path: Path, room: tuple[float, float] = ROOM) -> None:
+    """A ``<name>.ground_truth.json`` in the simulator's layout."""
+    gt = {
+        "world": {"walls": room_walls(room).tolist()},
+        "tags": [{"id": int(t), "position": T[:3, 3].tolist()} for t, T in sim.tags_world.items()],
+        "poses": [
+            {"stamp_ns": int(s), "x": float(p[0]), "y": float(p[1]), "yaw": float(p[2])}
+            for s, p in zip(sim.true_stamps_ns, sim.true_poses, strict=True)
+        ],
+    }
+    path.write_text(json.dumps(gt))
+
+
+def make_graph_run(tmp_path: Path, sim: SyntheticRun, truth: bool = True) -> tuple[RunFolder, Registry]:
+    """A run folder with ingest (odometry, scans, extrinsics), detect and a finished graph stage."""
+    ingest = Stage(name="ingest", config_type=_Dummy, run=lambda ctx, cfg: {})
+    detect = Stage(name="detect", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("ingest",))
+    sel_l = Stage(name="select_landmarks", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("graph",))
+    sel_m = Stage(name="select_measurements", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("select_landmarks",))
+    reg = Registry([ingest, detect, graph_stage.STAGE, sel_l, sel_m, optimize_stage.STAGE])
+    source = tmp_path / "run.bag"
+    source.write_bytes(b"")
+    if truth:
+        write_ground_truth(sim, tmp_path / "run.ground_truth.json")
+    run = RunFolder.create(tmp_path / "run", source)
+    extr = dict(sim.extrinsics)
+    extr["sensors"] = {**extr.get("sensors", {}), "laser": {"frame_id": "laser", "T_base_sensor": np.eye(4).tolist()}}
+    for name, files in (
+        ("ingest", {"odometry.parquet": sim.odometry, "scans.parquet": synthetic_scans(sim)}),
+        ("detect", {"detections.parquet": sim.detections}),
+    ):
+        d = run.stage_dir(name)
+        d.mkdir()
+        for fname, table in files.items():
+            pq.write_table(table, d / fname)
+        if name == "ingest":
+            (d / "extrinsics.json").write_text(json.dumps(extr))
+        run.record(name, {"fingerprint": name, "summary": {}})
+    settings = load_settings(reg.models())
+    run_stage(run, reg, "graph", settings)
+    return run, reg
+
+
+def write_selection(run: RunFolder, tag_ids: list[int], factor_indices: list[int], tag: str = "a") -> None:
+    """Stand-ins for the two selection stages' artifacts (``focused.json``, ``selected.parquet``)."""
+    for name in ("select_landmarks", "select_measurements"):
+        d = run.stage_dir(name)
+        d.mkdir(exist_ok=True)
+    (run.stage_dir("select_landmarks") / "focused.json").write_text(
+        json.dumps({"strategy": "test", "budget": len(tag_ids), "tag_ids": tag_ids, "scores": [0.0] * len(tag_ids)})
+    )
+    pq.write_table(
+        pa.table(
+            {
+                "factor_index": pa.array(factor_indices, pa.int64()),
+                "step": pa.array(range(len(factor_indices)), pa.int64()),
+                "gain": pa.array([np.nan] * len(factor_indices), pa.float64()),
+            }
+        ),
+        run.stage_dir("select_measurements") / "selected.parquet",
+    )
+    run.record("select_landmarks", {"fingerprint": f"sl-{tag}", "summary": {}})
+    run.record("select_measurements", {"fingerprint": f"sm-{tag}", "summary": {}})
+
+
+@pytest.fixture(scope="module")
+def sim() -> SyntheticRun:
+    return synthetic_run(seed=4, loops=0.6)
+
+
+@pytest.fixture(scope="module")
+def graph_run(sim, tmp_path_factory):
+    run, reg = make_graph_run(tmp_path_factory.mktemp("opt"), sim)
+    return run, reg, load_graph(StageInput("graph", run.stage_dir("graph")))
+
+
+def test_keeping_every_measurement_reproduces_the_full_solution(graph_run) -> None:
+    run, _, loaded = graph_run
+    tags = sorted(loaded.landmark_keys)
+    heights = landmark_heights(pq.read_table(run.stage_dir("graph") / "landmarks.parquet"))
+    red = solve_reduced(loaded, tags, loaded.tag_factor_indices.tolist(), heights)
+    full = LandmarkMap.from_graph(loaded)
+    np.testing.assert_allclose(red.landmark_map.positions, full.positions, atol=1e-6)
+    np.testing.assert_allclose(red.landmark_map.covariances, full.covariances, rtol=1e-5, atol=1e-12)
+    assert red.observed_tag_ids == tags and red.n_measurements == len(loaded.tag_factor_indices)
+    # entropy = ½ log det(2πe Σ) of the full graph's joint landmark marginal
+    import gtsam
+
+    marg = gtsam.Marginals(loaded.graph, loaded.values)
+    joint = marg.jointMarginalCovariance(gtsam.KeyVector([loaded.landmark_keys[t] for t in tags])).fullMatrix()
+    assert red.focused_entropy == pytest.approx(gaussian_entropy(np.asarray(joint)), abs=1e-6)
+    assert red.focused_dim == 2 * len(tags)
+
+
+def test_fewer_measurements_never_lower_the_entropy(graph_run) -> None:
+    _, _, loaded = graph_run
+    tags = sorted(loaded.landmark_keys)[:6]
+    cand = [i for i in loaded.tag_factor_indices.tolist() if loaded.rows[i].tag_id in set(tags)]
+    all_ = solve_reduced(loaded, tags, cand)
+    half = solve_reduced(loaded, tags, cand[::2])
+    few = solve_reduced(loaded, tags, cand[::5])
+    assert all_.focused_entropy <= half.focused_entropy + 1e-9 <= few.focused_entropy + 2e-9
+
+
+def test_stage_outputs_and_values(graph_run) -> None:
+    run, reg, loaded = graph_run
+    tags = sorted(loaded.landmark_keys)
+    focused = tags[:8]
+    # focused[-1] is focused but none of its measurements is selected
+    by_tag = {t: [i for i in loaded.tag_factor_indices.tolist() if loaded.rows[i].tag_id == t] for t in tags}
+    selected = [i for t in focused[:-1] for i in by_tag[t][::2]] + by_tag[tags[-1]][:3]  # some of an unfocused tag
+    write_selection(run, focused, selected, "subset")
+    settings = load_settings(reg.models())
+    res = run_stage(run, reg, "optimize", settings, force=True)
+    out = run.stage_dir("optimize")
+    for f in (
+        "landmarks.parquet",
+        "trajectory.tum",
+        "poses.parquet",
+        "factors.parquet",
+        "marginals.npz",
+        "kept.parquet",
+        "landmark_errors.parquet",
+        "risk.parquet",
+        "summary.json",
+    ):
+        assert (out / f).is_file(), f
+    assert run.rrd_path("optimize").is_file()
+    s = res.summary
+    g_lm = pq.read_table(run.stage_dir("graph") / "landmarks.parquet")
+    o_lm = pq.read_table(out / "landmarks.parquet")
+    assert o_lm.schema.names == g_lm.schema.names
+    assert sorted(o_lm.column("tag_id").to_pylist()) == focused[:-1]
+    kept = pq.read_table(out / "kept.parquet").column("full_index").to_pylist()
+    n_fixed = len(loaded.fixed_factor_indices)
+    n_sel_focused = sum(len(by_tag[t][::2]) for t in focused[:-1])
+    assert len(kept) == n_fixed + n_sel_focused and s["dropped_unfocused_measurements"] == len(by_tag[tags[-1]][:3])
+    assert s["focused_landmarks"] == 8 and s["focused_observed"] == 7 and s["observed_landmarks"] == 7
+    # the unobserved focused landmark enters the entropy with the 100 m prior (2 dims)
+    extra = 0.5 * 2 * (np.log(100.0**2) + np.log(2 * np.pi * np.e))
+    assert s["focused_entropy"] == pytest.approx(s["focused_entropy_observed"] + extra)
+    assert s["focused_dim"] == 16
+    assert s["reference"] == "ground_truth"
+    assert 0 < s["focused_error_m"] < 0.3 and 0 < s["focused_error_vs_full_m"] < 0.3
+    size = s["map_size"]
+    assert size["landmarks"] == 7 and size["landmarks_full"] == len(tags)
+    assert size["measurements"] == n_sel_focused and 0 < size["bytes_fraction"] < 1
+    risk = pq.read_table(out / "risk.parquet")
+    assert risk.num_rows == len(loaded.pose_keys)
+    p = np.asarray(risk.column("p_collision").to_numpy())
+    assert np.all((p >= 0) & (p <= 1)) and s["max_collision_probability"] == pytest.approx(p.max())
+    assert s["max_collision_probability"] >= s["max_collision_probability_full"]
+    err = pq.read_table(out / "landmark_errors.parquet").to_pydict()
+    assert all(np.isfinite(err["error_vs_truth_m"])) and err["n_measurements"] == [
+        len(by_tag[t][::2]) for t in focused[:-1]
+    ]
+    # the recording has the reduced map beside the full one
+    from rerun.chunk import RrdReader
+
+    paths = {c.entity_path for c in RrdReader(run.rrd_path("optimize")).stream()}
+    assert {"/optimize/full/landmarks", "/optimize/reduced/landmarks", "/optimize/path"} <= paths
+
+
+def test_bad_selections_are_named(graph_run) -> None:
+    _, _, loaded = graph_run
+    with pytest.raises(StageError, match="outside the graph"):
+        solve_reduced(loaded, sorted(loaded.landmark_keys)[:2], [10**7])
+    with pytest.raises(StageError, match="not landmarks of the graph"):
+        solve_reduced(loaded, [99999], [])
