@@ -70,7 +70,15 @@ def batch(
     """Run the pipeline over many recordings: one run folder each, a summary table, resumable."""
     from rich.console import Console
 
-    from pipeline.batch import collect_recordings, plan_tasks, print_summary, run_batch, summary_table, write_summary
+    from pipeline.batch import (
+        collect_recordings,
+        plan_tasks,
+        print_summary,
+        run_batch,
+        summary_table,
+        write_errors,
+        write_summary,
+    )
     from pipeline.config import load_settings
     from stages import REGISTRY
 
@@ -93,6 +101,7 @@ def batch(
     result = run_batch(tasks, workers=workers, scheduler=scheduler)
     table = summary_table(result.outcomes, stages)
     path = write_summary(table, out.expanduser().resolve())
+    write_errors(result.outcomes, out.expanduser().resolve())
     print_summary(table, console)
     console.print(f"summary: {path}")
     if result.interrupted:

@@ -49,6 +49,7 @@ from pipeline.registry import Registry
 Status = Literal["done", "skipped", "failed"]
 
 SUMMARY_FILE: Final = "batch_summary.parquet"
+ERRORS_FILE: Final = "batch_errors.log"
 LOCK_FILE: Final = ".focusmap.lock"
 LOCK_WAIT_S: Final = 60.0
 
@@ -264,7 +265,7 @@ def _one_line(err: BaseException) -> str:
     text = " ".join(str(err).split())
     if isinstance(err, PipelineError):
         return text or type(err).__name__
-    return f"internal error {type(err).__name__}: {text} (see the traceback in the batch log)"
+    return f"internal error {type(err).__name__}: {text} (traceback in {ERRORS_FILE} beside the summary)"
 
 
 def _host() -> str:
@@ -686,6 +687,22 @@ def write_summary(table: pa.Table, out: Path) -> Path:
     path = out / SUMMARY_FILE
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     pq.write_table(table, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def write_errors(outcomes: Sequence[Outcome], out: Path) -> Path | None:
+    """Write the tracebacks of unexpected failures to ``OUT/batch_errors.log`` (removed when there are none)."""
+    path = out / ERRORS_FILE
+    crashes = [o for o in outcomes if o.traceback]
+    if not crashes:
+        path.unlink(missing_ok=True)
+        return None
+    text = "".join(
+        f"== {o.recording} (run {o.run}, stage {o.failed_stage}, {o.host})\n{o.traceback}\n" for o in crashes
+    )
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
     os.replace(tmp, path)
     return path
 
