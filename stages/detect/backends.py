@@ -79,6 +79,34 @@ def _forget_apriltag3_detectors() -> None:
         det.tag_detector_ptr = None
 
 
+def _quad_thresh_params(detector: Any) -> Any:
+    """The ``apriltag_quad_thresh_params`` (``qtp``) of a pupil-apriltags detector, writable.
+
+    pupil-apriltags 1.0.4 maps only the first fields of ``apriltag_detector_t``; ``qtp`` follows them in the C
+    struct (apriltag 3: nthreads, quad_decimate, quad_sigma, refine_edges, decode_sharpening, debug, qtp).
+    The layout is checked against the library's defaults (5, 10, cos 10 deg, 10.0, 5) in the tests.
+    """
+    import ctypes
+
+    from pupil_apriltags import bindings
+
+    class _QuadThreshParams(ctypes.Structure):
+        _fields_ = [
+            ("min_cluster_pixels", ctypes.c_int),
+            ("max_nmaxima", ctypes.c_int),
+            ("critical_rad", ctypes.c_float),
+            ("cos_critical_rad", ctypes.c_float),
+            ("max_line_fit_mse", ctypes.c_float),
+            ("min_white_black_diff", ctypes.c_int),
+            ("deglitch", ctypes.c_int),
+        ]
+
+    class _Detector(ctypes.Structure):
+        _fields_ = [*bindings._ApriltagDetector._fields_, ("qtp", _QuadThreshParams)]
+
+    return ctypes.cast(detector.tag_detector_ptr, ctypes.POINTER(_Detector)).contents.qtp
+
+
 class AprilTag3Detector:
     """The AprilTag 3 C library through pupil-apriltags."""
 
@@ -88,9 +116,17 @@ class AprilTag3Detector:
         import pupil_apriltags
 
         self.families = cfg.families
-        key = (cfg.families, cfg.decimation, cfg.blur_sigma, cfg.refine_edges, cfg.decode_sharpening)
+        key = (
+            cfg.families,
+            cfg.decimation,
+            cfg.blur_sigma,
+            cfg.refine_edges,
+            cfg.decode_sharpening,
+            cfg.min_white_black_diff,
+            cfg.min_cluster_pixels,
+        )
         if key not in _AT3_DETECTORS:
-            _AT3_DETECTORS[key] = pupil_apriltags.Detector(
+            det = pupil_apriltags.Detector(
                 families=" ".join(cfg.families),
                 nthreads=1,
                 quad_decimate=float(cfg.decimation),
@@ -98,6 +134,10 @@ class AprilTag3Detector:
                 refine_edges=int(cfg.refine_edges),
                 decode_sharpening=float(cfg.decode_sharpening),
             )
+            qtp = _quad_thresh_params(det)
+            qtp.min_white_black_diff = int(cfg.min_white_black_diff)
+            qtp.min_cluster_pixels = int(cfg.min_cluster_pixels)
+            _AT3_DETECTORS[key] = det
         self._detector: Any = _AT3_DETECTORS[key]
 
     def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:

@@ -2,10 +2,13 @@
 
 Plain script (not a test; wall times are never asserted):
 
-    python tests/benchmarks/bench_detect.py [--duration 40] [--speed-frames 40]
+    python tests/benchmarks/bench_detect.py                      # everything, on the committed sample
+    python tests/benchmarks/bench_detect.py --skip speed --fit-seeds 1 2   # fit corner_bias_px on other seeds
+    python tests/benchmarks/bench_detect.py --skip sim photos --speed-frames 40 --repeats 5
 
-Data: the simulator's office recording (sample_data/simulate.py, in memory, ground-truth corners and
-poses), ../shared/data/apriltag-photos (real photos with corner ground truth), ../shared/data/apriltag-multi.
+Data: the committed sample ``sample_data/office/office.bag`` with ``office.ground_truth.json`` (tags
+0.16 m), simulator runs of other seeds (``--fit-seeds``, in memory), ../shared/data/apriltag-photos (real
+photos with corner ground truth), ../shared/data/apriltag-multi, and rendered 640x480 / 1280x720 frames.
 """
 
 from __future__ import annotations
@@ -13,7 +16,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -32,24 +34,53 @@ from stages.detect.render import TagPlacement, look_at_tag, render_frame  # noqa
 from stages.detect.stage import _corner_sigma  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
+DEFAULT = "apriltag3 dec1 wb15 (default)"
+REFERENCE = "apriltag3 dec2 (library defaults)"
 VARIANTS: dict[str, dict[str, Any]] = {
-    "apriltag3 dec1 (default)": {"backend": "apriltag3", "decimation": 1.0},
-    "apriltag3 dec2": {"backend": "apriltag3", "decimation": 2.0},
+    DEFAULT: {},
+    "apriltag3 dec1 (library defaults)": {"decimation": 1.0, "min_white_black_diff": 5},
+    "apriltag3 dec1.5 wb15": {"decimation": 1.5},
+    REFERENCE: {"decimation": 2.0, "min_white_black_diff": 5},
+    "apriltag3 dec2 wb15": {"decimation": 2.0},
     "opencv subpix": {"backend": "opencv", "opencv_corner_refinement": "subpix"},
     "opencv contour": {"backend": "opencv", "opencv_corner_refinement": "contour"},
 }
+SAMPLE_BAG = ROOT / "sample_data" / "office" / "office.bag"
+TAG_SIZE_M = 0.16
+BANDS_M = [(0, 1), (1, 2), (2, 3), (3, 5), (5, 100)]
 
 
-def simulated(duration: float | None) -> tuple[list[np.ndarray], list[dict[str, Any]], dict[str, Any], float]:
-    """Frames, per-frame ground truth, the camera and the tag size of the simulated office run."""
+def sample_recording(bag: Path = SAMPLE_BAG) -> tuple[list[np.ndarray], list[dict[str, Any]], dict[str, Any]]:
+    """Frames (decoded once), per-frame ground truth and the camera (from camera_info) of a committed bag."""
+    import json
+
+    from rosbags.highlevel import AnyReader
+
+    from stages.ingest.convert import camera_from_info
+
+    frames, camera = [], None
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.msgtype.endswith(("CompressedImage", "CameraInfo"))]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.msgtype.endswith("CompressedImage"):
+                frames.append(cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE))
+            elif camera is None:
+                camera = camera_from_info(msg, conn.topic)
+    truth = json.loads(bag.with_name(bag.stem + ".ground_truth.json").read_text())["frames"]
+    assert camera is not None and len(truth) == len(frames)
+    return frames, truth, camera
+
+
+def simulated(seed: int) -> tuple[list[np.ndarray], list[dict[str, Any]], dict[str, Any]]:
+    """Frames, per-frame ground truth and the camera of a simulated office run of another seed."""
     from sample_data.simulate import SimConfig, decode_image, image_topic, simulate
 
-    cfg = SimConfig(duration_s=duration)
+    cfg = SimConfig(seed=seed)
     rec = simulate(cfg)
     topic = image_topic(cfg)
     frames = [decode_image(m.payload) for m in rec.messages if m.topic == topic]
-    gt = rec.ground_truth
-    return frames, gt["frames"], gt["camera"], float(cfg.tag_size_m)
+    return frames, rec.ground_truth["frames"], rec.ground_truth["camera"]
 
 
 def rms(values: list[float]) -> float:
@@ -57,68 +88,114 @@ def rms(values: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
 
 
-def bench_sim(frames: list[np.ndarray], truth: list[dict[str, Any]], camera: dict[str, Any], size: float) -> None:
-    """Recall, corner RMS and false ids on the simulator, per back-end; NEES per distance band."""
+def run_variant(
+    cfg: DetectConfig, frames: list[np.ndarray], truth: list[dict[str, Any]], camera: dict[str, Any]
+) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]], dict[str, Any]]:
+    """Rows matched to ground truth, all rows, and recall / corner RMS / false ids of one detector setting."""
+    from stages.detect.core import detect_image
+
+    proc = FrameProcessor(cfg, camera)
+    assert proc.detector is not None
+    rows: list[dict[str, Any]] = []
+    matched = []
+    n_truth = hits = false = 0
+    sq: list[float] = []
+    for i, (img, gt) in enumerate(zip(frames, truth, strict=True)):
+        found = detect_image(img, proc.detector, proc.camera, cfg, FrameJob(i, 0, "cam"))
+        rows += found
+        ids = {t["id"]: t for t in gt["visible_tags"]}
+        by_id = {r["tag_id"]: r for r in found}
+        false += sum(1 for r in found if r["tag_id"] not in ids)
+        for tid, t in ids.items():
+            c = np.reshape(t["corners_px"], (4, 2))
+            if shortest_side_px(c) < 15:
+                continue
+            n_truth += 1
+            if tid in by_id:
+                hits += 1
+                d = np.reshape(by_id[tid]["corners"], (4, 2)) - c
+                sq += list(np.sum(d**2, axis=1))
+        matched += [(r, ids[r["tag_id"]]) for r in found if r["tag_id"] in ids]
+    stats = {"hits": hits, "n": n_truth, "corner_rms": float(np.sqrt(np.mean(sq))) if sq else float("nan"), "false": false}
+    return matched, rows, stats
+
+
+def nees_per_band(
+    matched: list[tuple[dict[str, Any], dict[str, Any]]], rows: list[dict[str, Any]], cfg: DetectConfig
+) -> tuple[list[str], float, float]:
+    """NEES/6 of the reported pose covariance against ground truth, per distance band and overall."""
     import gtsam
 
-    print(f"\n## Simulated office recording: {len(frames)} frames (tags fully in view, shortest side >= 15 px)")
-    print("| detector | recall | corner RMS px | false ids | NEES/6 (all) | NEES/6 non-ambiguous |")
-    print("| --- | --- | --- | --- | --- | --- |")
-    bands = [(0, 1), (1, 2), (2, 3), (3, 5), (5, 100)]
-    band_rows: dict[str, list[str]] = {}
-    for name, kw in VARIANTS.items():
-        cfg = DetectConfig(tag_size_m=size, **kw)
-        proc = FrameProcessor(cfg, camera)
-        rows = []
-        n_truth = hits = false = 0
-        sq: list[float] = []
-        matched = []
-        for i, (img, gt) in enumerate(zip(frames, truth, strict=True)):
-            assert proc.detector is not None
-            from stages.detect.core import detect_image
+    from stages.detect.stage import row_pose_cov
 
-            found = detect_image(img, proc.detector, proc.camera, cfg, FrameJob(i, 0, "cam"))
-            rows += found
-            ids = {t["id"]: t for t in gt["visible_tags"]}
-            by_id = {r["tag_id"]: r for r in found}
-            false += sum(1 for r in found if r["tag_id"] not in ids)
-            for tid, t in ids.items():
-                c = np.reshape(t["corners_px"], (4, 2))
-                if shortest_side_px(c) < 15:
-                    continue
-                n_truth += 1
-                if tid in by_id:
-                    hits += 1
-                    d = np.reshape(by_id[tid]["corners"], (4, 2)) - c
-                    sq += list(np.sum(d**2, axis=1))
-            for r in found:
-                if r["tag_id"] in ids:
-                    matched.append((r, ids[r["tag_id"]]))
-        sigmas, _ = _corner_sigma(rows, cfg)
-        nees, dist, amb = [], [], []
-        for r, t in matched:
-            cov = sigmas[0] ** 2 * np.reshape(r["pose_cov_unit"], (6, 6))
-            T_est = gtsam.Pose3(np.reshape(r["T_camera_tag"], (4, 4)))
-            xi = T_est.localCoordinates(gtsam.Pose3(np.array(t["T_camera_tag"])))
-            nees.append(float(xi @ np.linalg.solve(cov, xi)) / 6)
-            dist.append(float(np.linalg.norm(np.array(t["T_camera_tag"])[:3, 3])))
-            amb.append(r["ambiguity_ratio"] > cfg.max_ambiguity_ratio)
-        nees_a, dist_a, amb_a = np.array(nees), np.array(dist), np.array(amb)
-        corner = np.sqrt(np.mean(sq)) if sq else float("nan")
-        print(
-            f"| {name} | {hits}/{n_truth} = {hits / max(n_truth, 1):.3f} | {corner:.3f} "
-            f"| {false} | {nees_a.mean():.2f} | {nees_a[~amb_a].mean():.2f} |"
+    sigma = _corner_sigma(rows, cfg)[0][0]
+    nees, dist = [], []
+    for r, t in matched:
+        cov, _ = row_pose_cov(r, sigma, cfg)
+        xi = gtsam.Pose3(np.reshape(r["T_camera_tag"], (4, 4))).localCoordinates(
+            gtsam.Pose3(np.array(t["T_camera_tag"]))
         )
-        cells = []
-        for lo, hi in bands:
-            m = (dist_a >= lo) & (dist_a < hi)
-            cells.append(f"{nees_a[m].mean():.2f} (n={m.sum()})" if m.any() else "-")
-        band_rows[name] = [*cells, f"{sigmas[0]:.3f}"]
-    print("\nNEES/6 of the tag pose against ground truth, per camera-to-tag distance band (pooled corner sigma):")
-    print("| detector | " + " | ".join(f"{lo}-{hi} m" for lo, hi in bands) + " | corner sigma px |")
-    print("| --- |" + " --- |" * (len(bands) + 1))
-    for name, cells in band_rows.items():
-        print(f"| {name} | " + " | ".join(cells) + " |")
+        nees.append(float(xi @ np.linalg.solve(cov, xi)) / 6)
+        dist.append(float(np.linalg.norm(np.array(t["T_camera_tag"])[:3, 3])))
+    nees_a, dist_a = np.array(nees), np.array(dist)
+    cells = []
+    for lo, hi in BANDS_M:
+        m = (dist_a >= lo) & (dist_a < hi)
+        cells.append(f"{nees_a[m].mean():.2f} (n={m.sum()})" if m.any() else "-")
+    return cells, float(nees_a.mean()), sigma
+
+
+def radial_bias(matched: list[tuple[dict[str, Any], dict[str, Any]]], rows: list[dict[str, Any]]) -> tuple[float, ...]:
+    """Moment fit of ``corner_bias_px``: mean outward corner error per tag vs the white-noise prediction.
+
+    The common outward displacement of a tag's four corners (along their diagonals) has variance
+    ``sigma^2 / 4`` under white corner noise; what it has beyond that is ``beta^2``.
+    """
+    from stages.detect.pose import scale_mode
+
+    sigma2 = sum(r["sse_px2"] for r in rows) / (2 * len(rows))
+    rb = []
+    for r, t in matched:
+        g = np.reshape(t["corners_px"], (4, 2))
+        e = np.reshape(r["corners"], (4, 2)) - g
+        rb.append(float(np.sum(e * scale_mode(g).reshape(4, 2), axis=1).mean()))
+    mean_sq = float(np.mean(np.square(rb)))
+    return float(np.mean(rb)), mean_sq, sigma2 / 4, float(np.sqrt(max(0.0, mean_sq - sigma2 / 4)))
+
+
+def bench_sim(frames: list[np.ndarray], truth: list[dict[str, Any]], camera: dict[str, Any], label: str) -> None:
+    """Recall, corner RMS and false ids per detector setting; NEES per distance band of the default."""
+    print(f"\n## {label}: {len(frames)} frames (recall over tags fully in view, shortest side >= 15 px)")
+    print("| detector | recall | corner RMS px | ids not listed as fully visible |")
+    print("| --- | --- | --- | --- |")
+    default_run = None
+    for name, kw in VARIANTS.items():
+        cfg = DetectConfig(tag_size_m=TAG_SIZE_M, **kw)
+        matched, rows, st = run_variant(cfg, frames, truth, camera)
+        if name == DEFAULT:
+            default_run = (matched, rows)
+        print(
+            f"| {name} | {st['hits']}/{st['n']} = {st['hits'] / max(st['n'], 1):.3f} | {st['corner_rms']:.3f} "
+            f"| {st['false']} |"
+        )
+    assert default_run is not None
+    matched, rows = default_run
+    print(f"\nNEES/6 of the tag pose against ground truth per distance band ({DEFAULT}, tag_size_m={TAG_SIZE_M}):")
+    print("| covariance | " + " | ".join(f"{lo}-{hi} m" for lo, hi in BANDS_M) + " | all | corner sigma px |")
+    print("| --- |" + " --- |" * (len(BANDS_M) + 2))
+    for title, kw in (
+        ("default (IPPE two-mode mixture)", {}),
+        ("local only (ambiguity_mixture: false)", {"ambiguity_mixture": False}),
+        ("mixture + corner_bias_px 0.05", {"corner_bias_px": 0.05}),
+    ):
+        cfg = DetectConfig(tag_size_m=TAG_SIZE_M, **kw)
+        cells, overall, sigma = nees_per_band(matched, rows, cfg)
+        print(f"| {title} | " + " | ".join(cells) + f" | {overall:.2f} | {sigma:.3f} |")
+    mean_r, mean_sq, white, beta = radial_bias(matched, rows)
+    print(
+        f"\nCommon outward corner error per tag: mean {mean_r:+.4f} px, mean square {mean_sq:.5f} px^2, "
+        f"white-noise prediction sigma^2/4 = {white:.5f} px^2 -> corner_bias_px fit = {beta:.3f}"
+    )
 
 
 def bench_photos() -> None:
@@ -153,40 +230,52 @@ def bench_photos() -> None:
         print(f"| {name} | " + " | ".join(cells) + " | " + "; ".join(n_multi) + " |")
 
 
-_PROC: FrameProcessor | None = None
+_WORKER: dict[str, Any] = {}
 
 
-def _init(cfg_data: dict[str, Any], camera: dict[str, Any]) -> None:
-    global _PROC
-    _PROC = FrameProcessor(DetectConfig.model_validate(cfg_data), camera)
+def _init_speed(sets: dict[str, tuple[list[np.ndarray], dict[str, Any]]]) -> None:
+    """Worker initializer: the frames (decoded once, sent once) and a processor per (setting, set)."""
+    _WORKER["sets"] = sets
+    _WORKER["procs"] = {}
 
 
-def _work(frames: list[np.ndarray]) -> int:
+def _processor(variant: str, set_name: str) -> FrameProcessor:
+    key = (variant, set_name)
+    if key not in _WORKER["procs"]:
+        _WORKER["procs"][key] = FrameProcessor(DetectConfig(**VARIANTS[variant]), _WORKER["sets"][set_name][1])
+    return _WORKER["procs"][key]
+
+
+def _work(task: tuple[str, str, int, int, bool]) -> int:
+    """Detect (and with ``pose``, estimate every pose) in frames ``lo:hi`` of a set; returns the tag count."""
     from stages.detect.core import detect_image
 
-    assert _PROC is not None and _PROC.detector is not None
-    return sum(len(detect_image(f, _PROC.detector, _PROC.camera, _PROC.cfg)) for f in frames)
+    variant, set_name, lo, hi, pose = task
+    proc = _processor(variant, set_name)
+    assert proc.detector is not None
+    frames = _WORKER["sets"][set_name][0][lo:hi]
+    if not pose:
+        return sum(len(proc.detector.detect(f)) for f in frames)
+    return sum(len(detect_image(f, proc.detector, proc.camera, proc.cfg)) for f in frames)
 
 
-def throughput(cfg: DetectConfig, camera: dict[str, Any], frames: list[np.ndarray], workers: int) -> float:
-    """Frames per second of detection + pose, in ``workers`` processes (pool start-up excluded)."""
-    batches = [frames[i : i + 4] for i in range(0, len(frames), 4)]
-    if workers == 1:
-        _init(cfg.model_dump(mode="json"), camera)
-        _work(frames[:2])
-        t0 = time.perf_counter()
-        for b in batches:
-            _work(b)
-        return len(frames) / (time.perf_counter() - t0)
-    with ProcessPoolExecutor(workers, initializer=_init, initargs=(cfg.model_dump(mode="json"), camera)) as pool:
-        list(pool.map(_work, [frames[:2]] * workers))
-        t0 = time.perf_counter()
-        list(pool.map(_work, batches))
-        return len(frames) / (time.perf_counter() - t0)
+def _tasks(variant: str, set_name: str, n: int, pose: bool, batch: int = 4) -> list[tuple[str, str, int, int, bool]]:
+    return [(variant, set_name, i, min(i + batch, n), pose) for i in range(0, n, batch)]
+
+
+def _fps(pool: ProcessPoolExecutor | None, variant: str, set_name: str, n: int, pose: bool) -> float:
+    tasks = _tasks(variant, set_name, n, pose)
+    t0 = time.perf_counter()
+    if pool is None:
+        for t in tasks:
+            _work(t)
+    else:
+        list(pool.map(_work, tasks))
+    return n / (time.perf_counter() - t0)
 
 
 def synthetic_frames(width: int, height: int, n: int) -> tuple[list[np.ndarray], dict[str, Any]]:
-    """``n`` rendered frames of 4 tags at 0.8-3 m, size ``width`` x ``height``."""
+    """``n`` rendered frames of 4 tags at 0.8-3 m, size ``width`` x ``height`` (flat background, noise 2)."""
     f = 0.65 * width
     camera = {
         "width": width,
@@ -218,45 +307,106 @@ def synthetic_frames(width: int, height: int, n: int) -> tuple[list[np.ndarray],
     return frames, camera
 
 
-def bench_speed(sim_frames: list[np.ndarray], sim_camera: dict[str, Any], n: int) -> None:
-    """Frames per second, one process and two, per back-end and frame size; ratios to AT3 dec2 x1."""
+def photo_frames(n: int) -> tuple[list[np.ndarray], dict[str, Any]] | None:
+    """The real photos and apriltag-multi images (cycled to ``n`` frames; a nominal camera for the pose)."""
+    paths = sorted((SHARED / "apriltag-photos").glob("*.jpg")) + sorted((SHARED / "apriltag-multi").glob("*.png"))
+    imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths]
+    if not imgs:
+        return None
+    # Different sizes: crop every image to the smallest one so that one camera fits all.
+    h = min(i.shape[0] for i in imgs)
+    w = min(i.shape[1] for i in imgs)
+    imgs = [np.ascontiguousarray(i[:h, :w]) for i in imgs]
+    camera = {"width": w, "height": h, "K": [w, 0, w / 2, 0, w, h / 2, 0, 0, 1], "distortion_model": "none", "D": []}
+    return [imgs[k % len(imgs)] for k in range(n)], camera
+
+
+def bench_speed(sim_frames: list[np.ndarray], sim_camera: dict[str, Any], n: int, repeats: int) -> None:
+    """Frames per second, one process and two, per setting and frame set, interleaved; ratios to the reference.
+
+    Frames are decoded once and sent to the workers once (the initializer); pool start-up and the first
+    detector construction are excluded (one warm-up pass). Each (setting, set, processes) cell is measured
+    ``repeats`` times, the cells interleaved round-robin, and the median is reported.
+    """
+    import os
+
+    step = max(1, len(sim_frames) // n)
     sets: dict[str, tuple[list[np.ndarray], dict[str, Any]]] = {
-        f"sim {sim_frames[0].shape[1]}x{sim_frames[0].shape[0]}": (sim_frames[:n], sim_camera),
+        f"sample {sim_frames[0].shape[1]}x{sim_frames[0].shape[0]}": (sim_frames[::step][:n], sim_camera),
         "640x480": synthetic_frames(640, 480, n),
         "1280x720": synthetic_frames(1280, 720, n),
     }
-    print(f"\n## Speed (frames per second, detection + pose, {n} frames per set; ratio to apriltag3 dec2 x1)")
-    print("| detector | " + " | ".join(f"{k} x1 | {k} x2" for k in sets) + " |")
-    print("| --- |" + " --- | --- |" * len(sets))
-    results: dict[str, list[float]] = {}
-    for name, kw in VARIANTS.items():
-        cfg = DetectConfig(**kw)
-        results[name] = []
-        for frames, camera in sets.values():
-            results[name] += [throughput(cfg, camera, frames, 1), throughput(cfg, camera, frames, 2)]
-    ref = results["apriltag3 dec2"]
-    for name, vals in results.items():
-        cells = [f"{v:.1f} ({v / ref[2 * (i // 2)]:.2f}x)" for i, v in enumerate(vals)]
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    photos = photo_frames(n)
+    if photos is not None:
+        sets[f"photos {photos[0][0].shape[1]}x{photos[0][0].shape[0]}"] = photos
+    load_before = os.getloadavg()
+    _init_speed(sets)
+    results: dict[tuple[str, str, int, bool], list[float]] = {}
+    t_start = time.perf_counter()
+    with ProcessPoolExecutor(2, initializer=_init_speed, initargs=(sets,)) as pool:
+        for variant in VARIANTS:  # warm-up: build every detector in both workers and here
+            for set_name in sets:
+                list(pool.map(_work, [(variant, set_name, 0, 1, True)] * 4))
+                _work((variant, set_name, 0, 1, True))
+        for _ in range(repeats):
+            for set_name, (frames, _) in sets.items():
+                for variant in VARIANTS:
+                    for workers, pose in ((1, True), (2, True), (1, False)):
+                        fps = _fps(pool if workers == 2 else None, variant, set_name, len(frames), pose)
+                        results.setdefault((variant, set_name, workers, pose), []).append(fps)
+    load_after = os.getloadavg()
+    print(
+        f"\n## Speed: frames per second (median of {repeats} interleaved repeats, {n} frames per set), "
+        f"ratio to {REFERENCE} in one process"
+    )
+    print(
+        f"Load average (1, 5, 15 min) before {', '.join(f'{v:.2f}' for v in load_before)}, after "
+        f"{', '.join(f'{v:.2f}' for v in load_after)} on {os.cpu_count()} cores; {time.perf_counter() - t_start:.0f} s."
+    )
+    for pose in (True, False):
+        what = "detection + pose" if pose else "detection only, one process"
+        cols = [(s, w) for s in sets for w in ((1, 2) if pose else (1,))]
+        print(f"\n{what}:")
+        print("| detector | " + " | ".join(f"{s} x{w}" for s, w in cols) + " |")
+        print("| --- |" + " --- |" * len(cols))
+        for variant in VARIANTS:
+            cells = []
+            for s, w in cols:
+                med = float(np.median(results[(variant, s, w, pose)]))
+                ref = float(np.median(results[(REFERENCE, s, 1, pose)]))
+                cells.append(f"{med:.1f} ({med / ref:.2f}x)")
+            print(f"| {variant} | " + " | ".join(cells) + " |")
+    spread = {
+        s: max(float(np.ptp(v) / np.median(v)) for (var, s2, w, p), v in results.items() if s2 == s and var == DEFAULT)
+        for s in sets
+    }
+    print(
+        "\nLargest (max - min) / median over the repeats of the default's cells: "
+        + ", ".join(f"{s} {v:.0%}" for s, v in spread.items())
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run every part and print markdown tables."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: whole path)")
-    parser.add_argument("--speed-frames", type=int, default=40, help="frames per speed measurement")
+    parser.add_argument("--bag", type=Path, default=SAMPLE_BAG, help="recording with <stem>.ground_truth.json beside")
+    parser.add_argument("--fit-seeds", type=int, nargs="*", default=[], help="also run simulator seeds (fitting)")
+    parser.add_argument("--speed-frames", type=int, default=40, help="frames per speed set")
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats per speed cell (median)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed"])
     args = parser.parse_args(argv)
-    frames, truth, camera, size = simulated(args.duration)
-    timer: Callable[[], float] = time.perf_counter
-    t0 = timer()
+    t0 = time.perf_counter()
+    frames, truth, camera = sample_recording(args.bag)
     if "sim" not in args.skip:
-        bench_sim(frames, truth, camera, size)
+        bench_sim(frames, truth, camera, f"Sample recording {args.bag.name}")
+    for seed in args.fit_seeds:
+        f, t, c = simulated(seed)
+        bench_sim(f, t, c, f"Simulator seed {seed} (fitting data, not the sample)")
     if "photos" not in args.skip:
         bench_photos()
     if "speed" not in args.skip:
-        bench_speed(frames, camera, args.speed_frames)
-    print(f"\n(benchmark took {timer() - t0:.0f} s)")
+        bench_speed(frames, camera, args.speed_frames, args.repeats)
+    print(f"\n(benchmark took {time.perf_counter() - t0:.0f} s)")
     return 0
 
 
