@@ -8,6 +8,6 @@ from __future__ import annotations
 from typing import Final
 
 from pipeline.registry import Registry
-from stages import detect, graph, ingest
+from stages import detect, graph, ingest, select_landmarks, select_measurements
 
-REGISTRY: Final = Registry([ingest.STAGE, detect.STAGE, graph.STAGE])
+REGISTRY: Final = Registry([ingest.STAGE, detect.STAGE, graph.STAGE, select_landmarks.STAGE, select_measurements.STAGE])

@@ -339,6 +339,8 @@ def path_geometry(
         obs += [(int(a), int(b)) for a, b in zip(k[near], d_tag[near], strict=True)]
     visible = _visibility(stamps, tag_ids, obs, params.visibility_window_s)
     Q, sigmas = _noise_from_graph(loaded, params)
+    if scans is not None and scans.num_rows == 0:
+        scans = None  # an empty scans.parquet: no laser
     if scans is not None:
         Tbl = np.eye(4) if T_base_laser is None else np.asarray(T_base_laser, dtype=float)
         clearance, normals, points = scan_clearance(poses, stamps, scans, Tbl, params.max_scan_gap_s)
@@ -365,6 +367,19 @@ def _risk_of(geometry: PathGeometry, sigma: FloatArray, params: RiskParams) -> t
         ]
     )
     return np.asarray(p), maha
+
+
+def _information_factor(H_R: Sequence[tuple[FloatArray, FloatArray]]) -> tuple[FloatArray, FloatArray]:
+    """One whitened measurement ``(G, I)`` with ``GᵀG = Σ Hᵀ R̄⁻¹ H``: the same Kalman update, so the same Σ*.
+
+    The Riccati recursion sees the measurements only through ``Σ⁻¹ + HᵀR̄⁻¹H``, so stacking k landmarks
+    (a 2k-row DARE) and this rank-≤3 factor give the same fixed point (to 1e-15), several times faster.
+    """
+    J = sum(H.T @ np.linalg.solve(R, H) for H, R in H_R)
+    w, V = np.linalg.eigh(0.5 * (J + J.T))
+    keep = w > 1e-12 * max(float(w.max()), 1e-300)
+    G = (V[:, keep] * np.sqrt(w[keep])).T
+    return np.asarray(G), np.eye(G.shape[0])
 
 
 def path_risk(
@@ -405,16 +420,13 @@ def path_risk(
                 sig[t] = cache[key]
                 localised[t] = True
                 continue
-            sig[t] = stabilised_covariance(
-                geometry.Q,
-                [
-                    planar_range_bearing(
-                        geometry.poses[t], landmarks.positions[r], landmarks.covariances[r], geometry.sigmas
-                    )
-                    for r in rows
-                ],
-                params.cap_steps,
-            )
+            H_R = [
+                planar_range_bearing(
+                    geometry.poses[t], landmarks.positions[r], landmarks.covariances[r], geometry.sigmas
+                )
+                for r in rows
+            ]
+            sig[t] = stabilised_covariance(geometry.Q, [_information_factor(H_R)], params.cap_steps)
             if cache is not None:
                 cache[key] = sig[t].copy()
             localised[t] = True

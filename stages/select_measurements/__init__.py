@@ -1,0 +1,71 @@
+"""Stage ``select_measurements`` (stage two of focused inference): keep the tag measurements that matter.
+
+Reads ``graph`` and ``select_landmarks`` (``focused.json``; not needed with ``focus: all``); writes
+``selected.parquet`` (schema in ``docs/select.md``). All odometry and priors are always kept.
+
+Public API (no run folder needed):
+    linear_system(loaded) -> LinearSystem
+    choose(loaded, focused_tag_ids, cfg, system=None) -> MeasurementChoice
+    MeasurementChoice.keep_factor_indices(loaded) -> list[int]   (for stages.graph.load.build_reduced)
+    focused_covariances(system, base, picks, focused_vars, landmark_prior_sigma) -> (blocks, entropy)
+    SelectMeasurementsConfig, STAGE
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+from pipeline.stage import Stage
+from stages.select_measurements.config import STRATEGIES, SelectMeasurementsConfig
+from stages.select_measurements.core import (
+    MeasurementChoice,
+    candidate_factors,
+    choose,
+    focused_covariances,
+    focused_variables,
+    linear_system,
+)
+from stages.select_measurements.stage import run
+
+
+def blueprint() -> Any:
+    """The layout of ``select_measurements.rrd``: the map, the focused entropy per step, the summary."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="/select_measurements", name="kept measurements"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="/select_measurements/entropy", name="focused entropy (nats)"),
+                rrb.TimeSeriesView(origin="/select_measurements/gain", name="gain per pick (nats)"),
+                rrb.TextDocumentView(origin="/select_measurements/summary", name="summary"),
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(play_state="paused", timeline="selection_step"),
+    )
+
+
+STAGE: Final = Stage(
+    name="select_measurements",
+    config_type=SelectMeasurementsConfig,
+    run=run,
+    inputs=("graph",),
+    optional_inputs=("select_landmarks",),
+    version="1",
+    blueprint=blueprint,
+    help="Select the tag measurements that best localise the focused landmarks (information, leverage, ...).",
+)
+
+__all__ = [
+    "STAGE",
+    "STRATEGIES",
+    "MeasurementChoice",
+    "SelectMeasurementsConfig",
+    "blueprint",
+    "candidate_factors",
+    "choose",
+    "focused_covariances",
+    "focused_variables",
+    "linear_system",
+]

@@ -1,0 +1,231 @@
+"""Measurement selection without a run folder: :func:`choose` runs any strategy on a loaded graph.
+
+```python
+loaded = load_graph(ctx.input("graph"))
+system = linear_system(loaded)                                   # optional: linearise once, reuse
+choice = choose(loaded, focused_tag_ids, cfg, system)            # MeasurementChoice
+graph, values = build_reduced(loaded, choice.keep_factor_indices(loaded))
+```
+
+The information matrix is linearised once at the full-graph solution; every non-tag factor (prior,
+odometry, loops) is always kept; the candidates are the tag measurements of the focused landmarks.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from pipeline.errors import StageError
+from stages.estimation.linear_system import LinearSystem
+from stages.estimation.measurement_selection import (
+    MeasurementSelection,
+    focused_entropy,
+    select_all,
+    select_information,
+    select_leverage,
+    select_random,
+    select_uniform,
+)
+from stages.estimation.sparse_cov import SPDSolver, logdet_spd
+from stages.select_measurements.config import SelectMeasurementsConfig
+
+if TYPE_CHECKING:
+    from stages.graph.load import LoadedGraph
+
+FloatArray = npt.NDArray[np.float64]
+_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
+
+
+def linear_system(loaded: LoadedGraph) -> LinearSystem:
+    """The full graph linearised at its solution (factor ``i`` = row ``i`` of ``factors.parquet``)."""
+    landmark_keys = set(loaded.landmark_keys.values())
+    return LinearSystem.from_gtsam(loaded.graph, loaded.values, is_landmark=landmark_keys.__contains__)
+
+
+@dataclass
+class MeasurementChoice:
+    """The result of one measurement selection."""
+
+    strategy: str
+    budget: int
+    focus: str
+    focused_tag_ids: list[int]
+    factor_indices: list[int]
+    """Kept tag-measurement factors (indices into the graph's factors), in pick order."""
+    gains: list[float]
+    """Entropy reduction of each pick (information, nats), sampling probability (leverage), else NaN."""
+    status: str
+    """ok | budget_zero | budget_exceeds_candidates | no_candidates."""
+    message: str
+    n_candidates: int
+    candidates: list[int]
+    """Candidate factor indices, in time order."""
+    entropy_before: float
+    """Entropy (nats) of the focused landmarks with odometry, priors and the weak landmark prior only."""
+    entropy_after: float
+    """The same with the kept measurements added."""
+    seconds: float
+    stats: dict[str, float] = field(default_factory=dict)
+
+    def keep_factor_indices(self, loaded: LoadedGraph) -> list[int]:
+        """Every factor of the reduced graph: all non-tag factors plus the kept measurements (sorted)."""
+        return sorted({int(i) for i in loaded.fixed_factor_indices} | {int(i) for i in self.factor_indices})
+
+    def entropy_per_step(self) -> FloatArray | None:
+        """Focused entropy after each pick (information strategy only: before minus the cumulative gains)."""
+        if self.strategy != "information" or not self.factor_indices:
+            return None
+        return np.asarray(self.entropy_before - np.cumsum(self.gains))
+
+
+def focused_variables(loaded: LoadedGraph, system: LinearSystem, tag_ids: Iterable[int]) -> list[int]:
+    """Variable indices (in ``system``) of the landmarks with these tag ids."""
+    return [system.index_of_key(loaded.landmark_keys[int(t)]) for t in tag_ids]
+
+
+def candidate_factors(loaded: LoadedGraph, tag_ids: Iterable[int]) -> list[int]:
+    """Tag-measurement factors of these landmarks, in time order (then factor index)."""
+    tags = {int(t) for t in tag_ids}
+    cands = [int(i) for i in loaded.tag_factor_indices if loaded.rows[int(i)].tag_id in tags]
+    return sorted(cands, key=lambda i: (loaded.rows[i].stamp_ns or 0, i))
+
+
+def _message(status: str, budget: int, n: int, kept: int, strategy: str, n_focused: int) -> str:
+    if status == "budget_zero":
+        return "budget 0: no tag measurement kept (odometry and priors only)"
+    if status == "budget_exceeds_candidates":
+        return f"budget {budget} exceeds the {n} candidate measurements: all {n} kept"
+    if status == "no_candidates":
+        return "the focused landmarks have no tag measurements"
+    if strategy == "all":
+        return f"all {n} candidate measurements of {n_focused} focused landmarks kept"
+    return f"{kept} of {n} candidate measurements of {n_focused} focused landmarks kept by {strategy}"
+
+
+def choose(
+    loaded: LoadedGraph,
+    focused_tag_ids: Sequence[int] | None,
+    cfg: SelectMeasurementsConfig,
+    system: LinearSystem | None = None,
+) -> MeasurementChoice:
+    """Run one measurement-selection strategy.
+
+    Args:
+        loaded: the full graph (:func:`stages.graph.load.load_graph`).
+        focused_tag_ids: the focused landmarks (``focused.json``'s ``tag_ids``); ignored with ``cfg.focus == "all"``.
+        cfg: the settings (``strategy``, ``budget``, ``focus``, ...).
+        system: the graph linearised at its solution (:func:`linear_system`), to reuse across calls.
+
+    Raises:
+        StageError: no focused landmarks, or focused tags that the graph does not have.
+    """
+    t0 = time.perf_counter()
+    if cfg.focus == "all":
+        tags = sorted(loaded.landmark_keys)
+    else:
+        if not focused_tag_ids:
+            raise StageError(
+                "no focused landmarks (select_landmarks kept none); run 'focusmap select-landmarks RUN' with a "
+                "budget above 0, or use --set select_measurements.focus=all"
+            )
+        tags = [int(t) for t in focused_tag_ids]
+        missing = sorted(set(tags) - set(loaded.landmark_keys))
+        if missing:
+            raise StageError(
+                f"focused tags {missing} are not in the graph; select_landmarks is stale: re-run "
+                "'focusmap select-landmarks RUN'"
+            )
+    system = system if system is not None else linear_system(loaded)
+    focused = focused_variables(loaded, system, tags)
+    cands = candidate_factors(loaded, tags)
+    base = [int(i) for i in loaded.fixed_factor_indices]
+    sigma = cfg.landmark_prior_sigma_m
+    sel: MeasurementSelection
+    if cfg.strategy == "information":
+        sel = select_information(system, cands, focused, cfg.budget, base, sigma, cfg.refactor_every)
+    elif cfg.strategy == "leverage":
+        sel = select_leverage(
+            system, cands, focused, cfg.budget, base, cfg.leverage_draws, cfg.leverage_measure, cfg.seed, sigma
+        )
+    elif cfg.strategy == "uniform":
+        times = [float(loaded.rows[c].stamp_ns or 0) for c in cands]
+        sel = select_uniform(cands, cfg.budget, times)
+    elif cfg.strategy == "random":
+        sel = select_random(cands, cfg.budget, cfg.seed)
+    else:
+        sel = select_all(cands)
+    h0, h1 = sel.entropy_before, sel.entropy_after
+    if not np.isfinite(h0):
+        h0 = focused_entropy(system, base, focused, sigma)
+    if not np.isfinite(h1):
+        h1 = focused_entropy(system, base + list(sel.picks), focused, sigma) if sel.picks else h0
+    budget = len(cands) if cfg.strategy == "all" else cfg.budget
+    return MeasurementChoice(
+        strategy=cfg.strategy,
+        budget=budget,
+        focus=cfg.focus,
+        focused_tag_ids=tags,
+        factor_indices=[int(p) for p in sel.picks],
+        gains=[float(g) for g in sel.gains],
+        status=sel.status,
+        message=_message(sel.status, cfg.budget, len(cands), len(sel.picks), cfg.strategy, len(tags)),
+        n_candidates=len(cands),
+        candidates=cands,
+        entropy_before=float(h0),
+        entropy_after=float(h1),
+        seconds=time.perf_counter() - t0,
+        stats={k: float(v) for k, v in sel.stats.items()},
+    )
+
+
+def focused_covariances(
+    system: LinearSystem,
+    base: Sequence[int],
+    picks: Sequence[int],
+    focused: Sequence[int],
+    landmark_prior_sigma: float,
+) -> tuple[list[FloatArray], float]:
+    """Marginal covariance (tangent) of each focused variable and the focused entropy (nats), given the factors.
+
+    One sparse factorisation of ``Λ = Σ_{base + picks} AᵀA + σ⁻² I`` (landmarks) and one solve with the
+    focused columns; no dense ``n × n`` matrix.
+    """
+    info = system.information(list(base) + list(picks)) + system.diagonal_prior(
+        system.variables_of_kind("landmark"), landmark_prior_sigma
+    )
+    cols = system.columns(focused)
+    E = np.zeros((system.dim, len(cols)))
+    E[cols, np.arange(len(cols))] = 1.0
+    X = SPDSolver(info.tocsc()).solve(E)
+    SF = X[cols]
+    SF = 0.5 * (SF + SF.T)
+    blocks, off = [], 0
+    for v in focused:
+        d = system.variables[v].dim
+        blocks.append(SF[off : off + d, off : off + d])
+        off += d
+    return blocks, 0.5 * (logdet_spd(SF) + len(cols) * _LOG_2PI_E)
+
+
+def summary_of(choice: MeasurementChoice) -> dict[str, Any]:
+    """The stage summary's selection fields."""
+    return {
+        "strategy": choice.strategy,
+        "budget": choice.budget,
+        "focus": choice.focus,
+        "focused_landmarks": len(choice.focused_tag_ids),
+        "candidates": choice.n_candidates,
+        "selected": len(choice.factor_indices),
+        "status": choice.status,
+        "message": choice.message,
+        "entropy_before": choice.entropy_before,
+        "entropy_after": choice.entropy_after,
+        "entropy_reduction": choice.entropy_before - choice.entropy_after,
+        "select_seconds": round(choice.seconds, 4),
+    }

@@ -1,0 +1,186 @@
+"""The select_measurements stage: keep the tag measurements that best localise the focused landmarks."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+
+from pipeline.context import StageContext
+from pipeline.errors import StageError
+from pipeline.recording import ellipsoids, set_step
+from stages.select_measurements.config import SelectMeasurementsConfig
+from stages.select_measurements.core import (
+    MeasurementChoice,
+    choose,
+    focused_covariances,
+    focused_variables,
+    linear_system,
+    summary_of,
+)
+
+ENTITY = "/select_measurements"
+FOCUSED = [40, 200, 80]
+OTHER = [150, 150, 150]
+PICK = [255, 40, 200]
+KEPT = [255, 170, 0]
+
+
+def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig) -> list[int] | None:
+    if cfg.focus == "all":
+        return None
+    if not ctx.has_input("select_landmarks"):
+        raise StageError(
+            f"no focused landmarks: select_landmarks has not run in {str(ctx.run.path)!r}; run "
+            f"'focusmap select-landmarks {ctx.run.path}' first (or --set select_measurements.focus=all)"
+        )
+    focused = ctx.input("select_landmarks").read_json("focused.json")
+    return [int(t) for t in focused.get("tag_ids", [])]
+
+
+def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
+    """Select the measurements; write ``selected.parquet``; log ``select_measurements.rrd``."""
+    from stages.graph.load import load_graph
+
+    tags = _focused_tags(ctx, cfg)
+    loaded = load_graph(ctx.input("graph"))
+    system = linear_system(loaded)
+    choice = choose(loaded, tags, cfg, system)
+    rows = [loaded.rows[i] for i in choice.factor_indices]
+    ctx.output.write_table(
+        "selected.parquet",
+        pa.table(
+            {
+                "factor_index": pa.array(choice.factor_indices, pa.int64()),
+                "step": pa.array(np.arange(len(choice.factor_indices)), pa.int64()),
+                "gain": pa.array(choice.gains, pa.float64()),
+                "tag_id": pa.array([r.tag_id for r in rows], pa.int64()),
+                "stamp_ns": pa.array([r.stamp_ns for r in rows], pa.int64()),
+            }
+        ),
+    )
+    log_recording(ctx, loaded, system, choice, cfg)
+    summary = summary_of(choice)
+    summary["factors_kept"] = len(choice.keep_factor_indices(loaded))
+    summary["factors_total"] = len(loaded.rows)
+    summary["landmark_prior_sigma_m"] = cfg.landmark_prior_sigma_m
+    summary["timing_s"] = {k: round(v, 4) for k, v in choice.stats.items()}
+    return summary
+
+
+def _xyz(loaded: Any, key: int) -> np.ndarray:
+    t = loaded.var_types[key]
+    v = loaded.values
+    if t == "Pose2":
+        p = v.atPose2(key)
+        return np.array([p.x(), p.y(), 0.0])
+    if t == "Pose3":
+        return np.asarray(v.atPose3(key).translation(), dtype=float)
+    if t == "Point2":
+        p = np.asarray(v.atPoint2(key), dtype=float)
+        return np.array([p[0], p[1], 0.0])
+    return np.asarray(v.atPoint3(key), dtype=float)
+
+
+def log_recording(
+    ctx: StageContext, loaded: Any, system: Any, choice: MeasurementChoice, cfg: SelectMeasurementsConfig
+) -> None:
+    """``select_measurements.rrd``: picks on ``selection_step`` (edge highlighted, focused ellipsoids, entropy)."""
+    from stages.graph.outputs import position_cov_in_map
+
+    rec = ctx.rec
+    n_sigma = ctx.n_sigma
+    rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    path = np.array([_xyz(loaded, k) for k in loaded.pose_keys]).reshape(-1, 3)
+    rec.log(f"{ENTITY}/path", rr.LineStrips3D([path], colors=[[120, 120, 120]]), static=True)
+    focused_set = set(choice.focused_tag_ids)
+    others = [t for t in sorted(loaded.landmark_keys) if t not in focused_set]
+    if others:
+        rec.log(
+            f"{ENTITY}/landmarks/other",
+            rr.Points3D(
+                [_xyz(loaded, loaded.landmark_keys[t]) for t in others],
+                colors=[OTHER],
+                radii=0.04,
+                labels=[str(t) for t in others],
+            ),
+            static=True,
+        )
+    f_keys = [loaded.landmark_keys[t] for t in choice.focused_tag_ids]
+    f_xyz = np.array([_xyz(loaded, k) for k in f_keys]).reshape(-1, 3)
+    f_labels = [str(t) for t in choice.focused_tag_ids]
+
+    def edge(i: int) -> list[np.ndarray]:
+        keys = loaded.rows[i].keys
+        return [_xyz(loaded, keys[0]), _xyz(loaded, keys[1])]
+
+    if choice.candidates:
+        rec.log(
+            f"{ENTITY}/candidates",
+            rr.LineStrips3D([edge(i) for i in choice.candidates], colors=[[200, 200, 60, 60]], radii=0.002),
+            static=True,
+        )
+    # the focused entropy per step: every step for information (from the gains), else at the replayed steps
+    ent = choice.entropy_per_step()
+    set_step(rec, 0)
+    rec.log(f"{ENTITY}/entropy", rr.Scalars(choice.entropy_before))
+    if ent is not None:
+        steps = rr.TimeColumn("selection_step", sequence=np.arange(1, len(ent) + 1))
+        rec.send_columns(f"{ENTITY}/entropy", indexes=[steps], columns=rr.Scalars.columns(scalars=ent))
+        rec.send_columns(
+            f"{ENTITY}/gain", indexes=[steps], columns=rr.Scalars.columns(scalars=np.asarray(choice.gains))
+        )
+    # each pick's edge
+    for k, i in enumerate(choice.factor_indices, start=1):
+        set_step(rec, k)
+        rec.log(f"{ENTITY}/pick", rr.LineStrips3D([edge(i)], colors=[PICK], radii=0.02))
+    # the focused ellipsoids and the kept edges at evenly spaced steps (one sparse factorisation each)
+    K = len(choice.factor_indices)
+    n_replay = min(K, cfg.max_replay_steps)
+    replay = sorted({0, K, *np.round(np.linspace(0, K, n_replay + 1)).astype(int).tolist()}) if n_replay else [0]
+    focused_vars = focused_variables(loaded, system, choice.focused_tag_ids)
+    base = [int(i) for i in loaded.fixed_factor_indices]
+    for k in replay:
+        picks = choice.factor_indices[:k]
+        set_step(rec, k)
+        blocks, entropy = focused_covariances(system, base, picks, focused_vars, cfg.landmark_prior_sigma_m)
+        covs = []
+        for key, block in zip(f_keys, blocks, strict=True):
+            t = loaded.var_types[key]
+            value = loaded.values.atPose3(key) if t == "Pose3" else None
+            covs.append(position_cov_in_map(t, value, block))
+        seen = {loaded.rows[i].tag_id for i in picks}
+        observed = np.array([tag in seen for tag in choice.focused_tag_ids], dtype=bool)
+        # a landmark no kept measurement sees has only the weak prior (σ = landmark_prior_sigma_m): a point
+        if observed.any():
+            rec.log(
+                f"{ENTITY}/landmarks/focused",
+                ellipsoids(
+                    f_xyz[observed],
+                    [c for c, o in zip(covs, observed, strict=True) if o],
+                    n_sigma,
+                    colors=[FOCUSED],
+                    labels=[lab for lab, o in zip(f_labels, observed, strict=True) if o],
+                ),
+            )
+        else:
+            rec.log(f"{ENTITY}/landmarks/focused", rr.Clear(recursive=False))
+        if (~observed).any():
+            rec.log(
+                f"{ENTITY}/landmarks/unobserved",
+                rr.Points3D(
+                    f_xyz[~observed],
+                    colors=[FOCUSED],
+                    radii=0.06,
+                    labels=[lab for lab, o in zip(f_labels, observed, strict=True) if not o],
+                ),
+            )
+        else:
+            rec.log(f"{ENTITY}/landmarks/unobserved", rr.Clear(recursive=False))
+        if picks:
+            rec.log(f"{ENTITY}/kept", rr.LineStrips3D([edge(i) for i in picks], colors=[KEPT], radii=0.006))
+        if ent is None:
+            rec.log(f"{ENTITY}/entropy", rr.Scalars(entropy))
+    rec.reset_time()
