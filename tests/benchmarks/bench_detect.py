@@ -116,7 +116,12 @@ def run_variant(
                 d = np.reshape(by_id[tid]["corners"], (4, 2)) - c
                 sq += list(np.sum(d**2, axis=1))
         matched += [(r, ids[r["tag_id"]]) for r in found if r["tag_id"] in ids]
-    stats = {"hits": hits, "n": n_truth, "corner_rms": float(np.sqrt(np.mean(sq))) if sq else float("nan"), "false": false}
+    stats = {
+        "hits": hits,
+        "n": n_truth,
+        "corner_rms": float(np.sqrt(np.mean(sq))) if sq else float("nan"),
+        "false": false,
+    }
     return matched, rows, stats
 
 
