@@ -8,6 +8,16 @@ from __future__ import annotations
 from typing import Final
 
 from pipeline.registry import Registry
-from stages import detect, graph, ingest, select_landmarks, select_measurements
+from stages import detect, evaluate, graph, ingest, optimize, select_landmarks, select_measurements
 
-REGISTRY: Final = Registry([ingest.STAGE, detect.STAGE, graph.STAGE, select_landmarks.STAGE, select_measurements.STAGE])
+REGISTRY: Final = Registry(
+    [
+        ingest.STAGE,
+        detect.STAGE,
+        graph.STAGE,
+        select_landmarks.STAGE,
+        select_measurements.STAGE,
+        optimize.STAGE,
+        evaluate.STAGE,
+    ]
+)

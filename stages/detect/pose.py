@@ -144,18 +144,25 @@ def se3_log(T: Array) -> Array:
     return np.concatenate([w, np.linalg.solve(V, T[:3, 3])])
 
 
+_SKEW_BASIS = np.array(
+    [[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]], [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], float
+)
+
+
 def corner_jacobian(camera: object, T: Array, obj: Array, h: float = 1e-6) -> Array:
-    """8 x 6 derivative of the distorted corners (x0 y0 .. x3 y3) by the right perturbation ``T Exp(xi)``."""
+    """8 x 6 derivative of the distorted corners (x0 y0 .. x3 y3) by the right perturbation ``T Exp(xi)``.
+
+    Central differences; ``R Exp(+-h w)`` is taken as ``R (I +- h [w]x)``, whose central difference is the
+    same to O(h^2).
+    """
     R, t = T[:3, :3], T[:3, 3]
-    pts = []
-    for k in range(6):
-        for sign in (1.0, -1.0):
-            xi = np.zeros(6)
-            xi[k] = sign * h
-            Rk = R @ so3_exp(xi[:3])
-            pts.append(obj @ Rk.T + t + R @ xi[3:])
-    proj = np.asarray(camera.img_from_cam(np.vstack(pts), check_cheirality=False)).reshape(6, 2, 8)  # type: ignore[attr-defined]
-    return ((proj[:, 0] - proj[:, 1]) / (2 * h)).T
+    base = obj @ R.T + t
+    delta = np.empty((6, 4, 3))
+    delta[:3] = np.einsum("nj,kij->kni", obj, R @ _SKEW_BASIS)  # d/dw_k of R (I + [w]x) p = R [e_k]x p
+    delta[3:] = R.T[:, None, :]  # d/dv_k of t + R v = R e_k
+    pts = np.concatenate([base + h * delta, base - h * delta], axis=0).reshape(-1, 3)
+    proj = np.asarray(camera.img_from_cam(pts, check_cheirality=False)).reshape(2, 6, 8)  # type: ignore[attr-defined]
+    return ((proj[0] - proj[1]) / (2 * h)).T
 
 
 def scale_mode(corners: Array) -> Array:

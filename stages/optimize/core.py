@@ -87,6 +87,7 @@ def solve_reduced(
     max_iterations: int = 100,
     relative_error_tol: float = 1e-6,
     unobserved_sigma_m: float = 100.0,
+    entropy_tag_ids: Iterable[int] | None = None,
 ) -> ReducedMap:
     """Build the reduced graph (every non-tag factor + the selected tag factors of focused landmarks), solve it.
 
@@ -99,6 +100,8 @@ def solve_reduced(
         initialise_from: ``dead_reckoning`` (the full graph's initial values) or ``full_solution``.
         max_iterations, relative_error_tol: Levenberg-Marquardt settings.
         unobserved_sigma_m: prior sigma of focused landmarks without measurements, in the entropy.
+        entropy_tag_ids: the landmarks the entropy is taken over (default: the focused ones). Evaluate passes
+            the collision-focused set here for every case, so the "full" cases are scored on the same landmarks.
 
     Raises:
         StageError: the reduced graph is singular (names the variable).
@@ -147,7 +150,8 @@ def solve_reduced(
     t1 = time.perf_counter()
     solution = optimise(problem, graph, "lm", max_iterations, relative_error_tol)
     t2 = time.perf_counter()
-    focused_obs = [t for t in focused if t in set(observed)]
+    scored = focused if entropy_tag_ids is None else sorted({int(t) for t in entropy_tag_ids})
+    focused_obs = [t for t in scored if t in set(observed)]
     try:
         marg = gtsam.Marginals(graph, solution.values)
         marginals = {k: np.asarray(marg.marginalCovariance(k), dtype=float) for k in var_types}
@@ -160,7 +164,11 @@ def solve_reduced(
         raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
     t3 = time.perf_counter()
     h_obs = gaussian_entropy(joint)
-    missing_dim = sum(VAR_DIMS[loaded.var_types[loaded.landmark_keys[t]]] for t in focused if t not in set(observed))
+    missing_dim = sum(
+        VAR_DIMS[loaded.var_types[loaded.landmark_keys[t]]]
+        for t in scored
+        if t not in set(observed) and t in loaded.landmark_keys
+    )
     h_missing = 0.5 * missing_dim * (np.log(unobserved_sigma_m**2) + _LOG_2PI_E)
     lmap = LandmarkMap.from_graph(loaded, solution.values, marginals)
     return ReducedMap(

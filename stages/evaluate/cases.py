@@ -1,0 +1,430 @@
+"""The cases of Mu et al. Table I (and other strategy pairs) on one run, without going through run folders.
+
+```python
+inputs = EvalInputs.from_pieces(loaded, scans, T_base_laser, detections, truth, sl_cfg, sm_cfg, cfg)
+results = [run_case(inputs, case) for case in cases(cfg)]
+```
+
+Every case picks its landmarks with ``stages.select_landmarks.choose`` and its measurements with
+``stages.select_measurements.choose``, solves the reduced graph (``stages.optimize.solve_reduced``), and
+is scored on the same things: the entropy of the *collision-focused* landmarks (the Alg. 2 set with
+budget α, the task's landmarks, also for the "full" cases), errors on all observed and on those focused
+landmarks (against ground truth where the run has one, else against case 1), the collision probability
+along the path with the case's map (``stages.risk.path_risk``), and the collision rate of Monte Carlo
+LQG navigation with the case's map (``stages.navigation.simulate``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pyarrow as pa
+
+from pipeline.errors import ConfigError, StageError
+from stages.evaluate.config import EvaluateConfig
+from stages.graph.load import LoadedGraph
+from stages.navigation import (
+    NavigationParams,
+    NavigationResult,
+    NominalPath,
+    Obstacles,
+    OccupancyGrid,
+    SegmentWalls,
+    lqr_gains,
+    nominal_path,
+    occupancy_grid,
+    scan_endpoints,
+    se2,
+    simulate,
+    visibility_schedule,
+)
+from stages.navigation.truth import MapTruth
+from stages.optimize.core import ReducedMap, landmark_errors, map_size, mean_or_nan, solve_reduced
+from stages.risk import LandmarkMap, PathRisk, path_risk
+from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
+from stages.select_landmarks import choose as choose_landmarks
+from stages.select_measurements.config import SelectMeasurementsConfig
+from stages.select_measurements.core import MeasurementChoice, linear_system
+from stages.select_measurements.core import choose as choose_measurements
+
+FloatArray = npt.NDArray[np.float64]
+
+TABLE_I: tuple[tuple[str, str, str], ...] = (
+    ("optimal", "all", "all"),
+    ("focus_all", "collision", "all"),
+    ("focus_info", "collision", "information"),
+    ("focus_ds", "collision", "uniform"),
+    ("full_info", "all", "information"),
+    ("full_ds", "all", "uniform"),
+)
+"""(case name, landmark strategy, measurement strategy) of Mu et al. Table I; DS = uniform downsampling."""
+TABLE_I_LABELS = {
+    "optimal": "optimal",
+    "focus_all": "focus, all",
+    "focus_info": "focus, info",
+    "focus_ds": "focus, DS",
+    "full_info": "full, info",
+    "full_ds": "full, DS",
+}
+
+
+@dataclass(frozen=True)
+class Case:
+    """One row of the comparison."""
+
+    name: str
+    landmark_strategy: str
+    measurement_strategy: str
+
+
+def cases(cfg: EvaluateConfig) -> list[Case]:
+    """The six Table I cases, then ``cfg.extra_pairs`` (named by their pair)."""
+    from stages.select_landmarks import STRATEGIES as LM
+    from stages.select_measurements.config import STRATEGIES as MS
+
+    out = [Case(*c) for c in TABLE_I]
+    for pair in cfg.extra_pairs:
+        lm, _, ms = pair.partition("+")
+        if lm not in LM or ms not in MS:
+            raise ConfigError(
+                f"evaluate.extra_pairs: {pair!r} is not 'landmark+measurement' with landmark in {list(LM)} and "
+                f"measurement in {list(MS)}"
+            )
+        if not any(c.landmark_strategy == lm and c.measurement_strategy == ms for c in out):
+            out.append(Case(pair, lm, ms))
+    return out
+
+
+@dataclass
+class NavigationSetup:
+    """What every case's navigation shares: the path to follow, its gains, what is visible, the walls, the truth."""
+
+    path: NominalPath
+    gains: FloatArray
+    visibility: list[npt.NDArray[np.int64]]
+    obstacles: Obstacles
+    true_landmarks: dict[int, FloatArray]
+    params: NavigationParams
+    min_clearance_m: float
+
+
+@dataclass
+class EvalInputs:
+    """A run loaded once for every case."""
+
+    loaded: LoadedGraph
+    landmarks: LandmarkInputs
+    truth: MapTruth | None
+    heights: dict[int, tuple[float, float]]
+    sl_cfg: SelectLandmarksConfig
+    sm_cfg: SelectMeasurementsConfig
+    cfg: EvaluateConfig
+    scans: pa.Table | None
+    T_base_laser: FloatArray | None
+    system: Any = None
+    navigation: NavigationSetup | None = None
+    focus: list[int] = field(default_factory=list)
+    """The collision-focused landmarks (Alg. 2, budget α): what every case's entropy and focused error are on."""
+    focus_seconds: float = 0.0
+
+    @property
+    def alpha(self) -> int:
+        """Landmark budget."""
+        return self.cfg.landmark_budget if self.cfg.landmark_budget is not None else self.sl_cfg.budget
+
+    @property
+    def K(self) -> int:
+        """Measurement budget."""
+        return self.cfg.measurement_budget if self.cfg.measurement_budget is not None else self.sm_cfg.budget
+
+    def reference_positions(self, optimal: ReducedMap | None) -> tuple[dict[int, FloatArray], str]:
+        """Where landmarks really are: the ground truth, else case 1's map."""
+        if self.truth is not None:
+            return dict(self.truth.tags), "ground_truth"
+        lmap = optimal.landmark_map if optimal is not None else self.landmarks.landmarks
+        return dict(zip(lmap.tag_ids.tolist(), lmap.positions, strict=True)), "optimal"
+
+
+def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
+    """Occupancy grid of the laser returns, each scan placed at the optimised path interpolated to its stamp."""
+    scans = inputs.scans
+    if scans is None or scans.num_rows == 0:
+        raise StageError(
+            "navigation needs walls: the run has no ground truth beside its bag and no laser scans; "
+            "set evaluate.trials=0 to skip navigation"
+        )
+    geo = inputs.landmarks.geometry
+    kt = geo.stamps_ns.astype(float)
+    yaw = np.unwrap(geo.poses[:, 2])
+    Tbl = np.eye(4) if inputs.T_base_laser is None else np.asarray(inputs.T_base_laser, dtype=float)
+    T_base_laser = se2(Tbl[0, 3], Tbl[1, 3], float(np.arctan2(Tbl[1, 0], Tbl[0, 0])))
+    cols = scans.to_pydict()
+    pts = []
+    for j in range(0, scans.num_rows, inputs.cfg.scan_stride):
+        s = float(cols["stamp_ns"][j])
+        if s < kt[0] or s > kt[-1]:
+            continue
+        pose = se2(np.interp(s, kt, geo.poses[:, 0]), np.interp(s, kt, geo.poses[:, 1]), np.interp(s, kt, yaw))
+        pts.append(
+            scan_endpoints(
+                pose @ T_base_laser,
+                np.asarray(cols["ranges"][j], dtype=float),
+                float(cols["angle_min"][j]),
+                float(cols["angle_increment"][j]),
+                float(cols["range_min"][j]),
+                float(cols["range_max"][j]),
+            )
+        )
+    return occupancy_grid(np.vstack(pts), inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
+
+
+def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup:
+    """The nominal path (true path if known, else the full graph's), LQR gains, visibility, walls and truth."""
+    cfg = inputs.cfg
+    geo = inputs.landmarks.geometry
+    loaded = inputs.loaded
+    stamps = np.asarray(loaded.pose_stamps_ns, dtype=np.int64)
+    poses = inputs.truth.pose_at(stamps) if inputs.truth is not None else geo.poses
+    path = nominal_path(stamps, poses, cfg.dt_s)
+    radius = cfg.robot_radius_m if cfg.robot_radius_m is not None else inputs.landmarks.params.robot_radius_m
+    params = NavigationParams(
+        trials=cfg.trials,
+        robot_radius_m=radius,
+        bearing_sigma_rad=cfg.bearing_sigma_rad or geo.sigmas[0],
+        range_sigma_m=cfg.range_sigma_m or geo.sigmas[1],
+        speed_sigma_mps=cfg.speed_sigma_mps,
+        yaw_rate_sigma_radps=cfg.yaw_rate_sigma_radps,
+        initial_sigma_m=cfg.initial_sigma_m,
+        initial_sigma_rad=cfg.initial_sigma_rad,
+        lqr_position_weight=cfg.lqr_position_weight,
+        lqr_heading_weight=cfg.lqr_heading_weight,
+        lqr_speed_weight=cfg.lqr_control_weight,
+        lqr_yaw_rate_weight=cfg.lqr_control_weight,
+    )
+    use_truth = cfg.walls == "ground_truth" or (cfg.walls == "auto" and inputs.truth is not None)
+    if use_truth:
+        if inputs.truth is None:
+            raise StageError(
+                "evaluate.walls=ground_truth but the run has no <name>.ground_truth.json beside its bag; "
+                "use evaluate.walls=laser"
+            )
+        obstacles: Obstacles = SegmentWalls(inputs.truth.walls)
+    else:
+        obstacles = _scan_pose_grid(inputs)
+    clearance = float(obstacles.distance(path.poses[:, :2]).min())
+    if cfg.trials > 0 and clearance <= radius:
+        raise StageError(
+            f"the nominal path passes {clearance:.3f} m from an obstacle ({obstacles.kind}), inside the robot radius "
+            f"{radius} m, so every trial would collide; lower evaluate.robot_radius_m below {clearance:.2f}"
+        )
+    obs = [(r.stamp_ns, r.tag_id) for r in loaded.rows if r.kind == "tag" and r.stamp_ns is not None]
+    vis = visibility_schedule(path.stamps_ns, [o[0] for o in obs], [o[1] for o in obs], cfg.visibility_window_s)
+    truth_lm, _ = inputs.reference_positions(optimal)
+    gains = lqr_gains(path, params.Wx, params.Wu)
+    return NavigationSetup(path, gains, vis, obstacles, truth_lm, params, clearance)
+
+
+@dataclass
+class CaseResult:
+    """Everything measured on one case."""
+
+    case: Case
+    landmark_tag_ids: list[int]
+    measurement: MeasurementChoice | None
+    reduced: ReducedMap
+    risk: PathRisk
+    navigation: NavigationResult | None
+    row: dict[str, Any]
+
+
+def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
+    if strategy == "all":
+        return sorted(inputs.loaded.landmark_keys), 0.0
+    if strategy == "collision" and inputs.focus:
+        return list(inputs.focus), inputs.focus_seconds
+    cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
+    choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
+    return list(choice.tag_ids), choice.seconds
+
+
+def prepare(inputs: EvalInputs) -> None:
+    """Linearise once and pick the collision-focused landmarks every case is scored on."""
+    if inputs.system is None:
+        inputs.system = linear_system(inputs.loaded)
+    if not inputs.focus:
+        has_laser = inputs.landmarks.geometry.has_laser
+        strategy = "collision" if has_laser else "mutual-information"
+        cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
+        choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
+        inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
+
+
+def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) -> CaseResult:
+    """Select, solve, score and navigate one case."""
+    prepare(inputs)
+    loaded = inputs.loaded
+    tags, lm_seconds = _landmark_set(inputs, case.landmark_strategy)
+    measurement: MeasurementChoice | None = None
+    if case.measurement_strategy == "all":
+        selected = [i for i in loaded.tag_factor_indices.tolist() if loaded.rows[i].tag_id in set(tags)]
+        ms_seconds = 0.0
+    else:
+        focus = "all" if case.landmark_strategy == "all" else "selected"
+        cfg = inputs.sm_cfg.model_copy(
+            update={"strategy": case.measurement_strategy, "budget": inputs.K, "focus": focus, "seed": inputs.cfg.seed}
+        )
+        measurement = choose_measurements(loaded, tags, cfg, inputs.system)
+        selected, ms_seconds = measurement.factor_indices, measurement.seconds
+    reduced = solve_reduced(
+        loaded,
+        tags,
+        selected,
+        inputs.heights,
+        "dead_reckoning",
+        entropy_tag_ids=inputs.focus,
+    )
+    reference, ref_name = inputs.reference_positions(optimal if optimal is not None else reduced)
+    errs = landmark_errors(reduced.landmark_map, reference)
+    focus = set(inputs.focus)
+    risk = path_risk(inputs.landmarks.geometry, reduced.landmark_map, reduced.observed_tag_ids, inputs.landmarks.params)
+    size = map_size(loaded, reduced)
+    observed = set(reduced.observed_tag_ids)
+    row: dict[str, Any] = {
+        "case": case.name,
+        "label": TABLE_I_LABELS.get(case.name, case.name),
+        "landmark_strategy": case.landmark_strategy,
+        "measurement_strategy": case.measurement_strategy,
+        "landmark_budget": inputs.alpha if case.landmark_strategy != "all" else len(loaded.landmark_keys),
+        "measurement_budget": inputs.K if case.measurement_strategy != "all" else None,
+        "observed_landmarks": len(observed),
+        "focused_landmarks": len(focus & observed),
+        "measurements": reduced.n_measurements,
+        "focused_entropy": reduced.focused_entropy,
+        "focused_entropy_observed": reduced.focused_entropy_observed,
+        "error_all_m": mean_or_nan(errs.values()),
+        "focused_error_m": mean_or_nan(v for t, v in errs.items() if t in focus),
+        "error_reference": ref_name,
+        "max_collision_probability": risk.max,
+        "mean_collision_probability": risk.mean,
+        "collision_rate": float("nan"),
+        "collision_ci_low": float("nan"),
+        "collision_ci_high": float("nan"),
+        "collisions": 0,
+        "trials": 0,
+        "rms_tracking_error_m": float("nan"),
+        "rms_estimation_error_m": float("nan"),
+        "landmark_selection_s": lm_seconds,
+        "measurement_selection_s": ms_seconds,
+        "selection_s": lm_seconds + ms_seconds,
+        "optimise_s": float(sum(reduced.timing_s.values())),
+        "map_bytes": int(size["map_bytes"]) + int(size["measurement_bytes"]),
+        "bytes_fraction": float(size["bytes_fraction"]),
+        "status": measurement.message if measurement is not None else "",
+    }
+    result = CaseResult(case, tags, measurement, reduced, risk, None, row)
+    navigate(inputs, result)
+    return result
+
+
+def navigate(inputs: EvalInputs, result: CaseResult) -> None:
+    """Monte Carlo LQG trials with the case's map (when the navigation is set up); fills the row's columns."""
+    setup = inputs.navigation
+    if setup is None or inputs.cfg.trials <= 0:
+        return
+    nav = simulate(
+        setup.path,
+        setup.gains,
+        result.reduced.landmark_map,
+        setup.true_landmarks,
+        setup.visibility,
+        setup.obstacles,
+        setup.params,
+        seed=inputs.cfg.seed,
+    )
+    result.navigation = nav
+    result.row.update(
+        {
+            "collision_rate": nav.collision_rate,
+            "collision_ci_low": nav.ci_low,
+            "collision_ci_high": nav.ci_high,
+            "collisions": nav.collisions,
+            "trials": nav.trials,
+            "rms_tracking_error_m": nav.rms_tracking_error_m,
+            "rms_estimation_error_m": nav.rms_estimation_error_m,
+        }
+    )
+
+
+def run_all(inputs: EvalInputs, todo: Sequence[Case], progress: Any = None) -> list[CaseResult]:
+    """Case 1 first (its map is the reference without ground truth and fixes the navigation's truth), then the rest."""
+    prepare(inputs)
+    results: list[CaseResult] = []
+    first = run_case(inputs, todo[0])
+    optimal = first.reduced
+    if inputs.cfg.trials > 0:
+        inputs.navigation = navigation_setup(inputs, optimal)
+        navigate(inputs, first)
+    results.append(first)
+    rest = todo[1:] if progress is None else progress(todo[1:], "cases")
+    for case in rest:
+        results.append(run_case(inputs, case, optimal))
+    return results
+
+
+def cases_table(results: Sequence[CaseResult]) -> pa.Table:
+    """``cases.parquet``: one row per case."""
+    rows = [r.row for r in results]
+    cols = {k: [row[k] for row in rows] for k in rows[0]}
+    schema_types = {"measurement_budget": pa.int64()}
+    return pa.table({k: pa.array(v, type=schema_types.get(k)) for k, v in cols.items()})
+
+
+def map_rows(results: Sequence[CaseResult]) -> pa.Table:
+    """``maps.parquet``: per case, every landmark of its map with its covariance."""
+    out: dict[str, list[Any]] = {k: [] for k in ("case", "tag_id", "x", "y", "covariance", "focused")}
+    for r in results:
+        lm: LandmarkMap = r.reduced.landmark_map
+        focus = set(r.landmark_tag_ids)
+        for t, p, c in zip(lm.tag_ids.tolist(), lm.positions, lm.covariances, strict=True):
+            out["case"].append(r.case.name)
+            out["tag_id"].append(int(t))
+            out["x"].append(float(p[0]))
+            out["y"].append(float(p[1]))
+            out["covariance"].append(np.asarray(c).ravel().tolist())
+            out["focused"].append(int(t) in focus)
+    return pa.table(out)
+
+
+def risk_rows(inputs: EvalInputs, results: Sequence[CaseResult]) -> pa.Table:
+    """``path_risk.parquet``: per case and keyframe, the collision probability with the case's map."""
+    stamps = inputs.landmarks.geometry.stamps_ns
+    return pa.table(
+        {
+            "case": [r.case.name for r in results for _ in stamps],
+            "stamp_ns": np.concatenate([stamps for _ in results]).astype(np.int64),
+            "p_collision": np.concatenate([r.risk.p_collision for r in results]),
+        }
+    )
+
+
+def greedy_rows(results: Sequence[CaseResult]) -> pa.Table:
+    """``greedy.parquet``: the focused entropy after each greedy pick (information cases)."""
+    out: dict[str, list[Any]] = {"case": [], "step": [], "entropy": []}
+    for r in results:
+        steps = r.measurement.entropy_per_step() if r.measurement is not None else None
+        if steps is None:
+            continue
+        out["case"] += [r.case.name] * (len(steps) + 1)
+        out["step"] += list(range(len(steps) + 1))
+        out["entropy"] += [float(r.measurement.entropy_before), *[float(s) for s in steps]]
+    return pa.table(
+        {
+            "case": pa.array(out["case"], pa.string()),
+            "step": pa.array(out["step"], pa.int64()),
+            "entropy": pa.array(out["entropy"], pa.float64()),
+        }
+    )

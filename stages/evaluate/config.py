@@ -1,0 +1,56 @@
+"""Settings of the evaluate stage (YAML section ``evaluate``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class EvaluateConfig(BaseModel):
+    """The six cases of Mu et al. Table I, other strategy pairs, and Monte Carlo LQG navigation on each map."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    landmark_budget: int | None = Field(
+        None, ge=0, description="Landmark budget alpha; null = select_landmarks.budget (the paper's office: 30)."
+    )
+    measurement_budget: int | None = Field(
+        None, ge=0, description="Measurement budget K; null = select_measurements.budget (the paper's office: 90)."
+    )
+    extra_pairs: list[str] = Field(
+        default_factory=lambda: ["mutual-information+information", "leverage+leverage", "random+random"],
+        description="Further cases as 'landmark_strategy+measurement_strategy' (select_landmarks and "
+        "select_measurements strategy names); the six Table I cases always run.",
+    )
+    seed: int = Field(0, description="Seed of the random/leverage selections and of the Monte Carlo trials.")
+    trials: int = Field(100, ge=0, description="Monte Carlo navigation trials per case (0 skips navigation).")
+    walls: Literal["auto", "ground_truth", "laser"] = Field(
+        "auto",
+        description="Obstacles of the navigation: the ground truth's walls (when the run has one), a laser occupancy "
+        "grid built at the optimised poses, or auto (ground truth when present, else laser).",
+    )
+    robot_radius_m: float | None = Field(
+        None, gt=0, description="Collision radius of the robot, m; null = select_landmarks.robot_radius_m."
+    )
+    dt_s: float = Field(0.2, gt=0, description="Time step of the navigation simulation, s.")
+    visibility_window_s: float = Field(
+        0.5, gt=0, description="A landmark can be measured at a step if the recording saw it within this time, s."
+    )
+    bearing_sigma_rad: float | None = Field(
+        None, gt=0, description="Bearing noise of the simulated measurements, rad; null = the risk model's."
+    )
+    range_sigma_m: float | None = Field(
+        None, gt=0, description="Range noise of the simulated measurements, m; null = the risk model's."
+    )
+    speed_sigma_mps: float = Field(0.05, ge=0, description="Actuation noise on the forward speed, m/s.")
+    yaw_rate_sigma_radps: float = Field(0.05, ge=0, description="Actuation noise on the yaw rate, rad/s.")
+    initial_sigma_m: float = Field(0.02, ge=0, description="Standard deviation of the start position, m.")
+    initial_sigma_rad: float = Field(0.01, ge=0, description="Standard deviation of the start heading, rad.")
+    lqr_position_weight: float = Field(10.0, gt=0, description="LQR weight on the position error (W_x).")
+    lqr_heading_weight: float = Field(1.0, gt=0, description="LQR weight on the heading error (W_x).")
+    lqr_control_weight: float = Field(1.0, gt=0, description="LQR weight on speed and yaw-rate corrections (W_u).")
+    grid_resolution_m: float = Field(0.05, gt=0, description="Cell size of the laser occupancy grid, m.")
+    grid_min_hits: int = Field(2, ge=1, description="Laser returns a cell needs to count as occupied.")
+    scan_stride: int = Field(2, ge=1, description="Use every n-th laser scan for the occupancy grid.")
+    plots: bool = Field(True, description="Draw the report's PNG figures (needs matplotlib).")

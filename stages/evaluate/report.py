@@ -1,0 +1,272 @@
+"""The evaluate report: Table I layout plus the extra columns, figures as PNG beside it, markdown and HTML."""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.evaluate.cases import CaseResult, EvalInputs
+
+TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("label", "case", "{}"),
+    ("observed_landmarks", "No. observed lms", "{}"),
+    ("focused_landmarks", "No. focused lms", "{}"),
+    ("focused_entropy", "Entropy on focused lms (nats)", "{:.2f}"),
+    ("error_all_m", "Error on all observed lms (m)", "{:.4f}"),
+    ("focused_error_m", "Error on focused lms (m)", "{:.4f}"),
+    ("measurements", "measurements", "{}"),
+    ("max_collision_probability", "max P(collision)", "{:.2e}"),
+    ("mean_collision_probability", "mean P(collision)", "{:.2e}"),
+    ("collision_rate", "collision rate [95% CI]", "rate"),
+    ("rms_tracking_error_m", "RMS tracking (m)", "{:.3f}"),
+    ("selection_s", "selection (s)", "{:.2f}"),
+    ("bytes_fraction", "bytes vs full", "{:.3f}"),
+)
+
+
+def _fmt(row: dict[str, Any], key: str, fmt: str) -> str:
+    v = row.get(key)
+    if fmt == "rate":
+        if not row.get("trials"):
+            return "not run"
+        return f"{row['collision_rate']:.3f} [{row['collision_ci_low']:.3f}, {row['collision_ci_high']:.3f}]"
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return fmt.format(v)
+
+
+def expectation_checks(results: Sequence[CaseResult]) -> list[str]:
+    """The issue's expectation, checked: focus,info against focus,DS / full,info / full,DS, and its gap to 1-2."""
+    rows = {r.case.name: r.row for r in results}
+    if "focus_info" not in rows:
+        return []
+    fi = rows["focus_info"]
+    lines = []
+    for metric, name in (
+        ("focused_entropy", "focused entropy"),
+        ("focused_error_m", "focused error"),
+        ("max_collision_probability", "max collision probability"),
+        ("collision_rate", "collision rate"),
+    ):
+        for other in ("focus_ds", "full_info", "full_ds"):
+            if other not in rows:
+                continue
+            a, b = fi[metric], rows[other][metric]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                lines.append(f"- {name}: focus,info vs {other}: not available")
+                continue
+            if metric == "collision_rate":
+                overlap = not (fi["collision_ci_high"] < rows[other]["collision_ci_low"])
+                verdict = (
+                    "lower" if a < b and not overlap else ("indistinguishable (CIs overlap)" if overlap else "HIGHER")
+                )
+            else:
+                verdict = "lower (as expected)" if a < b else ("equal" if a == b else "HIGHER (not as expected)")
+            lines.append(f"- {name}: focus,info {a:.4g} vs {other} {b:.4g}: {verdict}")
+    for ref in ("optimal", "focus_all"):
+        if ref in rows:
+            lines.append(
+                f"- gap to {ref}: entropy {fi['focused_entropy'] - rows[ref]['focused_entropy']:+.2f} nats, "
+                f"focused error {fi['focused_error_m'] - rows[ref]['focused_error_m']:+.4f} m"
+            )
+    return lines
+
+
+def markdown_table(results: Sequence[CaseResult]) -> str:
+    """The table, Table I columns first."""
+    head = "| " + " | ".join(h for _, h, _ in TABLE_COLUMNS) + " |"
+    sep = "|" + "|".join("---" for _ in TABLE_COLUMNS) + "|"
+    body = ["| " + " | ".join(_fmt(r.row, k, f) for k, _, f in TABLE_COLUMNS) + " |" for r in results]
+    return "\n".join([head, sep, *body])
+
+
+def figures(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_sigma: float) -> list[str]:
+    """Draw maps.png, risk.png, entropy.png (and navigation.png) into ``out_dir``; returns their file names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    names: list[str] = []
+    geo = inputs.landmarks.geometry
+    walls = inputs.truth.walls if inputs.truth is not None else None
+    # maps side by side
+    n = len(results)
+    cols = min(3, n)
+    rows_ = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
+    focus = set(inputs.focus)
+    for ax, r in zip(axes.ravel(), results, strict=False):
+        if walls is not None:
+            for w in walls:
+                ax.plot([w[0], w[2]], [w[1], w[3]], color="0.3", lw=1)
+        ax.plot(geo.poses[:, 0], geo.poses[:, 1], color="tab:blue", lw=0.6)
+        lm = r.reduced.landmark_map
+        for t, p, c in zip(lm.tag_ids.tolist(), lm.positions, lm.covariances, strict=True):
+            vals, vecs = np.linalg.eigh(0.5 * (c + c.T))
+            vals = np.clip(vals, 0, None)
+            ang = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+            col = "tab:red" if t in focus else "tab:green"
+            ax.add_patch(
+                Ellipse(
+                    p,
+                    2 * n_sigma * math.sqrt(vals[1]),
+                    2 * n_sigma * math.sqrt(vals[0]),
+                    angle=ang,
+                    fill=False,
+                    color=col,
+                    lw=0.8,
+                )
+            )
+            ax.plot(p[0], p[1], ".", color=col, ms=2)
+        ax.set_title(f"{r.row['label']}: H={r.row['focused_entropy']:.1f}, {r.row['measurements']} meas.", fontsize=9)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.suptitle(f"maps ({n_sigma:g}-sigma ellipses; red: collision-focused landmarks)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out_dir / "maps.png", dpi=110)
+    plt.close(fig)
+    names.append("maps.png")
+    # collision probability along the path
+    fig, ax = plt.subplots(figsize=(10, 3.8))
+    t = (geo.stamps_ns - geo.stamps_ns[0]) / 1e9
+    for r in results:
+        p = np.clip(np.nan_to_num(r.risk.p_collision, nan=0.0), 1e-300, 1.0)
+        ax.semilogy(t, p, lw=0.9, label=r.row["label"])
+    ax.set_xlabel("time along the path (s)")
+    ax.set_ylabel("P(collision), half-plane with Σ*")
+    ax.set_ylim(1e-40, 1.0)
+    ax.legend(fontsize=7, ncol=3)
+    fig.tight_layout()
+    fig.savefig(out_dir / "risk.png", dpi=110)
+    plt.close(fig)
+    names.append("risk.png")
+    # entropy per greedy step
+    greedy = [r for r in results if r.measurement is not None and r.measurement.entropy_per_step() is not None]
+    if greedy:
+        fig, ax = plt.subplots(figsize=(7, 3.8))
+        for r in greedy:
+            assert r.measurement is not None
+            steps = r.measurement.entropy_per_step()
+            assert steps is not None
+            ax.plot(np.arange(len(steps) + 1), [r.measurement.entropy_before, *steps], label=r.row["label"])
+        ax.set_xlabel("greedy step (measurements kept)")
+        ax.set_ylabel("entropy of the selection's focused set (nats)")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out_dir / "entropy.png", dpi=110)
+        plt.close(fig)
+        names.append("entropy.png")
+    # sample navigation trials
+    navs = [r for r in results if r.navigation is not None]
+    if navs and inputs.navigation is not None:
+        fig, axes = plt.subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
+        nom = inputs.navigation.path.poses
+        for ax, r in zip(axes.ravel(), results, strict=False):
+            if walls is not None:
+                for w in walls:
+                    ax.plot([w[0], w[2]], [w[1], w[3]], color="0.3", lw=1)
+            ax.plot(nom[:, 0], nom[:, 1], "--", color="tab:blue", lw=0.8)
+            if r.navigation is not None:
+                for pth in r.navigation.sample_paths:
+                    ax.plot(pth[:, 0], pth[:, 1], lw=0.5, color="tab:orange")
+                ax.set_title(
+                    f"{r.row['label']}: {r.navigation.collisions}/{r.navigation.trials} collisions", fontsize=9
+                )
+            ax.set_aspect("equal")
+            ax.tick_params(labelsize=7)
+        for ax in axes.ravel()[n:]:
+            ax.axis("off")
+        fig.tight_layout()
+        fig.savefig(out_dir / "navigation.png", dpi=110)
+        plt.close(fig)
+        names.append("navigation.png")
+    return names
+
+
+def markdown_report(
+    inputs: EvalInputs, results: Sequence[CaseResult], images: Sequence[str], notes: Sequence[str]
+) -> str:
+    """``report.md``."""
+    ref = results[0].row["error_reference"] if results else "?"
+    nav = inputs.navigation
+    lines = [
+        "# focusmap evaluation: Mu et al. Table I on this run",
+        "",
+        f"Budgets: alpha = {inputs.alpha} landmarks, K = {inputs.K} measurements. "
+        f"Focused landmarks (entropy and focused error): the {len(inputs.focus)} collision-focused landmarks "
+        "(Alg. 2) for every case. Entropy: ½ log det(2πe Σ_F) nats; focused landmarks without a kept measurement "
+        "enter with a 100 m prior per dimension. Errors: mean planar distance to "
+        f"{'the ground truth' if ref == 'ground_truth' else 'case 1 (optimal)'}.",
+        "",
+        markdown_table(results),
+        "",
+    ]
+    if nav is not None:
+        p = nav.params
+        lines += [
+            f"Navigation: {p.trials} seeded LQG trials per case along the "
+            f"{'true' if inputs.truth is not None else 'full-graph'} path ({len(nav.path)} steps of "
+            f"{nav.path.dt_s} s), walls: {nav.obstacles.kind}, robot radius {p.robot_radius_m} m "
+            f"(nominal path clearance {nav.min_clearance_m:.3f} m), actuation noise {p.speed_sigma_mps} m/s, "
+            f"{p.yaw_rate_sigma_radps} rad/s, measurement noise {p.bearing_sigma_rad:.4f} rad / "
+            f"{p.range_sigma_m:.4f} m. "
+            "Collision rate with a 95 % Wilson interval.",
+            "",
+        ]
+    lines += ["## Expectation (focus,info best of the budgeted cases)", "", *expectation_checks(results), ""]
+    if notes:
+        lines += ["## Notes", "", *notes, ""]
+    lines += ["## Figures", ""] + [f"![{name}]({name})" for name in images]
+    return "\n".join(lines) + "\n"
+
+
+def html_report(markdown_text: str, out_dir: Path) -> str:
+    """``report.html``: the markdown's table and text, images embedded (base64)."""
+    body: list[str] = []
+    in_table = False
+    for line in markdown_text.splitlines():
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            if set("".join(cells)) <= set("-"):
+                continue
+            tag = "th" if not in_table else "td"
+            if not in_table:
+                body.append("<table>")
+                in_table = True
+            body.append("<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in cells) + "</tr>")
+            continue
+        if in_table:
+            body.append("</table>")
+            in_table = False
+        if line.startswith("!["):
+            name = line[line.index("(") + 1 : line.index(")")]
+            data = base64.b64encode((out_dir / name).read_bytes()).decode()
+            body.append(
+                f'<p><img alt="{html.escape(name)}" src="data:image/png;base64,{data}" style="max-width:100%"></p>'
+            )
+        elif line.startswith("## "):
+            body.append(f"<h2>{html.escape(line[3:])}</h2>")
+        elif line.startswith("# "):
+            body.append(f"<h1>{html.escape(line[2:])}</h1>")
+        elif line.startswith("- "):
+            body.append(f"<li>{html.escape(line[2:])}</li>")
+        elif line.strip():
+            body.append(f"<p>{html.escape(line)}</p>")
+    if in_table:
+        body.append("</table>")
+    style = (
+        "body{font-family:sans-serif;max-width:1400px;margin:2em auto}table{border-collapse:collapse;font-size:13px}"
+        "td,th{border:1px solid #bbb;padding:3px 6px;text-align:right}th{background:#eee}"
+    )
+    head = f"<head><meta charset='utf-8'><title>focusmap evaluation</title><style>{style}</style></head>"
+    return f"<!doctype html><html>{head}<body>{''.join(body)}</body></html>\n"

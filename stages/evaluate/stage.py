@@ -1,0 +1,146 @@
+"""The evaluate stage: every case of Table I (and other pairs) on the run, navigation, report, recording."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import rerun as rr
+
+from pipeline.context import StageContext
+from pipeline.recording import colormap, ellipsoids
+from stages.evaluate.cases import EvalInputs, cases, cases_table, greedy_rows, map_rows, risk_rows, run_all
+from stages.evaluate.config import EvaluateConfig
+from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report
+from stages.optimize.core import landmark_heights
+from stages.optimize.stage import load_truth
+from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
+from stages.select_measurements.config import SelectMeasurementsConfig
+
+ENTITY = "/evaluate"
+
+
+def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
+    """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
+    t0 = time.perf_counter()
+    sl_cfg: SelectLandmarksConfig = ctx.settings.sections.get("select_landmarks") or SelectLandmarksConfig()
+    sm_cfg: SelectMeasurementsConfig = ctx.settings.sections.get("select_measurements") or SelectMeasurementsConfig()
+    landmarks = LandmarkInputs.load(ctx, sl_cfg)
+    loaded = landmarks.loaded
+    scans = T_base_laser = None
+    if ctx.has_input("ingest") and ctx.input("ingest").exists("scans.parquet"):
+        scans = ctx.input("ingest").read_table("scans.parquet")
+        laser = (
+            ctx.input("ingest").read_json("extrinsics.json").get("sensors", {}).get("laser")
+            if ctx.input("ingest").exists("extrinsics.json")
+            else None
+        )
+        T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float) if laser else None
+    inputs = EvalInputs(
+        loaded=loaded,
+        landmarks=landmarks,
+        truth=load_truth(ctx, loaded),
+        heights=landmark_heights(ctx.input("graph").read_table("landmarks.parquet")),
+        sl_cfg=sl_cfg,
+        sm_cfg=sm_cfg,
+        cfg=cfg,
+        scans=scans,
+        T_base_laser=T_base_laser,
+    )
+    todo = cases(cfg)
+    results = run_all(inputs, todo, ctx.progress)
+    out = ctx.output
+    out.write_table("cases.parquet", cases_table(results))
+    out.write_table("maps.parquet", map_rows(results))
+    out.write_table("path_risk.parquet", risk_rows(inputs, results))
+    out.write_table("greedy.parquet", greedy_rows(results))
+    notes: list[str] = []
+    if not landmarks.geometry.has_laser:
+        notes.append(
+            "- the run has no laser scans: collision probabilities are not available and the focused set is picked "
+            "by mutual information instead of Alg. 2"
+        )
+    images = figures(inputs, results, out.path, ctx.n_sigma) if cfg.plots else []
+    md = markdown_report(inputs, results, images, notes)
+    out.write_text("report.md", md)
+    out.write_text("report.html", html_report(md, out.path))
+    log_recording(ctx.rec, inputs, results, ctx.n_sigma)
+    by_case = {r.case.name: r.row for r in results}
+    head = by_case.get("focus_info", results[0].row)
+    return {
+        "cases": [r.case.name for r in results],
+        "alpha": inputs.alpha,
+        "K": inputs.K,
+        "focused_tag_ids": inputs.focus,
+        "reference": results[0].row["error_reference"],
+        "walls": inputs.navigation.obstacles.kind if inputs.navigation is not None else None,
+        "trials": cfg.trials,
+        "headline": {
+            k: head[k]
+            for k in (
+                "case",
+                "focused_entropy",
+                "focused_error_m",
+                "max_collision_probability",
+                "collision_rate",
+                "collision_ci_low",
+                "collision_ci_high",
+            )
+        },
+        "table": {
+            name: {
+                k: row[k]
+                for k in (
+                    "focused_entropy",
+                    "focused_error_m",
+                    "error_all_m",
+                    "max_collision_probability",
+                    "collision_rate",
+                )
+            }
+            for name, row in by_case.items()
+        },
+        "expectation": expectation_checks(results),
+        "report": str(ctx.run.stage_dir("evaluate") / "report.html"),
+        "timing_s": {"total": round(time.perf_counter() - t0, 3)},
+    }
+
+
+def log_recording(rec: rr.RecordingStream, inputs: EvalInputs, results: list[Any], n_sigma: float) -> None:
+    """``evaluate.rrd``: one entity per case (its map with ellipses, its path coloured by risk, sample trials)."""
+    rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    geo = inputs.landmarks.geometry
+    if inputs.truth is not None:
+        walls = [[[w[0], w[1], 0.0], [w[2], w[3], 0.0]] for w in inputs.truth.walls]
+        rec.log(f"{ENTITY}/walls", rr.LineStrips3D(walls, colors=[[90, 90, 90]]), static=True)
+    focus = set(inputs.focus)
+    for r in results:
+        base = f"{ENTITY}/cases/{r.case.name}"
+        lm = r.reduced.landmark_map
+        if len(lm.tag_ids):
+            covs = []
+            for c in lm.covariances:
+                m = np.zeros((3, 3))
+                m[:2, :2] = c
+                covs.append(m)
+            centers = np.column_stack([lm.positions, lm.heights])
+            colors = [[230, 60, 40] if int(t) in focus else [40, 170, 80] for t in lm.tag_ids]
+            rec.log(
+                f"{base}/landmarks",
+                ellipsoids(centers, covs, n_sigma, colors=colors, labels=[str(t) for t in lm.tag_ids]),
+                static=True,
+            )
+        p = np.nan_to_num(r.risk.p_collision, nan=0.0)
+        logp = np.log10(np.clip(p, 1e-40, 1.0))
+        segs = [[[*geo.poses[i, :2], 0.0], [*geo.poses[i + 1, :2], 0.0]] for i in range(len(geo.poses) - 1)]
+        if segs:
+            rec.log(f"{base}/path", rr.LineStrips3D(segs, colors=colormap(logp[:-1], -40.0, 0.0)), static=True)
+        if r.navigation is not None:
+            strips = [np.column_stack([s, np.zeros(len(s))]) for s in r.navigation.sample_paths]
+            rec.log(f"{base}/trials", rr.LineStrips3D(strips, colors=[[255, 150, 0]], radii=0.01), static=True)
+        rec.log(
+            f"{base}/metrics",
+            rr.AnyValues(**{k: v for k, v in r.row.items() if isinstance(v, (int, float))}),
+            static=True,
+        )
