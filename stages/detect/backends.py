@@ -171,16 +171,30 @@ class OpenCVDetector:
         params.errorCorrectionRate = 1.0
         self._dicts = {}
         self._detectors = {}
+        self._fallback = {}
+        # OpenCV 5.0's contour refinement can fail an assertion on some quads (_interpolate2Dline,
+        # nContours.size() >= 2); such a frame is detected again with sub-pixel refinement.
+        fallback = aruco.DetectorParameters()
+        fallback.cornerRefinementMethod = aruco.CORNER_REFINE_SUBPIX
+        fallback.aprilTagQuadDecimate = params.aprilTagQuadDecimate
+        fallback.aprilTagQuadSigma = params.aprilTagQuadSigma
+        fallback.errorCorrectionRate = 1.0
         for family in cfg.families:
             dictionary = aruco.getPredefinedDictionary(getattr(aruco, ARUCO_DICTIONARIES[family]))
             self._dicts[family] = dictionary
             self._detectors[family] = aruco.ArucoDetector(dictionary, params)
+            self._fallback[family] = aruco.ArucoDetector(dictionary, fallback)
 
     def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:
         """Detect tags in one grayscale image."""
         out = []
+        import cv2
+
         for family, detector in self._detectors.items():
-            corners, ids, _ = detector.detectMarkers(gray)
+            try:
+                corners, ids, _ = detector.detectMarkers(gray)
+            except cv2.error:
+                corners, ids, _ = self._fallback[family].detectMarkers(gray)
             if ids is None:
                 continue
             for c, i in zip(corners, ids.ravel(), strict=True):
