@@ -388,7 +388,7 @@ def _die_with_parent() -> None:
 
 def _child_main(task: BatchTask, conn: multiprocessing.connection.Connection) -> None:
     """Entry point of a local worker process: run the task, send the outcome back."""
-    parent = os.getppid()  # the batch process, or the fork server that dies with it
+    parent = os.getppid()  # the batch process
     _die_with_parent()
     if os.getppid() != parent:  # the parent died before the request above took effect
         os._exit(1)
@@ -401,12 +401,12 @@ def _child_main(task: BatchTask, conn: multiprocessing.connection.Connection) ->
     conn.close()
 
 
-def _mp_context(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
-    """A forkserver context with the stage modules preloaded (cheap, thread-safe forks), else spawn."""
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(list(preload))
-        return ctx
+def _mp_context() -> multiprocessing.context.BaseContext:
+    """Fresh interpreters (``spawn``): no locks inherited from the batch's threads (progress bar, Dask).
+
+    Not ``forkserver``: its children hold the fork server's lifeline, so the fork server outlives a
+    killed batch and its children would never learn that their parent died.
+    """
     return multiprocessing.get_context("spawn")
 
 
@@ -429,8 +429,7 @@ def run_local(tasks: Sequence[BatchTask], workers: int, on_outcome: OutcomeCallb
     """
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
-    preload = sorted({t.registry.partition(":")[0] for t in tasks} | {"pipeline.runner", "pipeline.batch"})
-    ctx = _mp_context(preload)
+    ctx = _mp_context()
     queue = deque(enumerate(tasks))
     running: dict[Any, tuple[int, Any, BatchTask]] = {}
     results: list[Outcome | None] = [None] * len(tasks)

@@ -124,6 +124,7 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     root = tmp_path_factory.mktemp("code")
     for package in ("pipeline", "stages", "cli"):
         shutil.copytree(ROOT / package, root / package, ignore=shutil.ignore_patterns("__pycache__"))
+    # Subprocesses run with the snapshot as working directory too: ``python -c`` puts it first on sys.path.
     return {**os.environ, "PYTHONPATH": str(root), "FOCUSMAP_PROGRESS": "0", "COLUMNS": "200"}
 
 
@@ -134,7 +135,7 @@ def local_out(
     """``focusmap batch`` (local pool, 2 workers) over the bags; returns OUT and the finished process."""
     out = tmp_path_factory.mktemp("local") / "runs"
     cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2")
-    return out, subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    return out, subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
 
 
 # --- planning ----------------------------------------------------------------------------------------------
@@ -234,7 +235,7 @@ def test_dask_cluster_gives_the_same_run_folders_and_summary(
     out, _ = local_out
     dask_out = tmp_path / "runs"
     cmd = [sys.executable, "-c", DASK_SCRIPT, str(dask_out), UNTIL, *map(str, bags)]
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
     assert str(report["client_pid"]) not in {h.split(":")[1] for h in report["hosts"]}  # ran on the workers
@@ -252,7 +253,7 @@ def test_second_call_skips_what_is_up_to_date(
     out, _ = local_out
     before = {p.parent.name: p.read_text() for p in out.glob("*/manifest.json")}
     cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2")
-    result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
     assert result.returncode == 1, result.stderr
     status = {r["run"]: (r["status"], r["stages_run"]) for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
     assert status == {"s1": ("skipped", []), "s2": ("skipped", []), "s3": ("skipped", []), "broken": ("failed", [])}
@@ -265,7 +266,7 @@ def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
     good = [str(b) for b in bags[:3]]
     out = tmp_path / "runs"
     cmd = _cli("batch", *good, "--out", str(out), "--until", UNTIL, "--workers", "1")
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=env["PYTHONPATH"])
     finished: dict[tuple[str, str], tuple[str, str, int]] = {}
     deadline = time.monotonic() + 60
     while not finished and time.monotonic() < deadline and proc.poll() is None:
@@ -304,7 +305,7 @@ def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
         finally:
             os.close(fd)
 
-    again = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=env["PYTHONPATH"], timeout=300)
     assert again.returncode == 0, again.stderr
     rows = {r["run"]: r for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
     for (run, stage), (fingerprint, when, inode) in finished.items():
