@@ -28,9 +28,12 @@ leaves unobserved have finite, comparable first gains.
 
 from __future__ import annotations
 
+import ctypes
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -224,81 +227,180 @@ def _batched_logdet(M: FloatArray) -> FloatArray:
         return np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
 
 
-class _TrackedCovariance:
-    """``M_c = A_c Σ_S A_cᵀ`` for every candidate, kept current as picks are added to ``Λ_S``.
+def _openblas_thread_api() -> tuple[Callable[[], int], Callable[[int], None]] | None:
+    """``(get, set)`` for the number of threads of the OpenBLAS that numpy links, if it can be found."""
+    libdir = Path(np.__file__).resolve().parent.parent / "numpy.libs"
+    for path in sorted(libdir.glob("libscipy_openblas*.so*")) + sorted(libdir.glob("libopenblas*.so*")):
+        try:
+            lib = ctypes.CDLL(str(path))
+        except OSError:  # pragma: no cover - depends on the environment
+            continue
+        for prefix, suffix in (("scipy_", "64_"), ("scipy_", ""), ("", "64_"), ("", "")):
+            get = getattr(lib, f"{prefix}openblas_get_num_threads{suffix}", None)
+            put = getattr(lib, f"{prefix}openblas_set_num_threads{suffix}", None)
+            if get is not None and put is not None:
+                get.restype = ctypes.c_int
+                put.argtypes = [ctypes.c_int]
+                return get, put
+    return None  # pragma: no cover - depends on the environment
 
-    ``V = Σ_S A_jᵀ`` comes from the sparse factor of the information at the last refactorisation
-    plus the sequential Woodbury correction ``Σ_S = Σ_last − Σ_i V_i T_i⁻¹ V_iᵀ`` over the picks since,
-    which only needs the rows ``cols_j`` of the stored ``V_i``. Every ``refactor_every`` picks the
-    window is folded into the sparse information and refactorised.
+
+_BLAS_THREADS = _openblas_thread_api()
+
+
+@contextmanager
+def _single_threaded_blas() -> Iterator[None]:
+    """Run numpy's BLAS on one thread inside the block (restored after).
+
+    The greedy loop makes thousands of small dense products; OpenBLAS threads them, and on a loaded
+    machine the threads wait on each other (measured: the loop 3x slower with 2 shared cores busy).
+    """
+    if _BLAS_THREADS is None:  # pragma: no cover - depends on the environment
+        yield
+        return
+    get, put = _BLAS_THREADS
+    before = int(get())
+    put(1)
+    try:
+        yield
+    finally:
+        put(before)
+
+
+class _Tracker:
+    """``Σ_S b`` at the rows ``rows`` of the state, for sparse right-hand sides, kept exact as picks join ``Λ_S``.
+
+    ``Σ_S = Λ_S⁻¹`` with ``Λ_S = Λ_last + Σ_{i in window} A_iᵀ A_i``: a sparse factorisation of
+    ``Λ_last`` (the information at the last refactorisation) plus the sequential Woodbury correction
+    ``Σ_S = Σ_last − Σ_i V_i T_i⁻¹ V_iᵀ`` over the picks since, ``V_i = Σ_{i-1} A_iᵀ``. Only the rows
+    that the gains read (the candidates' and the focused columns) of each ``V_i`` are stored, and the
+    correction of ``Σ_S b`` needs ``V_iᵀ b``, i.e. the stored rows at the nonzeros of ``b``.
+
+    Refactorisation: every ``refactor_every`` picks, or (``None``) once the Woodbury work since the last
+    factorisation has cost as much as that factorisation did — for a window cost growing linearly
+    with its length this is the schedule with the least total cost (at most ``max_window`` picks).
     """
 
     def __init__(
         self,
         info: sp.csc_matrix,
-        jac: FloatArray,
-        cols: IntArray,
-        sigma_cliques: FloatArray,
+        rows: IntArray,
+        m: int,
         add_info: Callable[[list[int]], sp.spmatrix],
         refactor_every: int | None,
-        max_window: int = 128,
+        max_window: int = 256,
     ) -> None:
         self.info = info
-        tf = time.perf_counter()
-        self.solver = SPDSolver(info)
-        self.t_factor = time.perf_counter() - tf
-        self.n = info.shape[0]
-        self.jac = jac
-        self.cols = cols
-        self.M = jac @ sigma_cliques @ np.swapaxes(jac, 1, 2)
+        self.n = int(info.shape[0])
+        self.rows = rows
+        self.m = m
         self.add_info = add_info
-        m = jac.shape[1]
         self.fixed = refactor_every
-        self.r = refactor_every or max_window
-        self.win_Vt = np.zeros((self.r * m, self.n))  # rows: Vᵢᵀ, contiguous per pick
-        self.win_Tinv = np.zeros((self.r, m, m))
-        self.t_factor = 0.0
-        self.t_window = 0.0
+        self.cap = max(1, refactor_every or max_window)
+        self.win = np.empty((self.cap * m, len(rows)))  # Vᵢᵀ at ``rows``, m rows per pick
+        self.win_Tinv = np.empty((self.cap, m, m))
         self.window: list[int] = []
         self.refactorisations = 0
-        self.solve_s = 0.0
-        self.update_s = 0.0
+        self.factor_s = 0.0
+        self.t_window = 0.0
+        self._factorise()
 
-    def add(self, j: int) -> None:
-        """Add candidate ``j`` to ``Λ_S`` and downdate every ``M_c``."""
-        t0 = time.perf_counter()
-        m = self.jac.shape[1]
-        rhs = np.zeros((self.n, m))
-        np.add.at(rhs, self.cols[j], self.jac[j].T)
-        V = self.solver.solve(rhs)
+    def _factorise(self) -> None:
+        tf = time.perf_counter()
+        self.solver = SPDSolver(self.info)
+        self.t_factor = time.perf_counter() - tf
+        self.factor_s += self.t_factor
+
+    def solve(self, nz: IntArray, vals: FloatArray, nz_pos: IntArray) -> FloatArray:
+        """``(Σ_S b)ᵀ`` at ``rows`` (shape ``q × len(rows)``) for ``b`` with rows ``vals`` at ``nz`` (``q`` columns).
+
+        ``nz_pos``: the positions of ``nz`` in ``rows``.
+        """
+        rhs = np.zeros((self.n, vals.shape[1]))
+        rhs[nz] = vals
+        out = np.ascontiguousarray(self.solver.solve(rhs)[self.rows].T)
         k = len(self.window)
         if k:
             tw = time.perf_counter()
-            Gt = self.win_Vt[: k * m, self.cols[j]] @ self.jac[j].T  # (k m, m): V_iᵀ A_jᵀ over the window
-            coef = self.win_Tinv[:k] @ Gt.reshape(k, m, m)  # T_i⁻¹ V_iᵀ A_jᵀ
-            V -= (coef.reshape(k * m, m).T @ self.win_Vt[: k * m]).T
+            km = k * self.m
+            q = vals.shape[1]
+            vtb = self.win[:km, nz_pos] @ vals  # (k m, q): Vᵢᵀ b over the window
+            coef = np.matmul(self.win_Tinv[:k], vtb.reshape(k, self.m, q)).reshape(km, q)
+            out -= coef.T @ self.win[:km]
             self.t_window += time.perf_counter() - tw
-        t1 = time.perf_counter()
-        T = np.eye(m) + self.jac[j] @ V[self.cols[j]]
-        Tinv = np.linalg.inv(0.5 * (T + T.T))
-        g = self.jac @ V[self.cols]  # (N, m, m) = A_c V
-        self.M -= g @ Tinv @ np.swapaxes(g, 1, 2)
-        self.win_Vt[k * m : (k + 1) * m] = V.T
+        return out
+
+    def add(self, j: int, Vt: FloatArray, Tinv: FloatArray) -> bool:
+        """Add pick ``j`` (``Vt = (Σ_S A_jᵀ)ᵀ`` at ``rows``, ``Tinv = (I + A_j Σ_S A_jᵀ)⁻¹``); True if refactorised."""
+        k = len(self.window)
+        self.win[k * self.m : (k + 1) * self.m] = Vt
         self.win_Tinv[k] = Tinv
         self.window.append(j)
-        t2 = time.perf_counter()
-        # Refactorise when the window is full or (adaptive) when the Woodbury work since the last
-        # factorisation has cost as much as that factorisation did.
-        if len(self.window) == self.r or (self.fixed is None and self.t_window > self.t_factor):
+        if len(self.window) == self.cap or (self.fixed is None and self.t_window > self.t_factor):
             self.info = sp.csc_matrix(self.info + self.add_info(self.window))
-            tf = time.perf_counter()
-            self.solver = SPDSolver(self.info)
-            self.t_factor = time.perf_counter() - tf
+            self._factorise()
             self.t_window = 0.0
             self.window = []
             self.refactorisations += 1
-        self.solve_s += t1 - t0 + time.perf_counter() - t2
-        self.update_s += t2 - t1
+            return True
+        return False
+
+
+def _apply_candidates(AcT: FloatArray, Xt: FloatArray, posT: IntArray) -> FloatArray:
+    """``A_c X[cols_c]`` for every candidate, as ``(m, q, N)``, from ``Xt = Xᵀ`` at the tracked rows.
+
+    Candidate-last ("structure of arrays") layout: every operation is a few vector operations of
+    length ``N`` (measured 2x faster than batched ``(N, m, m)`` einsum/matmul for ``m = 2``).
+    """
+    Xg = Xt[:, posT]  # (q, d, N)
+    m = AcT.shape[0]
+    out = np.empty((m, Xt.shape[0], AcT.shape[2]))
+    for a in range(m):
+        np.einsum("en,ben->bn", AcT[a], Xg, out=out[a])
+    return out
+
+
+def _downdate(Mc: FloatArray, G: FloatArray, Tinv: FloatArray) -> None:
+    """``M_c −= G_c T⁻¹ G_cᵀ`` in place for every candidate (``(m, m, N)`` layout, ``T⁻¹ = L Lᵀ``)."""
+    L = np.linalg.cholesky(0.5 * (Tinv + Tinv.T))
+    H = np.einsum("abn,bc->acn", G, L)
+    m = G.shape[0]
+    for a in range(m):
+        for b in range(a, m):
+            d = np.einsum("cn,cn->n", H[a], H[b])
+            Mc[a, b] -= d
+            if b != a:
+                Mc[b, a] -= d
+
+
+def _logdet_eye_plus(M: FloatArray) -> FloatArray:
+    """``log det(I + M_c)`` for ``(m, m, N)`` stacks (closed form up to 3×3); ``inf`` if not PD."""
+    m = M.shape[0]
+    if m > 3:
+        return _batched_logdet(np.eye(m)[None] + np.moveaxis(M, 2, 0))
+    A = M + np.eye(m)[:, :, None]
+    return _batched_logdet_soa(A)
+
+
+def _batched_logdet_soa(A: FloatArray) -> FloatArray:
+    m = A.shape[0]
+    if m == 1:
+        det = A[0, 0]
+    elif m == 2:
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    else:
+        det = (
+            A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
+            - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+            + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0])
+        )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
+
+
+def _sym_inv(A: FloatArray) -> FloatArray:
+    inv = np.linalg.inv(0.5 * (A + A.T))
+    return 0.5 * (inv + inv.T)
 
 
 def select_information(
@@ -313,12 +415,19 @@ def select_information(
     """Greedy focused-entropy measurement selection (Mu et al. Alg. 1), exact and fast.
 
     The gain of Theorem 1 is evaluated in its mutual-information form: with ``W`` selecting the
-    focused blocks, ``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ`` where ``Σ_{·|F} = (Λ_{¬F,¬F})⁻¹``
-    is the covariance of the other variables given the focused ones (zero on the focused
-    columns). So ``gain_c = ½ log det(I + A_c Σ A_cᵀ) − ½ log det(I + A_c Σ_{·|F} A_cᵀ)``, and both
-    ``m × m`` matrices are kept current per candidate by rank-``m_j`` downdates after each pick
-    (one sparse solve each with ``Λ_S`` and ``Λ_S[¬F, ¬F]``). Per step the cost is two solves plus
-    ``O(N_candidates · m² · d)``, independent of the number of focused variables.
+    focused blocks, ``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ`` where
+    ``Σ_{·|F} = Σ − Σ Wᵀ Σ_F⁻¹ W Σ`` is the covariance of the other variables given the focused ones.
+    So ``gain_c = ½ log det(I + M_c) − ½ log det(I + K_c)`` with ``M_c = A_c Σ A_cᵀ`` and
+    ``K_c = A_c Σ_{·|F} A_cᵀ``, both ``m × m`` per candidate. After picking ``j`` with ``V = Σ A_jᵀ``,
+    ``T = I + A_j V``, ``w = W V``, ``p = Σ_F⁻¹ w`` and ``E = T − wᵀ p`` (``= I + A_j Σ_{·|F} A_jᵀ``)::
+
+        M_c −= g_c T⁻¹ g_cᵀ,            g_c = A_c V
+        K_c −= k_c E⁻¹ k_cᵀ,            k_c = A_c Σ_{·|F} A_jᵀ = g_c − A_c (Σ Wᵀ p)
+        Σ_F −= w T⁻¹ wᵀ,   Σ_F⁻¹ += p E⁻¹ pᵀ
+
+    so each step is two solves with the same tracked ``Σ`` (right-hand sides ``A_jᵀ`` and ``Wᵀ p``,
+    each the last sparse factor plus a Woodbury window over the picks since) and
+    ``O(N_candidates · m² · d)`` batched dense work, independent of the number of focused variables.
 
     Args:
         system: the linearised full graph (whitened Jacobians at the full-graph solution).
@@ -331,10 +440,9 @@ def select_information(
         landmark_prior_sigma: standard deviation (state units, e.g. m) of the weak isotropic prior
             put on every landmark variable in ``Λ₀``.
         refactor_every: picks between sparse refactorisations (in between, solves use the last
-            factor plus a Woodbury correction over the picks since); 64 by default (measured best
-            on the Victoria-Park-sized benchmark); ``None`` is adaptive: refactorise once the
-            Woodbury work since the last factorisation has cost as much as that factorisation
-            (at most 128 picks apart).
+            factor plus a Woodbury correction over the picks since); ``None`` is adaptive:
+            refactorise once the Woodbury work since the last factorisation has cost as much as
+            that factorisation (at most 256 picks apart).
 
     Returns:
         The picks in order with their entropy reductions (nats).
@@ -350,7 +458,7 @@ def select_information(
     if f == 0:
         raise ValueError("no focused variables: run landmark selection first")
     solver = SPDSolver(prob.info0)
-    _, SF = _focused_cov(solver, n, fcols)
+    XF, SF = _focused_cov(solver, n, fcols)
     h0 = _entropy(logdet_spd(SF), f)
     N = len(cand)
     status = _budget_status(budget, N)
@@ -363,60 +471,73 @@ def select_information(
 
     cidx = prob.candidates
     Ac, cols = _padded_candidates(sub, cidx)
-    d = Ac.shape[2]
-    # the conditional system: the same variables without the focused ones
-    focus_set = set(prob.focused)
-    rest = [v for v in range(len(sub.variables)) if v not in focus_set]
-    rest_cols = sub.columns(rest)
-    new_col = np.full(n, -1, dtype=np.int64)
-    new_col[rest_cols] = np.arange(len(rest_cols))
-    Ac_c = np.where((new_col[cols] >= 0)[:, None, :], Ac, 0.0)
-    cols_c = np.maximum(new_col[cols], 0)
-    info0_c = sp.csc_matrix(prob.info0[rest_cols][:, rest_cols])
-    rest_sys = LinearSystem([sub.variables[v] for v in rest], [])
-    rest_pos = {v: k for k, v in enumerate(rest)}
-    pairs_c = []
-    for c in cidx:
-        vs = [rest_pos[v] for v in sub.factors[c].variables if v in rest_pos]
-        pairs_c += [(a, b) for a in vs for b in vs]
-    blocks_c = covariance_blocks(info0_c, rest_sys.offsets, pairs_c)
-    Sig_cc = np.zeros((N, d, d))
-    for k, c in enumerate(cidx):
-        vs = sub.factors[c].variables
-        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
-        for ia, a in enumerate(vs):
-            for ib, b in enumerate(vs):
-                if a in rest_pos and b in rest_pos:
-                    Sig_cc[k, off[ia] : off[ia + 1], off[ib] : off[ib + 1]] = blocks_c[(rest_pos[a], rest_pos[b])]
+    m, d = Ac.shape[1], Ac.shape[2]
+    width = np.array([len(sub.factor_columns(c)) for c in cidx], dtype=np.int64)
+    # the rows the gains read: every candidate's columns and the focused ones
+    rows = np.unique(np.concatenate([cols.ravel(), fcols]))
+    pos_of = np.full(n, -1, dtype=np.int64)
+    pos_of[rows] = np.arange(len(rows))
+    pos = pos_of[cols]
+    fpos = pos_of[fcols]
+    # initial M_c = A_c Σ₀ A_cᵀ and K_c = M_c − U_cᵀ Σ_F⁻¹ U_c, U_c = W Σ₀ A_cᵀ (from the focused columns)
     Sig_c = _clique_covariances(prob.info0, sub, cidx, d, None, solver=solver)
+    M0 = Ac @ Sig_c @ np.swapaxes(Ac, 1, 2)
+    P = _sym_inv(SF)
+    K0 = np.empty_like(M0)
+    for s in range(0, N, 2048):
+        U = np.einsum("ndf,nad->nfa", XF[cols[s : s + 2048]], Ac[s : s + 2048])  # (n_c, f, m)
+        K0[s : s + 2048] = M0[s : s + 2048] - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
+    del XF
+    # candidate-last layout for the loop
+    M = np.ascontiguousarray(M0.transpose(1, 2, 0))
+    K = np.ascontiguousarray(K0.transpose(1, 2, 0))
+    AcT = np.ascontiguousarray(Ac.transpose(1, 2, 0))
+    posT = np.ascontiguousarray(pos.T)
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
 
-    def add_full(js: list[int]) -> sp.spmatrix:
+    def add_info(js: list[int]) -> sp.spmatrix:
         return sub.information([cidx[i] for i in js])
 
-    def add_cond(js: list[int]) -> sp.spmatrix:
-        return sub.information([cidx[i] for i in js])[rest_cols][:, rest_cols]
-
-    full = _TrackedCovariance(prob.info0, Ac, cols, Sig_c, add_full, refactor_every)
-    cond = _TrackedCovariance(info0_c, Ac_c, cols_c, Sig_cc, add_cond, refactor_every)
-    eye_m = np.eye(Ac.shape[1])
+    eye_m = np.eye(m)
     picked = np.zeros(N, dtype=bool)
     picks: list[int] = []
     gains: list[float] = []
+    t_update = 0.0
     t_loop = time.perf_counter()
-    for _ in range(budget):
-        gain = 0.5 * (_batched_logdet(eye_m + full.M) - _batched_logdet(eye_m + cond.M))
-        gain[picked] = -np.inf
-        j = int(np.argmax(gain))
-        picks.append(cand[j])
-        gains.append(float(gain[j]))
-        picked[j] = True
-        full.add(j)
-        cond.add(j)
+    with _single_threaded_blas():
+        tracker = _Tracker(prob.info0, rows, m, add_info, refactor_every)
+        for _ in range(budget):
+            gain = 0.5 * (_logdet_eye_plus(M) - _logdet_eye_plus(K))
+            gain[picked] = -np.inf
+            j = int(np.argmax(gain))
+            picks.append(cand[j])
+            gains.append(float(gain[j]))
+            picked[j] = True
+            wj = width[j]
+            Vt = tracker.solve(cols[j, :wj], Ac[j, :, :wj].T, pos[j, :wj])  # (Σ A_jᵀ)ᵀ at rows
+            T = eye_m + Ac[j] @ Vt[:, pos[j]].T
+            Tinv = _sym_inv(T)
+            w = np.ascontiguousarray(Vt[:, fpos].T)  # W Σ A_jᵀ, (f, m)
+            p = P @ w
+            E = T - w.T @ p
+            Einv = _sym_inv(E)
+            Xt = tracker.solve(fcols, p, fpos)  # (Σ Wᵀ p)ᵀ at rows
+            tu = time.perf_counter()
+            G = _apply_candidates(AcT, Vt, posT)
+            Kc = G - _apply_candidates(AcT, Xt, posT)
+            _downdate(M, G, Tinv)
+            _downdate(K, Kc, Einv)
+            SF -= w @ Tinv @ w.T
+            P += p @ Einv @ p.T
+            t_update += time.perf_counter() - tu
+            if tracker.add(j, Vt, Tinv):
+                P = _sym_inv(SF)
     stats["loop_s"] = time.perf_counter() - t_loop
-    stats["solve_s"] = full.solve_s + cond.solve_s
-    stats["update_s"] = full.update_s + cond.update_s
-    stats["refactorisations"] = float(full.refactorisations + cond.refactorisations)
+    stats["update_s"] = t_update
+    stats["factor_s"] = tracker.factor_s
+    stats["solve_s"] = stats["loop_s"] - t_update
+    stats["refactorisations"] = float(tracker.refactorisations)
+    stats["tracked_rows"] = float(len(rows))
     h1 = h0 - float(np.sum(gains))
     return MeasurementSelection(picks, gains, "ok", N, budget, h0, h1, stats)
 
