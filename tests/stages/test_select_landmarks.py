@@ -1,0 +1,271 @@
+"""select_landmarks on the committed office sample: artifacts, recording, the collision claim, edge cases, no laser.
+
+The sample (``sample_data/office``) is ingested, detected and graphed once per test process
+(:func:`prepared_run`, shared with ``test_select_measurements.py``); each test works on a copy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import json
+import shutil
+import tempfile
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.artifacts import StageInput
+from pipeline.config import load_settings
+from pipeline.errors import StageError
+from pipeline.run_folder import RunFolder
+from pipeline.runner import run_stage
+from stages import REGISTRY
+from stages.graph.load import load_graph
+from stages.risk import RiskParams, path_geometry
+from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig, choose
+
+ROOT = Path(__file__).resolve().parents[2]
+SAMPLE = ROOT / "sample_data" / "office" / "office.bag"
+TRUTH = ROOT / "sample_data" / "office" / "office.ground_truth.json"
+BASE_SETTINGS = ["detect.tag_size_m=0.16", "detect.workers=1"]
+
+
+@functools.cache
+def prepared_run() -> Path:
+    """The office sample through ingest, detect and graph (once per process); do not modify it, copy it."""
+    root = Path(tempfile.mkdtemp(prefix="focusmap_select_"))
+    run = RunFolder.create(root / "office", SAMPLE)
+    settings = load_settings(REGISTRY.models(), None, BASE_SETTINGS)
+    for name in ("ingest", "detect", "graph"):
+        run_stage(run, REGISTRY, name, settings)
+    return run.path
+
+
+def copy_run(tmp_path: Path) -> RunFolder:
+    """A private copy of the prepared run."""
+    dst = tmp_path / "office"
+    shutil.copytree(prepared_run(), dst)
+    return RunFolder(dst)
+
+
+def run_select(run: RunFolder, stage: str, overrides: list[str]) -> dict:
+    """Run one stage with overrides; return its summary."""
+    settings = load_settings(REGISTRY.models(), None, BASE_SETTINGS + overrides)
+    return run_stage(run, REGISTRY, stage, settings, force=True).summary
+
+
+def rrd_rows(path: Path) -> tuple[Counter[str], Counter[str]]:
+    """Rows per entity path, and rows on the selection_step timeline per entity path."""
+    from rerun.chunk import RrdReader
+
+    rows: Counter[str] = Counter()
+    steps: Counter[str] = Counter()
+    for chunk in RrdReader(path).stream():
+        rows[str(chunk.entity_path)] += chunk.num_rows
+        if "selection_step" in chunk.timeline_names:
+            steps[str(chunk.entity_path)] += chunk.num_rows
+    return rows, steps
+
+
+def region_of_tags() -> dict[int, str]:
+    """Ground-truth region of every tag: corridor (walls 2-4), door (walls 1 and 5 within 1.5 m of it), room."""
+    truth = json.loads(TRUTH.read_text())
+    out = {}
+    for tag in truth["tags"]:
+        y = tag["position"][1]
+        if tag["wall"] in (2, 3, 4):
+            out[tag["id"]] = "corridor"
+        elif tag["wall"] in (1, 5) and abs(y - 3.0) < 1.5:
+            out[tag["id"]] = "door"
+        else:
+            out[tag["id"]] = "room"
+    return out
+
+
+@pytest.fixture(scope="module")
+def inputs() -> LandmarkInputs:
+    """The prepared run's inputs, loaded once (no run folder needed)."""
+    path = prepared_run()
+    loaded = load_graph(StageInput("graph", path / "graph"))
+    ingest = StageInput("ingest", path / "ingest")
+    T_bl = np.asarray(ingest.read_json("extrinsics.json")["sensors"]["laser"]["T_base_sensor"])
+    detections = StageInput("detect", path / "detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
+    return LandmarkInputs.from_pieces(loaded, ingest.read_table("scans.parquet"), T_bl, detections)
+
+
+def test_stage_outputs_and_recording(tmp_path: Path) -> None:
+    run = copy_run(tmp_path)
+    budget = 8
+    summary = run_select(run, "select_landmarks", [f"select_landmarks.budget={budget}"])
+    out = run.stage_dir("select_landmarks")
+    focused = json.loads((out / "focused.json").read_text())
+    assert focused["strategy"] == "collision" and focused["budget"] == budget and focused["status"] == "ok"
+    assert len(focused["tag_ids"]) == budget == len(set(focused["tag_ids"])) == len(focused["scores"])
+    landmarks = pq.read_table(run.stage_dir("graph") / "landmarks.parquet").column("tag_id").to_pylist()
+    assert set(focused["tag_ids"]) <= set(landmarks)
+    risk = pq.read_table(out / "risk.parquet").to_pydict()
+    poses = pq.read_table(run.stage_dir("graph") / "poses.parquet").num_rows
+    for col in (
+        "stamp_ns",
+        "x",
+        "y",
+        "z",
+        "sigma_star",
+        "clearance_m",
+        "p_collision_all",
+        "p_collision_focused",
+        "mahalanobis_all",
+        "mahalanobis_focused",
+    ):
+        assert len(risk[col]) == poses, col
+    assert all(len(s) == 4 for s in risk["sigma_star"])
+    assert np.all(np.diff(risk["stamp_ns"]) >= 0)
+    clearance = np.array(risk["clearance_m"])
+    assert 0.3 < np.nanmin(clearance) < 1.0  # the robot keeps about 0.45 m from the walls
+    p_f, p_a = np.array(risk["p_collision_focused"]), np.array(risk["p_collision_all"])
+    assert summary["p_collision_max_focused"] == pytest.approx(p_f.max(), rel=1e-9)
+    assert summary["p_collision_max_all"] <= summary["p_collision_max_focused"] <= summary["p_collision_max_none"]
+    assert np.all(np.isfinite(p_a)) and np.all((p_f >= 0) & (p_f <= 1))
+    assert focused["scores"][-1] == pytest.approx(p_f.max(), rel=1e-6)  # collision score: max P after the pick
+
+    rows, steps = rrd_rows(run.rrd_path("select_landmarks"))
+    for entity in (
+        "/select_landmarks/path",
+        "/select_landmarks/path_all",
+        "/select_landmarks/obstacles",
+        "/select_landmarks/sigma_star",
+        "/select_landmarks/landmarks/selected",
+        "/select_landmarks/landmarks/unselected",
+        "/select_landmarks/summary",
+        "/select_landmarks/risk/all",
+        "/select_landmarks/risk/focused",
+    ):
+        assert rows[entity] >= 1, entity
+    assert steps["/select_landmarks/pick"] == budget  # one pick per greedy step
+    assert steps["/select_landmarks/path"] == budget + 1  # step 0 (nothing picked) and after every pick
+    assert steps["/select_landmarks/max_collision_log10"] == budget + 1
+
+
+def test_collision_focuses_on_corridor_and_door(inputs: LandmarkInputs) -> None:
+    """Mu et al.'s claim on the sample: the budget goes to the narrow passages, and the max risk drops most."""
+    region = region_of_tags()
+    budget = 15
+    all_tags = [int(t) for t in inputs.landmarks.tag_ids]
+    share_all = np.mean([region[t] != "room" for t in all_tags])
+    results = {}
+    for strategy in ("collision", "uniform", "random"):
+        c = choose(inputs, SelectLandmarksConfig(strategy=strategy, budget=budget))
+        assert c.risk_focused is not None
+        results[strategy] = (np.mean([region[t] != "room" for t in c.tag_ids]), c.risk_focused.max, c.risk_focused.mean)
+    print(f"\nshare of corridor+door: all landmarks {share_all:.2f} ({len(all_tags)})")
+    for k, (share, mx, mean) in results.items():
+        print(f"{k:10s} budget {budget}: share {share:.2f}  max P {mx:.3g}  mean P {mean:.3g}")
+    assert results["collision"][0] >= 1.5 * share_all
+    assert results["collision"][1] < results["uniform"][1]
+    assert results["collision"][1] < results["random"][1]
+
+
+def test_budget_edges(tmp_path: Path) -> None:
+    run = copy_run(tmp_path)
+    s = run_select(run, "select_landmarks", ["select_landmarks.budget=0"])
+    focused = json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())
+    assert s["status"] == "budget_zero" and focused["tag_ids"] == [] and "budget 0" in s["message"]
+    assert s["p_collision_max_focused"] == pytest.approx(s["p_collision_max_none"])
+    s = run_select(
+        run,
+        "select_landmarks",
+        ["select_landmarks.budget=500", "select_landmarks.strategy=uniform", "select_landmarks.max_replay_steps=3"],
+    )
+    focused = json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())
+    assert s["status"] == "budget_exceeds_landmarks" and len(focused["tag_ids"]) == s["landmarks"]
+    assert "exceeds" in s["message"]
+
+
+def test_strategies_by_api(inputs: LandmarkInputs) -> None:
+    n = len(inputs.landmarks.tag_ids)
+    for strategy in ("mutual-information", "leverage", "uniform", "random"):
+        c = choose(inputs, SelectLandmarksConfig(strategy=strategy, budget=6, leverage_draws=1), with_risk=False)
+        assert c.status == "ok" and len(set(c.tag_ids)) == 6, strategy
+    c = choose(inputs, SelectLandmarksConfig(strategy="all"), with_risk=False)
+    assert sorted(c.tag_ids) == sorted(int(t) for t in inputs.landmarks.tag_ids) and c.budget == n
+    a = choose(inputs, SelectLandmarksConfig(strategy="random", budget=6, seed=3), with_risk=False)
+    b = choose(inputs, SelectLandmarksConfig(strategy="random", budget=6, seed=3), with_risk=False)
+    assert a.tag_ids == b.tag_ids
+    gains = choose(inputs, SelectLandmarksConfig(strategy="mutual-information", budget=6), with_risk=False).scores
+    assert all(g1 >= g2 - 1e-9 for g1, g2 in itertools.pairwise(gains))  # submodular: gains fall
+
+
+def test_visibility_window_and_no_laser(inputs: LandmarkInputs) -> None:
+    loaded = inputs.loaded
+    narrow = path_geometry(loaded, None, None, None, RiskParams(visibility_window_s=0.0))
+    assert not narrow.has_laser and np.all(np.isnan(narrow.clearance_m))
+    assert narrow.visible.sum() <= inputs.geometry.visible.sum()
+    no_laser = LandmarkInputs.from_pieces(loaded, None)
+    with pytest.raises(StageError, match=r"needs laser scans.*mutual-information"):
+        choose(no_laser, SelectLandmarksConfig(strategy="collision", budget=3))
+
+
+def test_import_graph_run(tmp_path: Path) -> None:
+    """A run made by import-graph (graph only): non-collision strategies work, collision says why it cannot."""
+    from stages.graph import import_graph
+
+    run_dir = import_graph(prepared_run() / "graph" / "graph.g2o", tmp_path, "imported")
+    run = RunFolder(run_dir)
+    s = run_select(run, "select_landmarks", ["select_landmarks.strategy=uniform", "select_landmarks.budget=5"])
+    assert s["status"] == "ok" and s["laser"] is False and "note" in s
+    risk = pq.read_table(run.stage_dir("select_landmarks") / "risk.parquet").to_pydict()
+    assert np.all(np.isnan(risk["p_collision_focused"]))
+    with pytest.raises(StageError, match="import-graph"):
+        run_select(run, "select_landmarks", ["select_landmarks.strategy=collision"])
+    # the failed run left the earlier result whole
+    assert json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())["strategy"] == "uniform"
+
+
+def test_batched_sigma_star_and_greedy_equal_the_reference(inputs: LandmarkInputs) -> None:
+    """The batched doubling Σ* equals stabilised_covariance; collision_greedy picks as select_collision does."""
+    from stages.estimation.landmark_selection import planar_range_bearing, select_collision, stabilised_covariance
+    from stages.risk import measurement_information, stabilised_covariances
+    from stages.select_landmarks.core import collision_greedy
+
+    geo, lm, params = inputs.geometry, inputs.landmarks, inputs.params
+    rng = np.random.default_rng(0)
+    J, ref = [], []
+    for t in rng.choice(len(geo.poses), 40, replace=False):
+        rows = sorted(rng.choice(len(lm.tag_ids), int(rng.integers(1, 5)), replace=False).tolist())
+        H_R = [planar_range_bearing(geo.poses[t], lm.positions[r], lm.covariances[r], geo.sigmas) for r in rows]
+        ref.append(stabilised_covariance(geo.Q, H_R, params.cap_steps))
+        J.append(measurement_information(geo.poses[t], lm, rows, geo.sigmas))
+    S = stabilised_covariances(geo.Q, np.array(J), params.cap_steps)
+    for a, b in zip(S, ref, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-12 * np.abs(b).max())
+    # Alg. 2 on the first 150 keyframes of the sample
+    n = 150
+    sub = dataclasses.replace(
+        geo,
+        stamps_ns=geo.stamps_ns[:n],
+        poses=geo.poses[:n],
+        clearance_m=geo.clearance_m[:n],
+        normals=geo.normals[:n],
+        obstacles=geo.obstacles[:n],
+        visible=geo.visible[:n],
+    )
+    fast = collision_greedy(sub, lm, 6, params)
+    slow = select_collision(
+        sub.poses,
+        lm.positions,
+        lm.covariances,
+        sub.visible,
+        sub.margin(params),
+        sub.normals,
+        sub.Q,
+        6,
+        sub.sigmas,
+        params.cap_steps,
+    )
+    assert fast.picks == slow.picks
+    np.testing.assert_allclose(fast.scores, slow.scores, rtol=1e-6)
