@@ -263,7 +263,7 @@ def test_second_call_skips_what_is_up_to_date(
 def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
     bags: list[Path], env: dict[str, str], tmp_path: Path
 ) -> None:
-    good = [str(b) for b in bags[:3]]
+    good = [str(b) for b in bags[:2]]
     out = tmp_path / "runs"
     cmd = _cli("batch", *good, "--out", str(out), "--until", UNTIL, "--workers", "1")
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=env["PYTHONPATH"])
@@ -313,7 +313,7 @@ def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
         assert (entry["fingerprint"], entry["finished"]) == (fingerprint, when), f"{run}/{stage} was re-run"
         assert (out / run / stage).stat().st_ino == inode, f"{run}/{stage} was replaced"
         assert stage not in rows[run]["stages_run"]
-    for name in ("s1", "s2", "s3"):
+    for name in ("s1", "s2"):
         assert rows[name]["status"] in ("done", "skipped")
         assert list(json.loads((out / name / "manifest.json").read_text())["stages"]) == ["ingest", "detect"]
         assert not (out / name / ".partial").exists()
