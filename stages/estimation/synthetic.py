@@ -25,7 +25,7 @@ class PlanarProblem:
     poses: FloatArray
     """(T, 3) x, y, θ."""
     landmarks: FloatArray
-    """(n_landmarks, 2); only the measured ones are in ``values``."""
+    """(n_landmarks, 2); only the measured ones are in ``values`` (all when ``n_measurements ≥ n_landmarks``)."""
     measurement_factors: list[int]
     """Indices (in ``graph``) of the bearing-range factors, in time order."""
     measured: list[tuple[int, int]]
@@ -44,8 +44,10 @@ def planar_problem(
 ) -> PlanarProblem:
     """A robot on a smooth random closed-ish path; each measurement joins a pose and a landmark in range.
 
-    Landmarks are scattered uniformly in a square of side ``extent``; measurements are drawn at
-    random among (pose, landmark) pairs within ``sensor_range`` (nearest landmark as fallback).
+    Landmarks are scattered around the path (each within ``0.9 · sensor_range`` of a random pose, so
+    every one is in range of some pose). Every landmark is measured at least once (from a random
+    pose in range) when ``n_measurements ≥ n_landmarks``; the other measurements are drawn at random
+    among (pose, landmark) pairs within ``sensor_range`` (nearest landmark as fallback).
     """
     rng = np.random.default_rng(seed)
     t = np.linspace(0.0, 2.0 * np.pi * max(1.0, n_poses / 1500.0), n_poses)
@@ -54,7 +56,10 @@ def planar_problem(
     d = np.gradient(xy, axis=0)
     theta = np.arctan2(d[:, 1], d[:, 0])
     poses = np.column_stack([xy, theta])
-    landmarks = rng.uniform(0.0, extent, size=(n_landmarks, 2))
+    anchor = rng.integers(0, n_poses, size=n_landmarks)
+    radius = 0.9 * sensor_range * np.sqrt(rng.uniform(0.0, 1.0, size=n_landmarks))
+    angle = rng.uniform(0.0, 2.0 * np.pi, size=n_landmarks)
+    landmarks = xy[anchor] + radius[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -69,20 +74,26 @@ def planar_problem(
     for i in range(n_poses - 1):
         a, b = gtsam.Pose2(*poses[i]), gtsam.Pose2(*poses[i + 1])
         graph.add(gtsam.BetweenFactorPose2(X(i), X(i + 1), a.between(b), odo))
-    # choose measurements: random poses, a random landmark in range
+    # choose measurements: one per landmark from a pose in range, the rest random poses with a
+    # random landmark in range; then in time (pose) order
     dist = np.linalg.norm(xy[:, None, :] - landmarks[None, :, :], axis=2)
-    pose_ids = np.sort(rng.integers(0, n_poses, size=n_measurements))
+    pairs: list[tuple[int, int]] = []
+    for k in range(min(n_landmarks, n_measurements)):
+        in_range = np.flatnonzero(dist[:, k] < sensor_range)
+        pairs.append((int(rng.choice(in_range)) if len(in_range) else int(np.argmin(dist[:, k])), k))
+    for i in rng.integers(0, n_poses, size=n_measurements - len(pairs)):
+        in_range = np.flatnonzero(dist[i] < sensor_range)
+        pairs.append((int(i), int(rng.choice(in_range)) if len(in_range) else int(np.argmin(dist[i]))))
+    pairs.sort(key=lambda ik: ik[0])
     br = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(bearing_range_sigmas))
     measurement_factors: list[int] = []
     measured: list[tuple[int, int]] = []
-    for i in pose_ids:
-        in_range = np.flatnonzero(dist[i] < sensor_range)
-        k = int(rng.choice(in_range)) if len(in_range) else int(np.argmin(dist[i]))
+    for i, k in pairs:
         p = gtsam.Pose2(*poses[i])
         pt = gtsam.Point2(*landmarks[k])
         measurement_factors.append(graph.size())
-        graph.add(gtsam.BearingRangeFactor2D(X(int(i)), L(k), p.bearing(pt), p.range(pt), br))
-        measured.append((int(i), k))
+        graph.add(gtsam.BearingRangeFactor2D(X(i), L(k), p.bearing(pt), p.range(pt), br))
+        measured.append((i, k))
     for k in sorted({k for _, k in measured}):  # unmeasured landmarks are not in the graph
         values.insert(L(k), gtsam.Point2(*landmarks[k]))
     return PlanarProblem(graph, values, poses, landmarks, measurement_factors, measured)

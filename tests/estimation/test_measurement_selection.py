@@ -150,3 +150,29 @@ def test_leverage_probabilities_sum_to_one_and_draws_are_seeded() -> None:
 def test_uniform_is_even_in_time() -> None:
     sel = select_uniform(list(range(100, 200)), 5)
     assert sel.picks == [100, 125, 150, 174, 199]
+
+
+@pytest.mark.parametrize("track_focused", [True, False])
+def test_fast_equals_reference_through_refactorisations(monkeypatch, track_focused: bool) -> None:
+    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, and both
+    ways of getting ``Σ Wᵀ p`` (kept at the tracked rows, or a second solve per step)."""
+    import stages.estimation.measurement_selection as ms
+
+    if not track_focused:
+        monkeypatch.setattr(ms, "_TRACK_FOCUSED_MAX", 0)
+    pp = planar_problem(150, 12, 220, seed=11, extent=40.0, sensor_range=12.0)
+    system = LinearSystem.from_gtsam(pp.graph, pp.values)
+    lms = system.variables_of_kind("landmark")
+    assert len(lms) == 12  # the generator measures every landmark
+    focused = lms[:3]
+    cand = [f for f in pp.measurement_factors if set(system.factors[f].variables) & set(focused)]
+    base = default_base(system, cand)
+    budget = 14
+    fast = select_information(system, cand, focused, budget, base=base, refactor_every=4)
+    assert fast.stats["refactorisations"] >= 3
+    picks, gains = reference_greedy(system, cand, focused, budget, base)
+    assert fast.picks == picks
+    np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
+    adaptive = select_information(system, cand, focused, budget, base=base, refactor_every=None)
+    assert adaptive.picks == picks
+    np.testing.assert_allclose(adaptive.gains, gains, rtol=1e-6, atol=1e-8)
