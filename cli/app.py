@@ -270,7 +270,27 @@ def run_pipeline(
     run = RunFolder.create(out / _run_name(bag, name), bag)
     _run_stages(run, [s.name for s in stages], settings, force)
     typer.echo(f"run folder: {run.path}")
+    _print_headline(run)
     typer.echo(f"open it with: focusmap view {run.path}")
+
+
+def _print_headline(run: Any) -> None:
+    """The evaluation report's path and its headline row (focus, info), when evaluate has run."""
+    entry = run.stage_entry("evaluate")
+    if not entry:
+        return
+    summary = entry.get("summary", {})
+    head = summary.get("headline") or {}
+    if summary.get("report"):
+        typer.echo(f"report: {summary['report']}")
+    if head:
+        typer.echo(
+            f"headline ({head.get('case')}): focused entropy {head.get('focused_entropy', float('nan')):.1f} nats, "
+            f"focused error {100 * head.get('focused_error_m', float('nan')):.1f} cm, "
+            f"max P(collision) {head.get('max_collision_probability', float('nan')):.2g}, "
+            f"collision rate {head.get('collision_rate', float('nan')):.3f} "
+            f"[{head.get('collision_ci_low', float('nan')):.3f}, {head.get('collision_ci_high', float('nan')):.3f}]"
+        )
 
 
 @app.command()

@@ -84,7 +84,7 @@ HEADLINES: Final[dict[str, tuple[pa.DataType, tuple[tuple[str, str], ...]]]] = {
             ("optimize", "focused_entropy"),
             ("select_measurements", "focused_entropy_after"),
             ("select_measurements", "entropy_after"),
-            ("evaluate", "focused_entropy"),
+            ("evaluate", "headline.focused_entropy"),
         ),
     ),
     "max_collision_probability": (
@@ -92,10 +92,10 @@ HEADLINES: Final[dict[str, tuple[pa.DataType, tuple[tuple[str, str], ...]]]] = {
         (
             ("optimize", "max_collision_probability"),
             ("select_landmarks", "max_collision_probability"),
-            ("evaluate", "max_collision_probability"),
+            ("evaluate", "headline.max_collision_probability"),
         ),
     ),
-    "collision_rate": (pa.float64(), (("evaluate", "collision_rate"),)),
+    "collision_rate": (pa.float64(), (("evaluate", "headline.collision_rate"), ("evaluate", "collision_rate"))),
 }
 
 
@@ -618,9 +618,14 @@ def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, dtype: pa.Da
     fallback = tuple((stage, column) for stage in reversed(list(stages)))
     for stage, key in (*candidates, *fallback):
         summary = (stages.get(stage) or {}).get("summary") or {}
-        if key not in summary:
+        *parents, leaf = key.split(".")
+        for part in parents:  # dotted keys reach into nested summaries ("headline.collision_rate")
+            summary = summary.get(part) if isinstance(summary, dict) else None
+            if not isinstance(summary, dict):
+                break
+        if not isinstance(summary, dict) or leaf not in summary:
             continue
-        value = summary[key]
+        value = summary[leaf]
         if isinstance(value, list | tuple) and pa.types.is_integer(dtype):
             return len(value)
         if isinstance(value, bool) or not isinstance(value, int | float):
