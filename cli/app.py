@@ -211,8 +211,65 @@ def _stage_command(stage_name: str, help_text: str) -> None:
     app.command(name=stage_name.replace("_", "-"), help=help_text)(command)
 
 
+_SELECTION_STAGES = ("select_landmarks", "select_measurements")
 for _stage in list(_registry())[1:]:
-    _stage_command(_stage.name, _stage.help or f"Run the {_stage.command} stage on a run folder.")
+    if _stage.name not in _SELECTION_STAGES:
+        _stage_command(_stage.name, _stage.help or f"Run the {_stage.command} stage on a run folder.")
+
+
+def _selection_overrides(stage: str, strategy: str | None, budget: int | None, focus: str | None = None) -> list[str]:
+    out = []
+    if strategy is not None:
+        out.append(f"{stage}.strategy={strategy}")
+    if budget is not None:
+        out.append(f"{stage}.budget={budget}")
+    if focus is not None:
+        out.append(f"{stage}.focus={focus}")
+    return out
+
+
+StrategyOpt = Annotated[
+    str | None, typer.Option("--strategy", help="Selection strategy (see configs/default.yaml for the choices).")
+]
+BudgetOpt = Annotated[int | None, typer.Option("--budget", help="How many to keep.", min=0)]
+
+
+@app.command(name="select-landmarks")
+@handled
+def select_landmarks_command(
+    run_dir: RunDirArg,
+    strategy: StrategyOpt = None,
+    budget: BudgetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+) -> None:
+    """Stage one: keep the --budget (alpha) landmarks that matter most (collision | mutual-information | leverage |
+    uniform | random | all)."""
+    run = _open_run(run_dir)
+    extra = _selection_overrides("select_landmarks", strategy, budget)
+    _run_stages(run, ["select_landmarks"], _settings(config, set_, extra), force)
+
+
+@app.command(name="select-measurements")
+@handled
+def select_measurements_command(
+    run_dir: RunDirArg,
+    strategy: StrategyOpt = None,
+    budget: BudgetOpt = None,
+    focus: Annotated[
+        str | None,
+        typer.Option("--focus", help="'selected': the focused landmarks of stage one; 'all': every landmark."),
+    ] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+) -> None:
+    """Stage two: keep the --budget (K) tag measurements that best localise the focused landmarks (information |
+    leverage | uniform | random | all)."""
+    run = _open_run(run_dir)
+    extra = _selection_overrides("select_measurements", strategy, budget, focus)
+    _run_stages(run, ["select_measurements"], _settings(config, set_, extra), force)
 
 
 @app.command(name="import-graph")
