@@ -1,0 +1,156 @@
+"""select_measurements on the office sample: artifacts, recording, edge cases, and fast == reference greedy."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.artifacts import StageInput
+from pipeline.errors import StageError
+from pipeline.run_folder import RunFolder
+from stages.estimation.linear_system import Factor, LinearSystem
+from stages.estimation.measurement_selection import focused_entropy, select_information
+from stages.graph.load import load_graph
+from stages.select_measurements import SelectMeasurementsConfig, choose, focused_variables, linear_system
+from tests.estimation.test_measurement_selection import reference_greedy
+from tests.stages.test_select_landmarks import copy_run, prepared_run, rrd_rows, run_select
+
+
+@pytest.fixture(scope="module")
+def loaded():
+    """The prepared run's full graph."""
+    return load_graph(StageInput("graph", prepared_run() / "graph"))
+
+
+@pytest.fixture(scope="module")
+def system(loaded):
+    """The full graph linearised at its solution."""
+    return linear_system(loaded)
+
+
+def _selected_run(tmp_path: Path, budget: int = 8) -> RunFolder:
+    run = copy_run(tmp_path)
+    run_select(run, "select_landmarks", [f"select_landmarks.budget={budget}", "select_landmarks.max_replay_steps=0"])
+    return run
+
+
+def test_stage_outputs_and_recording(tmp_path: Path, loaded, system) -> None:
+    run = _selected_run(tmp_path)
+    K = 25
+    s = run_select(run, "select_measurements", [f"select_measurements.budget={K}"])
+    focused = json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())["tag_ids"]
+    table = pq.read_table(run.stage_dir("select_measurements") / "selected.parquet").to_pydict()
+    assert table["step"] == list(range(K)) and len(set(table["factor_index"])) == K
+    assert all(loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id in focused for i in table["factor_index"])
+    assert table["tag_id"] == [loaded.rows[i].tag_id for i in table["factor_index"]]
+    assert s["strategy"] == "information" and s["budget"] == K and s["status"] == "ok"
+    assert s["candidates"] == sum(1 for r in loaded.rows if r.kind == "tag" and r.tag_id in focused)
+    assert s["entropy_after"] < s["entropy_before"]
+    assert s["entropy_before"] - s["entropy_after"] == pytest.approx(sum(table["gain"]), rel=1e-6)
+    base = [int(i) for i in loaded.fixed_factor_indices]
+    fv = focused_variables(loaded, system, focused)
+    assert focused_entropy(system, base + table["factor_index"], fv) == pytest.approx(s["entropy_after"], abs=1e-3)
+    assert focused_entropy(system, base, fv) == pytest.approx(s["entropy_before"], abs=1e-6)
+    assert s["factors_kept"] == len(base) + K
+
+    rows, steps = rrd_rows(run.rrd_path("select_measurements"))
+    for entity in (
+        "/select_measurements/path",
+        "/select_measurements/candidates",
+        "/select_measurements/kept",
+        "/select_measurements/landmarks/focused",
+        "/select_measurements/summary",
+    ):
+        assert rows[entity] >= 1, entity
+    assert steps["/select_measurements/pick"] == K
+    assert steps["/select_measurements/entropy"] == K + 1  # before the first pick and after every pick
+    assert steps["/select_measurements/gain"] == K
+    assert steps["/select_measurements/landmarks/focused"] >= 2  # ellipsoids shrink over the replayed steps
+
+
+def test_budget_edges_and_missing_stage_one(tmp_path: Path) -> None:
+    run = copy_run(tmp_path)
+    with pytest.raises(StageError, match="focusmap select-landmarks"):
+        run_select(run, "select_measurements", [])
+    assert not run.stage_dir("select_measurements").exists()
+    run_select(run, "select_landmarks", ["select_landmarks.budget=0", "select_landmarks.max_replay_steps=0"])
+    with pytest.raises(StageError, match="no focused landmarks"):
+        run_select(run, "select_measurements", [])
+    run_select(run, "select_landmarks", ["select_landmarks.budget=3", "select_landmarks.max_replay_steps=0"])
+    s = run_select(run, "select_measurements", ["select_measurements.budget=0"])
+    assert s["status"] == "budget_zero" and s["selected"] == 0 and "budget 0" in s["message"]
+    assert s["entropy_after"] == pytest.approx(s["entropy_before"])
+    s = run_select(
+        run, "select_measurements", ["select_measurements.budget=100000", "select_measurements.max_replay_steps=2"]
+    )
+    assert s["status"] == "budget_exceeds_candidates" and s["selected"] == s["candidates"] and "all" in s["message"]
+
+
+def test_focus_all_without_stage_one(tmp_path: Path) -> None:
+    run = copy_run(tmp_path)
+    s = run_select(
+        run,
+        "select_measurements",
+        [
+            "select_measurements.focus=all",
+            "select_measurements.strategy=uniform",
+            "select_measurements.budget=30",
+            "select_measurements.max_replay_steps=2",
+        ],
+    )
+    graph_summary = json.loads((run.stage_dir("graph") / "summary.json").read_text())
+    assert s["focus"] == "all" and s["focused_landmarks"] == graph_summary["landmarks"]
+    assert s["candidates"] == graph_summary["tag_measurements"]
+    assert s["selected"] == 30 and s["entropy_after"] < s["entropy_before"]
+
+
+def test_strategies_by_api(loaded, system) -> None:
+    focused = sorted(loaded.landmark_keys)[:6]
+    K = 12
+    out = {}
+    for strategy in ("information", "leverage", "uniform", "random", "all"):
+        c = choose(loaded, focused, SelectMeasurementsConfig(strategy=strategy, budget=K, leverage_draws=2), system)
+        out[strategy] = c
+        assert len(set(c.factor_indices)) == (c.n_candidates if strategy == "all" else K), strategy
+        assert set(c.factor_indices) <= set(c.candidates)
+        assert c.entropy_after < c.entropy_before
+    print(
+        "\nfocused entropy after K=12 of",
+        out["all"].n_candidates,
+        "candidates (6 landmarks):",
+        {k: round(v.entropy_after, 2) for k, v in out.items()},
+    )
+    for strategy in ("leverage", "uniform", "random"):
+        assert out["information"].entropy_after <= out[strategy].entropy_after + 1e-9
+    keep = out["information"].keep_factor_indices(loaded)
+    assert len(keep) == len(loaded.fixed_factor_indices) + K
+
+
+def test_fast_information_equals_reference_on_sample_subgraph(loaded, system) -> None:
+    """Fast greedy == dense reference (same picks, order, gains) on the first 40 keyframes of the sample."""
+    n = 40
+    poses = {system.index_of_key(k) for k in loaded.pose_keys[:n]}
+    base_full = [int(i) for i in loaded.fixed_factor_indices if set(system.factors[int(i)].variables) <= poses]
+    cand_full = [int(i) for i in loaded.tag_factor_indices if system.factors[int(i)].variables[0] in poses]
+    # the sub-graph as its own small system, so the dense reference stays small
+    used = sorted({v for f in base_full + cand_full for v in system.factors[f].variables})
+    remap = {v: k for k, v in enumerate(used)}
+    factors = [
+        Factor(tuple(remap[v] for v in system.factors[f].variables), system.factors[f].jacobian, system.factors[f].kind)
+        for f in base_full + cand_full
+    ]
+    sub = LinearSystem([system.variables[v] for v in used], factors)
+    base = list(range(len(base_full)))
+    cands = list(range(len(base_full), len(factors)))
+    lms = sorted({sub.factors[c].variables[1] for c in cands})
+    focused = lms[: max(2, len(lms) // 2)]
+    budget = 8
+    system = sub
+    fast = select_information(system, cands, focused, budget, base)
+    ref_picks, ref_gains = reference_greedy(system, cands, focused, budget, base)
+    assert fast.picks == ref_picks
+    np.testing.assert_allclose(fast.gains, ref_gains, rtol=1e-6, atol=1e-8)
