@@ -95,3 +95,60 @@ def test_ingest_rrd_read_back(bags, recording, tmp_path: Path) -> None:
     assert rows["/ingest/camera/image"] == (n_img + 1) // 2
     assert rows["/ingest/world/scan"] == (n_scan + 3) // 4
     assert rows["/ingest/world/odometry/base"] == len(_written(recording, "OdometryMsg"))
+
+
+@pytest.mark.parametrize("compression", ["bz2", "lz4"])
+def test_compressed_ros1_chunks(compression: str, recording, tmp_path: Path) -> None:
+    bag = write_bag(recording, tmp_path / f"{compression}.bag", "ros1", compression=compression)
+    run = _ingest(bag, tmp_path)
+    summary = json.loads((run.stage_dir("ingest") / "summary.json").read_text())
+    assert summary["frames"] == len(_written(recording, "ImageMsg"))
+    assert summary["odometry"] == len(_written(recording, "OdometryMsg"))
+
+
+def test_several_topics_of_a_type_name_the_setting(recording, tmp_path: Path) -> None:
+    """Two image topics: the error lists both and names ingest.image_topic; setting it picks one."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    src = write_bag(recording, tmp_path / "src.bag", "ros1")
+    dst = tmp_path / "two_cameras.bag"
+    with AnyReader([src]) as reader, Writer(dst) as writer:
+        conns = {}
+        for c in reader.connections:
+            conns[c.topic] = writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, md5sum=c.digest)
+            if c.topic == "/camera/image_raw/compressed":
+                conns["/left"] = writer.add_connection(
+                    "/left/compressed", c.msgtype, msgdef=c.msgdef.data, md5sum=c.digest
+                )
+        for c, t, data in reader.messages():
+            writer.write(conns[c.topic], t, data)
+            if c.topic == "/camera/image_raw/compressed":
+                writer.write(conns["/left"], t, data)
+    with pytest.raises(
+        InputError,
+        match=r"several camera image topics \['/camera/image_raw/compressed', "
+        r"'/left/compressed'\]; pick one with --set ingest.image_topic=",
+    ):
+        _ingest(dst, tmp_path)
+    run = _ingest(dst, tmp_path, "ingest.image_topic=/left/compressed")
+    frames = pq.read_table(run.stage_dir("ingest") / "frames.parquet", columns=["topic"]).column(0).to_pylist()
+    assert set(frames) == {"/left/compressed"}
+
+
+def test_salvage_reads_a_truncated_recording_up_to_the_damage(recording, tmp_path: Path) -> None:
+    bag = write_bag(recording, tmp_path / "cut.bag", "ros1")
+    size = bag.stat().st_size
+    with bag.open("r+b") as fh:
+        fh.truncate(int(size * 0.7))
+    with pytest.raises(InputError, match=r"truncated or damaged.*--salvage"):
+        _ingest(bag, tmp_path)
+    assert not (tmp_path / "cut" / "ingest").exists()
+    run = _ingest(bag, tmp_path, "ingest.salvage=true")
+    summary = json.loads((run.stage_dir("ingest") / "summary.json").read_text())
+    n_images = len(_written(recording, "ImageMsg"))
+    assert 0 < summary["frames"] < n_images
+    assert summary["salvaged"]["messages"] > 0 and summary["salvaged"]["stopped_at"]
+    frames = pq.read_table(run.stage_dir("ingest") / "frames.parquet").to_pylist()
+    images = _written(recording, "ImageMsg")
+    assert all(bytes(f["data"]) == bytes(images[f["frame"]].payload.data) for f in frames)
