@@ -41,7 +41,13 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from stages.estimation.linear_system import Factor, LinearSystem
-from stages.estimation.sparse_cov import SPDSolver, covariance_blocks, covariance_blocks_schur, logdet_spd
+from stages.estimation.sparse_cov import (
+    SPDSolver,
+    covariance_blocks,
+    covariance_blocks_schur,
+    logdet_spd,
+    schur_complement,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -271,6 +277,11 @@ _TRACK_FOCUSED_MAX = 128
 """Up to this many focused columns, ``Σ Wᵀ`` is kept at the tracked rows instead of solved for per step."""
 
 
+_REDUCE_BELOW = 0.7
+"""Track the Schur complement of ``Λ₀`` onto the candidates' and focused columns when they are fewer
+than this fraction of the state."""
+
+
 class _Tracker:
     """``Σ_S b`` at the rows ``rows`` of the state, for sparse right-hand sides, kept exact as picks join ``Λ_S``.
 
@@ -288,7 +299,7 @@ class _Tracker:
     def __init__(
         self,
         info: sp.csc_matrix,
-        rows: IntArray,
+        rows: IntArray | None,
         m: int,
         add_info: Callable[[list[int]], sp.spmatrix],
         refactor_every: int | None,
@@ -296,12 +307,13 @@ class _Tracker:
     ) -> None:
         self.info = info
         self.n = int(info.shape[0])
-        self.rows = rows
+        self.rows = rows  # None: ``info`` is already the (Schur-reduced) information of the tracked rows
+        n_rows = self.n if rows is None else len(rows)
         self.m = m
         self.add_info = add_info
         self.fixed = refactor_every
         self.cap = max(1, refactor_every or max_window)
-        self.win = np.empty((self.cap * m, len(rows)))  # Vᵢᵀ at ``rows``, m rows per pick
+        self.win = np.empty((self.cap * m, n_rows))  # Vᵢᵀ at ``rows``, m rows per pick
         self.win_Tinv = np.empty((self.cap, m, m))
         self.window: list[int] = []
         self.refactorisations = 0
@@ -321,8 +333,12 @@ class _Tracker:
         ``nz_pos``: the positions of ``nz`` in ``rows``.
         """
         rhs = np.zeros((self.n, vals.shape[1]))
-        rhs[nz] = vals
-        out = np.ascontiguousarray(self.solver.solve(rhs)[self.rows].T)
+        if self.rows is None:
+            rhs[nz_pos] = vals
+            out = np.ascontiguousarray(self.solver.solve(rhs).T)
+        else:
+            rhs[nz] = vals
+            out = np.ascontiguousarray(self.solver.solve(rhs)[self.rows].T)
         k = len(self.window)
         if k:
             tw = time.perf_counter()
@@ -502,8 +518,19 @@ def select_information(
     posT = np.ascontiguousarray(pos.T)
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
 
+    # Picks only touch the tracked rows, so Σ_S there is the inverse of the Schur complement of Λ₀ onto
+    # them plus the picks: track that smaller system when it is much smaller (exact).
+    t_red = time.perf_counter()
+    info_t, rows_t = prob.info0, rows
+    if len(rows) < _REDUCE_BELOW * n:
+        reduced = schur_complement(prob.info0, rows)
+        if reduced is not None:
+            info_t, rows_t = reduced, None
+    stats["reduce_s"] = time.perf_counter() - t_red
+
     def add_info(js: list[int]) -> sp.spmatrix:
-        return sub.information([cidx[i] for i in js])
+        info = sub.information([cidx[i] for i in js])
+        return info if rows_t is not None else info[rows][:, rows]
 
     eye_m = np.eye(m)
     picked = np.zeros(N, dtype=bool)
@@ -512,7 +539,7 @@ def select_information(
     t_update = 0.0
     t_loop = time.perf_counter()
     with _single_threaded_blas():
-        tracker = _Tracker(prob.info0, rows, m, add_info, refactor_every)
+        tracker = _Tracker(info_t, rows_t, m, add_info, refactor_every)
         for _ in range(budget):
             gain = 0.5 * (_logdet_eye_plus(M) - _logdet_eye_plus(K))
             gain[picked] = -np.inf
@@ -549,6 +576,7 @@ def select_information(
     stats["solve_s"] = stats["loop_s"] - t_update
     stats["refactorisations"] = float(tracker.refactorisations)
     stats["tracked_rows"] = float(len(rows))
+    stats["reduced"] = float(rows_t is None)
     h1 = h0 - float(np.sum(gains))
     return MeasurementSelection(picks, gains, "ok", N, budget, h0, h1, stats)
 

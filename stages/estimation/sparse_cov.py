@@ -327,3 +327,68 @@ def covariance_blocks_schur(
             Xj = X[r_off[b] : r_off[b + 1]]
             out[(i, j)] = base[(a, b)] + Xi @ C @ Xj.T
     return out
+
+
+def schur_complement(info: sp.spmatrix, keep: IntArray, max_colours: int = 96) -> sp.csc_matrix | None:
+    """Exact sparse ``Λ_KK − Λ_KO Λ_OO⁻¹ Λ_OK`` (``= (Λ⁻¹[K, K])⁻¹``) onto the scalar columns ``keep``.
+
+    ``O`` is every other column. ``Λ_OO⁻¹`` is block diagonal over the connected components of
+    ``O``'s sparsity graph, so kept columns that touch disjoint sets of components can share one
+    right-hand side: the kept columns are coloured greedily (same colour ⇒ no shared component),
+    ``X = Λ_OO⁻¹ B`` is solved for one summed right-hand side per colour, and each entry of ``X`` is
+    attributed back to the unique kept column of its colour that touches its component. For a pose
+    chain with kept poses (eliminating the runs of other poses between them) that is 6 right-hand
+    sides, and the result is again a block-tridiagonal chain over the kept poses.
+
+    Returns ``None`` when more than ``max_colours`` colours would be needed (not worth it).
+    """
+    info = sp.csc_matrix(info)
+    n = info.shape[0]
+    keep = np.asarray(keep, dtype=np.int64)
+    is_keep = np.zeros(n, dtype=bool)
+    is_keep[keep] = True
+    other = np.flatnonzero(~is_keep)
+    L_KK = info[keep][:, keep]
+    if len(other) == 0:
+        return sp.csc_matrix(L_KK)
+    L_OO = sp.csc_matrix(info[other][:, other])
+    L_OK = sp.csc_matrix(info[other][:, keep])
+    L_OK.eliminate_zeros()
+    n_comp, comp = csgraph.connected_components(L_OO, directed=False)
+    colour = np.full(len(keep), -1, dtype=np.int64)
+    used: list[set[int]] = []
+    for j in range(len(keep)):
+        touched = set(comp[L_OK.indices[L_OK.indptr[j] : L_OK.indptr[j + 1]]].tolist())
+        if not touched:
+            continue
+        for g, taken in enumerate(used):
+            if not (taken & touched):
+                taken |= touched
+                colour[j] = g
+                break
+        else:
+            if len(used) == max_colours:
+                return None
+            used.append(set(touched))
+            colour[j] = len(used) - 1
+    n_col = len(used)
+    if n_col == 0:
+        return sp.csc_matrix(L_KK)
+    coo = sp.coo_matrix(L_OK)  # rows: O positions, cols: K positions
+    B = np.zeros((len(other), n_col))
+    np.add.at(B, (coo.row, colour[coo.col]), coo.data)
+    X = SPDSolver(L_OO).solve(B)
+    owner = np.full((n_comp, n_col), -1, dtype=np.int64)
+    owner[comp[coo.row], colour[coo.col]] = coo.col
+    rows, cols, vals = [], [], []
+    for g in range(n_col):
+        j = owner[comp[coo.row], g]
+        ok = j >= 0
+        rows.append(coo.col[ok])
+        cols.append(j[ok])
+        vals.append(coo.data[ok] * X[coo.row[ok], g])
+    corr = sp.csc_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(len(keep), len(keep))
+    )
+    S = sp.csc_matrix(L_KK - corr)
+    return sp.csc_matrix(0.5 * (S + S.T))

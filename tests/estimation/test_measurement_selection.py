@@ -152,14 +152,17 @@ def test_uniform_is_even_in_time() -> None:
     assert sel.picks == [100, 125, 150, 174, 199]
 
 
+@pytest.mark.parametrize("reduce", [True, False])
 @pytest.mark.parametrize("track_focused", [True, False])
-def test_fast_equals_reference_through_refactorisations(monkeypatch, track_focused: bool) -> None:
-    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, and both
-    ways of getting ``Σ Wᵀ p`` (kept at the tracked rows, or a second solve per step)."""
+def test_fast_equals_reference_through_refactorisations(monkeypatch, track_focused: bool, reduce: bool) -> None:
+    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, both ways
+    of getting ``Σ Wᵀ p`` (kept at the tracked rows, or a second solve per step), with and without the
+    Schur reduction onto the tracked rows."""
     import stages.estimation.measurement_selection as ms
 
     if not track_focused:
         monkeypatch.setattr(ms, "_TRACK_FOCUSED_MAX", 0)
+    monkeypatch.setattr(ms, "_REDUCE_BELOW", 1.0 if reduce else 0.0)
     pp = planar_problem(150, 12, 220, seed=11, extent=40.0, sensor_range=12.0)
     system = LinearSystem.from_gtsam(pp.graph, pp.values)
     lms = system.variables_of_kind("landmark")
@@ -170,9 +173,26 @@ def test_fast_equals_reference_through_refactorisations(monkeypatch, track_focus
     budget = 14
     fast = select_information(system, cand, focused, budget, base=base, refactor_every=4)
     assert fast.stats["refactorisations"] >= 3
+    assert fast.stats["reduced"] == float(reduce)
     picks, gains = reference_greedy(system, cand, focused, budget, base)
     assert fast.picks == picks
     np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
     adaptive = select_information(system, cand, focused, budget, base=base, refactor_every=None)
     assert adaptive.picks == picks
     np.testing.assert_allclose(adaptive.gains, gains, rtol=1e-6, atol=1e-8)
+
+
+def test_schur_complement_is_the_inverse_of_the_covariance_block() -> None:
+    import scipy.sparse as sp
+
+    from stages.estimation.sparse_cov import schur_complement
+
+    rng = np.random.default_rng(1)
+    n = 80
+    A = sp.random(n, n, density=0.04, random_state=2)
+    A = A + A.T + sp.diags(np.full(n, 12.0)) + sp.diags(np.ones(n - 1), 1) + sp.diags(np.ones(n - 1), -1)
+    keep = np.sort(rng.choice(n, 25, replace=False))
+    S = schur_complement(sp.csc_matrix(A), keep)
+    assert S is not None
+    ref = np.linalg.inv(np.linalg.inv(A.toarray())[np.ix_(keep, keep)])
+    np.testing.assert_allclose(S.toarray(), ref, atol=1e-10)
