@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -96,7 +97,7 @@ def batch(
     where = (
         f"on the Dask cluster at {scheduler}" if scheduler else f"with {min(workers or _cores(), len(tasks))} workers"
     )
-    console = Console(highlight=False, soft_wrap=False)
+    console = Console(highlight=False, soft_wrap=False, width=None if sys.stdout.isatty() else 200)
     console.print(f"batch: {len(tasks)} recordings, stages {', '.join(stages)}, {where}")
     result = run_batch(tasks, workers=workers, scheduler=scheduler)
     table = summary_table(result.outcomes, stages)

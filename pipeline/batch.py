@@ -719,6 +719,23 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+_SHORT: Final = {
+    "ingest": "ing",
+    "detect": "det",
+    "graph": "gra",
+    "select_landmarks": "s-lm",
+    "select_measurements": "s-ms",
+    "optimize": "opt",
+    "evaluate": "eva",
+    "landmarks": "lms",
+    "focused_landmarks": "foc",
+    "measurements_kept": "kept",
+    "focused_entropy": "H",
+    "max_collision_probability": "maxP",
+    "collision_rate": "rate",
+}
+
+
 def print_summary(table: pa.Table, console: Any = None) -> None:
     """Print the summary as a rich table: per recording its status, times, headline figures and reason.
 
@@ -727,19 +744,18 @@ def print_summary(table: pa.Table, console: Any = None) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    console = console or Console(highlight=False)
+    console = console or Console(highlight=False, width=None if sys.stdout.isatty() else 200)
     data = table.to_pylist()
     stage_cols = [c for c in table.column_names if c.startswith("seconds_")]
     head_cols = [c for c in HEADLINES if any(r[c] is not None for r in data)]
-    view = Table(title=f"batch: {len(data)} recordings", title_justify="left")
+    view = Table(title=f"batch: {len(data)} recordings", title_justify="left", pad_edge=False, padding=(0, 1))
     view.add_column("run", overflow="fold")
     view.add_column("status")
     view.add_column("s", justify="right")
     for c in stage_cols:
-        view.add_column(f"{c.removeprefix('seconds_')} s", justify="right")
+        view.add_column(_SHORT.get(c.removeprefix("seconds_"), c.removeprefix("seconds_")), justify="right")
     for c in head_cols:
-        view.add_column(c.replace("_", " "), justify="right", overflow="fold")
-    view.add_column("reason", overflow="fold", ratio=1)
+        view.add_column(_SHORT.get(c, c.replace("_", " ")), justify="right")
     colours = {"done": "green", "skipped": "cyan", "failed": "bold red"}
     for r in data:
         status = r["status"] + (f" ({r['failed_stage']})" if r["failed_stage"] else "")
@@ -749,8 +765,16 @@ def print_summary(table: pa.Table, console: Any = None) -> None:
             _fmt(r["seconds"]),
             *(_fmt(r[c]) for c in stage_cols),
             *(_fmt(r[c]) for c in head_cols),
-            r["reason"] or "",
         )
     console.print(view)
+    legend = [
+        f"{_SHORT[k]} = {k.replace('_', ' ')}"
+        for k in (*HEADLINES, *(c.removeprefix("seconds_") for c in stage_cols))
+        if k in _SHORT and (k in head_cols or f"seconds_{k}" in stage_cols)
+    ]
+    console.print("[dim]stage columns: seconds the current result took; " + "; ".join(legend) + "[/]")
+    for r in data:
+        if r["reason"]:
+            console.print(f"[bold red]{r['run']}[/]: {r['reason']}", soft_wrap=True)
     counts = {s: sum(r["status"] == s for r in data) for s in ("done", "skipped", "failed")}
     console.print(", ".join(f"{n} {s}" for s, n in counts.items()))
