@@ -277,9 +277,9 @@ _TRACK_FOCUSED_MAX = 128
 """Up to this many focused columns, ``Σ Wᵀ`` is kept at the tracked rows instead of solved for per step."""
 
 
-_REDUCE_BELOW = 0.7
+_REDUCE_BELOW = 1.0
 """Track the Schur complement of ``Λ₀`` onto the candidates' and focused columns when they are fewer
-than this fraction of the state."""
+than this fraction of the state (measured: worth it even at 77% of the state, 4.9 vs 7.2 ms/step)."""
 
 
 class _Tracker:

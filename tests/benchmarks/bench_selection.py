@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import resource
 import subprocess
+import sys
 import time
 import tracemalloc
 
@@ -18,6 +19,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+import stages.estimation.measurement_selection as ms
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
     _compact_problem,
@@ -65,6 +67,23 @@ def reference_seconds_per_evaluation(system, cand, focused, n_eval: int = 4) -> 
     return (time.perf_counter() - t) / n_eval
 
 
+def _rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def memory_probe(K: int) -> None:
+    """Peak RSS of the greedy alone: build the benchmark graph, run ``select_information`` once."""
+    pp = planar_problem(7000, 150, 10000, seed=0, extent=200, sensor_range=30)
+    system = LinearSystem.from_gtsam(pp.graph, pp.values)
+    focused = system.variables_of_kind("landmark")[:30]
+    cand = [f for f in pp.measurement_factors if set(focused) & set(system.factors[f].variables)]
+    before = _rss_mib()
+    select_information(system, cand, focused, K)
+    print(
+        f"peak RSS (fresh process): {before:.0f} MiB after building the graph, {_rss_mib():.0f} MiB after greedy K={K}"
+    )
+
+
 def uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
 
@@ -79,7 +98,11 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--draws", type=int, default=5, help="leverage draws")
     ap.add_argument("--flat-steps", type=int, default=100, help="greedy steps for the per-step timing")
+    ap.add_argument("--memory-probe", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.memory_probe:
+        memory_probe(args.memory_probe)
+        return
     print(f"uptime before: {uptime()}")
     pp = planar_problem(args.poses, args.landmarks, args.measurements, seed=0, extent=200, sensor_range=30)
     system = LinearSystem.from_gtsam(pp.graph, pp.values)
@@ -123,27 +146,42 @@ def main() -> None:
             f"{(s.entropy_before - s.entropy_after) / max(s.entropy_before - lv.entropy_after, 1e-12):.2f}x "
             f"the entropy leverage removes)"
         )
-    # time per step as the candidates grow: all landmarks focused, the first n measurements as candidates
+    # time per step as the candidates grow: all landmarks focused, the first n measurements as candidates;
+    # by default (the tracked system is the Schur complement onto the candidates' columns, so it grows
+    # with them) and with the tracked system held at the whole graph (isolates the per-candidate work)
     steps = args.flat_steps
-    per_step: dict[int, list[float]] = {1000: [], args.measurements: []}
+    sizes = (1000, args.measurements)
+    per_step: dict[tuple[str, int], list[float]] = {(v, nc): [] for v in ("reduced", "whole graph") for nc in sizes}
+    info: dict[tuple[str, int], dict[str, float]] = {}
     for _ in range(args.repeats):
-        for n_cand in per_step:
-            c = pp.measurement_factors[:n_cand]
-            s = select_information(system, c, lms, steps)
-            per_step[n_cand].append(1e3 * s.stats["loop_s"] / steps)
-    a, b = (float(np.median(v)) for v in per_step.values())
-    print(
-        f"all {len(lms)} landmarks focused, {steps} steps: {a:.2f} ms/step with 1,000 candidates, "
-        f"{b:.2f} ms/step with {args.measurements:,} ({b / a:.2f}x)"
-    )
-    # memory: Python/numpy allocations during one greedy (tracemalloc), and the process peak
+        for variant, nc in per_step:
+            ms._REDUCE_BELOW = 1.0 if variant == "reduced" else 0.0
+            s = select_information(system, pp.measurement_factors[:nc], lms, steps)
+            per_step[(variant, nc)].append(1e3 * s.stats["loop_s"] / steps)
+            info[(variant, nc)] = s.stats
+    ms._REDUCE_BELOW = 1.0
+    for variant in ("reduced", "whole graph"):
+        a, b = (float(np.median(per_step[(variant, nc)])) for nc in sizes)
+        ia, ib = info[(variant, sizes[0])], info[(variant, sizes[1])]
+        print(
+            f"all landmarks focused, {steps} steps, tracked system {variant}: {a:.2f} ms/step with {sizes[0]:,} "
+            f"candidates ({ia['tracked_rows']:.0f} tracked rows), {b:.2f} ms/step with {sizes[1]:,} "
+            f"({ib['tracked_rows']:.0f} rows) = {b / a:.2f}x; per-candidate updates "
+            f"{1e3 * ia['update_s'] / steps:.2f} vs {1e3 * ib['update_s'] / steps:.2f} ms/step"
+        )
+    # memory: the greedy alone in a fresh process (peak RSS after building the graph and after the
+    # greedy), and the Python/numpy allocations during one greedy (tracemalloc)
     K = max(args.budgets)
+    probe = subprocess.run(
+        [sys.executable, __file__, "--memory-probe", str(K)], capture_output=True, text=True, check=False
+    )
+    print(probe.stdout.strip() or probe.stderr.strip())
     tracemalloc.start()
     select_information(system, cand, focused, K)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     print(f"peak numpy/Python allocations in greedy K={K}: {peak / 2**20:.0f} MiB")
-    print(f"process peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    print(f"this process's peak RSS (GTSAM marginals, leverage, ...): {_rss_mib():.0f} MiB")
     print(f"uptime after: {uptime()}")
 
 
