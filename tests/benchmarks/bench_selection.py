@@ -68,6 +68,14 @@ def reference_seconds_per_evaluation(system, cand, focused, n_eval: int = 4) -> 
 
 
 def _rss_mib() -> float:
+    """Peak resident set of this process (``VmHWM``; ``ru_maxrss`` would include the parent's peak at fork)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:  # pragma: no cover - not Linux
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
