@@ -333,12 +333,9 @@ class _Tracker:
         ``nz_pos``: the positions of ``nz`` in ``rows``.
         """
         rhs = np.zeros((self.n, vals.shape[1]))
-        if self.rows is None:
-            rhs[nz_pos] = vals
-            out = np.ascontiguousarray(self.solver.solve(rhs).T)
-        else:
-            rhs[nz] = vals
-            out = np.ascontiguousarray(self.solver.solve(rhs)[self.rows].T)
+        rhs[nz if self.rows is not None else nz_pos] = vals
+        x = self.solver.solve(rhs)
+        out = np.ascontiguousarray((x if self.rows is None else x[self.rows]).T)
         k = len(self.window)
         if k:
             tw = time.perf_counter()

@@ -377,7 +377,9 @@ def schur_complement(info: sp.spmatrix, keep: IntArray, max_colours: int = 96) -
     coo = sp.coo_matrix(L_OK)  # rows: O positions, cols: K positions
     B = np.zeros((len(other), n_col))
     np.add.at(B, (coo.row, colour[coo.col]), coo.data)
-    X = SPDSolver(L_OO).solve(B)
+    solver = SPDSolver(L_OO)
+    X = solver.solve(B)
+    X += solver.solve(B - L_OO @ X)  # one step of iterative refinement
     owner = np.full((n_comp, n_col), -1, dtype=np.int64)
     owner[comp[coo.row], colour[coo.col]] = coo.col
     rows, cols, vals = [], [], []
