@@ -189,14 +189,20 @@ def ingest(
     salvage: SalvageOpt = False,
 ) -> None:
     """Read frames, odometry, laser scans, the camera model and extrinsics into OUT/<name>/ingest/."""
+    settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
+    _run_on_bag(bag, out, name, ["ingest"], settings, force)
+
+
+def _run_on_bag(bag: Path, out: Path, name: str | None, stages: list[str], settings: Any, force: bool) -> Any:
+    """Check the recording, create (or reuse) its run folder and run ``stages`` in it."""
     from pipeline.run_folder import RunFolder
     from stages.ingest.bags import detect_format
 
-    settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
     detect_format(bag)
     run = RunFolder.create(out / _run_name(bag, name), bag)
-    _run_stages(run, ["ingest"], settings, force)
+    _run_stages(run, stages, settings, force)
     typer.echo(f"run folder: {run.path}")
+    return run
 
 
 def _stage_command(stage_name: str, help_text: str) -> None:
@@ -318,15 +324,9 @@ def run_pipeline(
     salvage: SalvageOpt = False,
 ) -> None:
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
-    from pipeline.run_folder import RunFolder
-    from stages.ingest.bags import detect_format
-
     settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
     stages = _registry().between(start_stage, until)
-    detect_format(bag)
-    run = RunFolder.create(out / _run_name(bag, name), bag)
-    _run_stages(run, [s.name for s in stages], settings, force)
-    typer.echo(f"run folder: {run.path}")
+    run = _run_on_bag(bag, out, name, [s.name for s in stages], settings, force)
     _print_headline(run)
     typer.echo(f"open it with: focusmap view {run.path}")
 
