@@ -11,7 +11,10 @@ records, SQLite's ``messages`` table), never from a ``metadata.yaml`` that may d
 
 from __future__ import annotations
 
+import io
+import os
 import sqlite3
+import struct
 from collections.abc import Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -407,41 +410,20 @@ class _Mcap(_Impl):
 
     def _scan(self, f: Path) -> None:
         """Salvage: read records in order until the damage, counting what is intact."""
-        from mcap.records import Channel, Message, Schema
-        from mcap.stream_reader import StreamReader
-
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
+        errors: list[str] = []
         read = 0
         with f.open("rb") as fh:
-            try:
-                for record in StreamReader(fh, skip_magic=False).records:
-                    if isinstance(record, Schema):
-                        schemas[record.id] = record
-                    elif isinstance(record, Channel):
-                        channels[record.id] = record
-                        sch = schemas.get(record.schema_id)
-                        self.topics.setdefault(
-                            record.topic, TopicInfo(record.topic, _normalise_type(sch.name) if sch else "")
-                        )
-                    elif isinstance(record, Message):
-                        ch = channels[record.channel_id]
-                        info = self.topics[ch.topic]
-                        info.count += 1
-                        info.first_ns = (
-                            record.log_time if info.first_ns is None else min(info.first_ns, record.log_time)
-                        )
-                        info.last_ns = record.log_time if info.last_ns is None else max(info.last_ns, record.log_time)
-                        read += 1
-            except Exception as err:
-                self.rec.salvaged = {"messages": read, "stopped_at": str(err)}
-                return
-        self.rec.salvaged = {"messages": read, "stopped_at": None}
+            for schema, channel, message in _intact_messages(fh, errors):
+                info = self.topics.setdefault(channel.topic, TopicInfo(channel.topic, _normalise_type(schema.name)))
+                info.count += 1
+                t = message.log_time
+                info.first_ns = t if info.first_ns is None else min(info.first_ns, t)
+                info.last_ns = t if info.last_ns is None else max(info.last_ns, t)
+                read += 1
+        self.rec.salvaged = {"messages": read, "stopped_at": errors[0] if errors else None}
 
     def messages(self, topics: set[str]) -> Iterator[RawMessage]:
         from mcap.reader import make_reader
-        from mcap.records import Channel, Message, Schema
-        from mcap.stream_reader import StreamReader
         from mcap_ros2.decoder import DecoderFactory
 
         factory = DecoderFactory()
@@ -459,30 +441,16 @@ class _Mcap(_Impl):
         for f in self.files:
             with f.open("rb") as fh:
                 if self.rec.salvage:
-                    schemas: dict[int, Any] = {}
-                    channels: dict[int, Any] = {}
-                    try:
-                        for record in StreamReader(fh, skip_magic=False).records:
-                            if isinstance(record, Schema):
-                                schemas[record.id] = record
-                            elif isinstance(record, Channel):
-                                channels[record.id] = record
-                            elif isinstance(record, Message):
-                                ch = channels[record.channel_id]
-                                if ch.topic in topics:
-                                    sch = schemas[ch.schema_id]
-                                    dec = decode_with(sch, ch)
-                                    yield RawMessage(
-                                        ch.topic,
-                                        _normalise_type(sch.name),
-                                        record.log_time,
-                                        record.data,
-                                        lambda d, _t, dec=dec: dec(d),
-                                    )
-                    except InputError:
-                        raise
-                    except Exception:
-                        return
+                    for schema, channel, message in _intact_messages(fh, []):
+                        if channel.topic in topics:
+                            dec = decode_with(schema, channel)
+                            yield RawMessage(
+                                channel.topic,
+                                _normalise_type(schema.name),
+                                message.log_time,
+                                message.data,
+                                lambda d, _t, dec=dec: dec(d),
+                            )
                     continue
                 reader = make_reader(fh)
                 try:
@@ -499,6 +467,81 @@ class _Mcap(_Impl):
                     raise
                 except Exception as err:
                     raise _truncation_hint(self.rec.path, err) from None
+
+
+_MCAP_SCHEMA, _MCAP_CHANNEL, _MCAP_MESSAGE, _MCAP_CHUNK = 0x03, 0x04, 0x05, 0x06
+
+
+def _chunk_records(content: bytes) -> bytes:
+    """The (possibly cut) records inside an MCAP chunk's content, decompressed as far as they go."""
+    pos = 8 + 8 + 8 + 4  # message start/end time, uncompressed size, crc
+    (n,) = struct.unpack_from("<I", content, pos)
+    compression = content[pos + 4 : pos + 4 + n].decode()
+    pos += 4 + n + 8  # the records' length follows the compression name
+    data = content[pos:]
+    if compression == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompressobj().decompress(data)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.LZ4FrameDecompressor().decompress(data)
+    return data
+
+
+def _intact_messages(fh: Any, errors: list[str]) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema, channel, message) of an MCAP file in file order, up to the damage.
+
+    Records are walked by hand (opcode, length, content), so a chunk cut by truncation still gives
+    the messages it holds before the cut. The reason reading stopped early is appended to ``errors``.
+    """
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    size = os.fstat(fh.fileno()).st_size
+
+    def parse(records: bytes) -> Iterator[tuple[Any, Any, Any]]:
+        try:
+            for record in StreamReader(io.BytesIO(records), skip_magic=True).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = channels[record.channel_id]
+                    yield schemas[channel.schema_id], channel, record
+        except Exception as err:  # a cut record inside a chunk: keep what came before it
+            errors.append(f"record cut inside a chunk ({err or type(err).__name__})")
+
+    if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+        errors.append("no MCAP magic at the start")
+        return
+    while True:
+        head = fh.read(9)
+        if len(head) < 9:
+            if head:
+                errors.append(f"record header cut at byte {fh.tell()} of {size}")
+            return
+        opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
+        content = fh.read(min(length, max(size - fh.tell(), 0)))
+        complete = len(content) == length
+        if opcode == _MCAP_CHUNK:
+            try:
+                inner = _chunk_records(content)
+            except Exception as err:
+                errors.append(f"chunk at byte {fh.tell() - len(content) - 9} does not decode ({err})")
+                return
+            yield from parse(inner)
+        elif opcode in (_MCAP_SCHEMA, _MCAP_CHANNEL, _MCAP_MESSAGE) and complete:
+            yield from parse(head + content)
+        if not complete:
+            errors.append(f"record cut at byte {size} (it needs {length} bytes from byte {size - len(content)})")
+            return
+        if errors:
+            return
 
 
 class _Sqlite(_Impl):

@@ -152,3 +152,16 @@ def test_salvage_reads_a_truncated_recording_up_to_the_damage(recording, tmp_pat
     frames = pq.read_table(run.stage_dir("ingest") / "frames.parquet").to_pylist()
     images = _written(recording, "ImageMsg")
     assert all(bytes(f["data"]) == bytes(images[f["frame"]].payload.data) for f in frames)
+
+
+def test_salvage_reads_a_truncated_mcap_file(recording, tmp_path: Path) -> None:
+    bag = write_bag(recording, tmp_path / "cut.mcap", "mcap")
+    with bag.open("r+b") as fh:
+        fh.truncate(int(bag.stat().st_size * 0.6))
+    with pytest.raises(InputError, match=r"truncated or damaged.*--salvage"):
+        _ingest(bag, tmp_path)
+    run = _ingest(bag, tmp_path, "ingest.salvage=true")
+    summary = json.loads((run.stage_dir("ingest") / "summary.json").read_text())
+    assert summary["reader"] == "mcap" and summary["salvaged"]["stopped_at"]
+    assert 0 < summary["frames"] < len(_written(recording, "ImageMsg"))
+    assert 0 < summary["odometry"] < len(_written(recording, "OdometryMsg"))
