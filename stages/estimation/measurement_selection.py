@@ -17,9 +17,12 @@ with ``g_c = A_c V`` and ``w = W V``::
     P   ← P + p E⁻¹ pᵀ,  p = P w,  E = T − wᵀ P w        (P = Σ_F⁻¹, Woodbury)
     R_c ← R_c + p E⁻¹ (wᵀ R_c − g_cᵀ)                  (R_c = P U_c, so U_cᵀ Σ_F⁻¹ U_c = U_cᵀ R_c)
 
-Each step costs one sparse solve for ``V`` (with the factor of the last refactorised information
-plus a Woodbury correction over the picks since, refactorising every ``refactor_every`` picks)
-and ``O(N_candidates · f · m²)`` small dense work. No dense ``n × n`` matrix is ever formed.
+The implementation (:func:`select_information`) evaluates the same gain in the equivalent
+mutual-information form (``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ``) with one tracked covariance:
+``Σ`` only at the rows the gains read (the exact Schur complement of ``Λ₀`` onto the candidates' and
+focused columns plus the picks), one sparse solve per step from the last factorisation plus a
+Woodbury window over the picks since (a second one when more than 128 columns are focused), and
+``O(N_candidates · m² · d)`` small dense work. No dense ``n × n`` matrix is ever formed.
 
 Initial information ``Λ₀`` = the base factors (odometry and prior) plus a weak isotropic prior of
 standard deviation ``landmark_prior_sigma`` on every landmark variable, so landmarks that the base
@@ -442,9 +445,11 @@ def select_information(
         K_c −= k_c E⁻¹ k_cᵀ,            k_c = A_c Σ_{·|F} A_jᵀ = g_c − A_c (Σ Wᵀ p)
         Σ_F −= w T⁻¹ wᵀ,   Σ_F⁻¹ += p E⁻¹ pᵀ
 
-    so each step is two solves with the same tracked ``Σ`` (right-hand sides ``A_jᵀ`` and ``Wᵀ p``,
-    each the last sparse factor plus a Woodbury window over the picks since) and
-    ``O(N_candidates · m² · d)`` batched dense work, independent of the number of focused variables.
+    ``Σ`` is tracked only at the rows the gains read (candidates' and focused columns; the tracked
+    sparse information is the exact Schur complement of ``Λ₀`` onto them, plus the picks). ``V`` is one
+    solve (the last sparse factor plus a Woodbury window over the picks since); ``Σ Wᵀ p`` is read from
+    ``W Σ`` kept at the tracked rows when at most 128 columns are focused, else a second solve. Plus
+    ``O(N_candidates · m² · d)`` batched dense work.
 
     Args:
         system: the linearised full graph (whitened Jacobians at the full-graph solution).
