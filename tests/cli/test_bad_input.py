@@ -131,3 +131,15 @@ def test_ingest_minimal_bag_works(tmp_path: Path) -> None:
 def test_help(args: list[str]) -> None:
     proc = focusmap(*args)
     assert proc.returncode == 0 and "Usage" in proc.stdout
+
+
+def test_view_opens_every_stage_recording_with_the_run_layout(tmp_path: Path) -> None:
+    bag = write_minimal_bag(tmp_path / "ok.bag")
+    assert focusmap("ingest", bag, "--out", tmp_path / "runs").returncode == 0
+    proc = focusmap("view", tmp_path / "runs" / "ok", "--print")
+    assert proc.returncode == 0, proc.stderr
+    args = proc.stdout.split()
+    assert args[0].endswith("rerun")
+    assert args[1:] == [str(tmp_path / "runs" / "ok" / "ingest.rrd"), str(tmp_path / "runs" / "ok" / "focusmap.rbl")]
+    proc = focusmap("view", tmp_path / "runs" / "nothing")
+    assert_one_error_line(proc, "does not exist")
