@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from stages.estimation.landmark_selection import (
     brute_force_mutual_information,
@@ -143,3 +144,29 @@ def test_landmark_budget_edge_cases() -> None:
     info0, contrib = _random_mi_problem(np.random.default_rng(0), L=4)
     assert select_mutual_information(info0, contrib, 0).picks == []
     assert sorted(select_mutual_information(info0, contrib, 9).picks) == [0, 1, 2, 3]
+
+
+def _dense_leverage_probabilities(info0, contrib):
+    lam = info0.copy()
+    for cols, B in contrib:
+        lam[np.ix_(cols, cols)] += B
+    Sigma = np.linalg.inv(lam)
+    base = float(np.trace(Sigma @ info0)) / len(contrib)
+    return np.array([base + float(np.sum(Sigma[np.ix_(c, c)] * B)) for c, B in contrib]) / info0.shape[0]
+
+
+def test_sparse_leverage_and_mi_equal_the_dense_formulas() -> None:
+    """The sparse factorisations give the dense inverse's numbers (probabilities, draw measures, MI gains)."""
+    from stages.estimation.landmark_selection import _measure, _measure_information, _scatter
+
+    info0, contrib = _random_mi_problem(np.random.default_rng(3), T=12, L=20)
+    np.testing.assert_allclose(
+        landmark_leverage_probabilities(info0, contrib), _dense_leverage_probabilities(info0, contrib), rtol=1e-9
+    )
+    lam = info0 + _scatter(info0.shape[0], contrib[:6]).toarray()
+    for measure in ("logdet", "trace", "max_eig"):
+        dense = _measure(np.linalg.inv(lam), measure)
+        assert _measure_information(sp.csc_matrix(lam), measure) == pytest.approx(dense, rel=1e-8)
+    sel = select_mutual_information(info0, contrib, 6)
+    assert mutual_information(info0, contrib, sel.picks) == pytest.approx(sum(sel.scores), rel=1e-9)
+    assert select_mutual_information(sp.csc_matrix(info0), contrib, 6).picks == sel.picks
