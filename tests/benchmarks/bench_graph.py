@@ -9,6 +9,10 @@ Commands (each prints what it measured in this run; nothing is asserted)::
     /work/venv/bin/python tests/benchmarks/bench_graph.py accuracy --bag sample_data/office/office.bag
     /work/venv/bin/python tests/benchmarks/bench_graph.py accuracy --simulate-seeds 1 2 3 4 --work /tmp/focusmap_sims
 
+    # where the landmark NEES comes from (on the run folders 'accuracy' left in --work; docs/graph.md)
+    /work/venv/bin/python tests/benchmarks/bench_graph.py diagnose --bag sample_data/office/office.bag \\
+        /tmp/g4/office_seed1.bag /tmp/g4/office_seed2.bag /tmp/g4/office_seed3.bag --work /tmp/g4/work --estimator-mc
+
     # the same statistics on the image-free synthetic runs of stages/graph/synthetic.py
     /work/venv/bin/python tests/benchmarks/bench_graph.py synthetic --seeds 0 1 2 3 4 5 6 7 8 9
 """
@@ -229,6 +233,252 @@ def synthetic(args: argparse.Namespace) -> None:
     _table(rows)
 
 
+def _truth_tables(gt: dict) -> tuple[dict, np.ndarray, np.ndarray, dict]:
+    """Ground truth: T_camera_tag by (frame, tag id), pose stamps, poses (x, y, yaw), tag positions (world)."""
+    truth = {(f["index"], t["id"]): np.array(t["T_camera_tag"]) for f in gt["frames"] for t in f["visible_tags"]}
+    st = np.array([p["stamp_ns"] for p in gt["poses"]], dtype=float)
+    xyyaw = np.array([[p["x"], p["y"], p["yaw"]] for p in gt["poses"]])
+    xyyaw[:, 2] = np.unwrap(xyyaw[:, 2])
+    tags = {t["id"]: np.array(t["position"]) for t in gt["tags"]}
+    return truth, st, xyyaw, tags
+
+
+def _depth_errors(det: dict, truth: dict) -> dict[str, np.ndarray]:
+    """Per detection matched to the truth: range, relative depth error (along the true line of sight), view angle."""
+    out: dict[str, list] = {"i": [], "range": [], "rel_depth": [], "view_deg": [], "p_alt": [], "rel_depth_alt": []}
+    for i in range(len(det["frame"])):
+        key = (int(det["frame"][i]), int(det["tag_id"][i]))
+        if key not in truth or det["ambiguous"][i]:
+            continue
+        T = np.reshape(det["T_camera_tag"][i], (4, 4))
+        Ta = np.reshape(det["alt_T_camera_tag"][i], (4, 4))
+        Tt = truth[key]
+        tt = Tt[:3, 3]
+        z = float(np.linalg.norm(tt))
+        u = tt / z
+        ta = Ta[:3, 3] if np.all(np.isfinite(Ta)) else T[:3, 3]
+        out["i"].append(i)
+        out["range"].append(z)
+        out["rel_depth"].append(float((T[:3, 3] - tt) @ u) / z)
+        out["rel_depth_alt"].append(float((ta - tt) @ u) / z)
+        out["view_deg"].append(float(np.degrees(np.arccos(min(1.0, abs(Tt[:3, 2] @ u))))))
+        out["p_alt"].append(float(det["alt_probability"][i]) if "alt_probability" in det else 0.0)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _edit_detections(table, truth: dict, how: str, k: float = 0.0):
+    """A copy of the detection table with the tag translations edited against the truth.
+
+    ``depth``: the depth error (along the true line of sight) removed, the lateral error kept;
+    ``scale``: every translation multiplied by ``1 + k``; ``mixture_mean``: the translation replaced by
+    ``(1 - p) t + p t_alt`` (the mixture mean of both planar solutions' centres).
+    """
+    import pyarrow as pa
+
+    det = table.to_pydict()
+    Ts = [list(v) for v in det["T_camera_tag"]]
+    for i in range(len(Ts)):
+        T = np.reshape(Ts[i], (4, 4)).copy()
+        t = T[:3, 3]
+        if how == "scale":
+            T[:3, 3] = t * (1.0 + k)
+        elif how == "mixture_mean":
+            Ta = np.reshape(det["alt_T_camera_tag"][i], (4, 4))
+            p = float(det["alt_probability"][i])
+            if np.all(np.isfinite(Ta)):
+                T[:3, 3] = (1 - p) * t + p * Ta[:3, 3]
+        elif how == "depth":
+            key = (int(det["frame"][i]), int(det["tag_id"][i]))
+            if key in truth:
+                tt = truth[key][:3, 3]
+                u = tt / np.linalg.norm(tt)
+                T[:3, 3] = t - ((t - tt) @ u) * u
+        Ts[i] = T.ravel().tolist()
+    idx = table.column_names.index("T_camera_tag")
+    return table.set_column(idx, "T_camera_tag", pa.array(Ts, type=table.schema.field("T_camera_tag").type))
+
+
+def _solve_nees(detections, odometry, extrinsics, cfg, gt: dict) -> dict:
+    """Build and solve the stage's problem in process; landmark NEES/dim in the map frame, per landmark too."""
+    import gtsam
+
+    from stages.graph.build import build_problem
+    from stages.graph.factors import build_graph
+    from stages.graph.solve import marginal_covariances, optimise
+
+    _, gst, gxy, tags = _truth_tables(gt)
+    p = build_problem(detections, odometry, extrinsics, cfg)
+    g = build_graph(p.rows)
+    sol = optimise(p, g)
+    marg = marginal_covariances(p, g, sol.values, [*p.landmark_keys.values(), p.pose_keys[0]])
+    st = np.asarray(p.pose_stamps_ns, dtype=float)
+    x0, y0, yaw0 = (float(np.interp(st[0], gst, gxy[:, j])) for j in range(3))
+    c, s = np.cos(yaw0), np.sin(yaw0)
+    R0 = np.array([[c, -s], [s, c]])
+    ids, nees, sig = [], [], []
+    for tag, key in p.landmark_keys.items():
+        if tag not in tags:
+            continue
+        true = (tags[tag][:2] - [x0, y0]) @ R0
+        if p.model == "planar":
+            est = np.asarray(sol.values.atPoint2(key))
+            cov = marg[key]
+        else:
+            q = sol.values.atPose3(key)
+            est = np.asarray(q.translation())[:2]
+            R = np.asarray(q.rotation().matrix())
+            cov = (R @ marg[key][3:, 3:] @ R.T)[:2, :2]
+        e = est - true
+        ids.append(tag)
+        nees.append(float(e @ np.linalg.solve(cov, e)) / 2)
+        sig.append(float(np.sqrt(np.trace(cov) / 2)))
+    # odometry factors' chi^2 per dimension at the true poses (planar only)
+    chi = []
+    if p.model == "planar":
+        tp = [gtsam.Pose2(*(float(np.interp(t, gst, gxy[:, j])) for j in range(3))) for t in st]
+        pidx = {k: i for i, k in enumerate(p.pose_keys)}
+        for r in p.rows:
+            if r.kind == "odometry":
+                i, j = pidx[r.keys[0]], pidx[r.keys[1]]
+                meas = gtsam.Pose2(*r.measurement)
+                e = gtsam.Pose2.Logmap(meas.between(tp[i].between(tp[j])))
+                chi.append(float(e @ np.linalg.solve(r.covariance, e)) / 3)
+    return {
+        "nees_per_dim": float(np.mean(nees)),
+        "per_landmark": dict(zip(ids, nees, strict=True)),
+        "sigma_cm": float(100 * np.mean(sig)),
+        "odometry_chi2_per_dim": float(np.mean(chi)) if chi else float("nan"),
+        "problem": p,
+    }
+
+
+def _estimator_bias(gt: dict, sigma_px: float, draws: int, stride: int, seed: int = 0) -> None:
+    """Monte Carlo of detect's pose estimator alone: the true corners plus white noise of ``sigma_px``.
+
+    No image, no JPEG, no detector: what remains of the range bias is the estimator's own (the planar
+    tilt folded away from frontal, which the range pays for).
+    """
+    from stages.camera import colmap_camera
+    from stages.detect.pose import estimate_tag_pose
+
+    cam = gt["camera"]
+    camera = colmap_camera(
+        {"width": cam["width"], "height": cam["height"], "K": cam["K"], "D": cam["D"], "distortion_model": "plumb_bob"}
+    )
+    size = float(gt["config"]["tag_size_m"])
+    rng = np.random.default_rng(seed)
+    res = []
+    for f in gt["frames"][::stride]:
+        for t in f["visible_tags"]:
+            T = np.array(t["T_camera_tag"])
+            c = np.array(t["corners_px"]).reshape(4, 2)
+            if min(np.linalg.norm(np.roll(c, -1, 0) - c, axis=1)) < 10:
+                continue
+            z = float(np.linalg.norm(T[:3, 3]))
+            u = T[:3, 3] / z
+            errs = []
+            for _ in range(draws):
+                est = estimate_tag_pose(c + rng.normal(0, sigma_px, c.shape), size, camera)
+                if est is not None:
+                    errs.append(float((est.T_camera_tag[:3, 3] - T[:3, 3]) @ u) / z)
+            view = float(np.degrees(np.arccos(min(1.0, abs(T[:3, 2] @ u)))))
+            res.append((z, view, np.mean(errs)))
+    A = np.array(res)
+    print(
+        f"\nestimator alone (true corners + N(0, {sigma_px} px), {draws} draws, {len(A)} tag views): "
+        f"mean relative depth error {100 * A[:, 2].mean():+.3f} %"
+    )
+    print("| range (m) | n | rel. depth error (%) |  | view angle (deg) | n | rel. depth error (%) |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    rb = [(0, 1.5), (1.5, 2), (2, 3), (3, 5), (5, 99), (None, None)]
+    vb = [(0, 10), (10, 20), (20, 30), (30, 45), (45, 60), (60, 91)]
+    for (a, b), (c0, c1) in zip(rb, vb, strict=True):
+        left = "|  |  |  |"
+        if a is not None:
+            m = (A[:, 0] >= a) & (A[:, 0] < b)
+            left = f"| {a}-{b} | {m.sum()} | {100 * A[m, 2].mean():+.3f} |"
+        m = (A[:, 1] >= c0) & (A[:, 1] < c1)
+        print(f"{left}  | {c0}-{c1} | {m.sum()} | {100 * A[m, 2].mean():+.3f} |")
+
+
+def diagnose(args: argparse.Namespace) -> None:
+    """Where the landmark NEES comes from: detect's range errors, the prior, far-only landmarks, odometry.
+
+    Works on run folders made by ``accuracy`` (same --work): per-detection depth errors against the truth,
+    then in-process rebuilds of the planar problem with the detections edited against the truth.
+    """
+    import pyarrow.parquet as pq
+
+    from stages.graph.config import GraphConfig
+
+    work = Path(args.work)
+    cfg0 = GraphConfig(model="planar")
+    summary: dict[str, list[float]] = {}
+    for bag in args.bag:
+        bag = Path(bag)
+        name = bag.stem
+        run = work / "runs" / name
+        gt = json.loads(bag.with_name(bag.stem + ".ground_truth.json").read_text())
+        truth = _truth_tables(gt)[0]
+        detections = pq.read_table(run / "detect" / "detections.parquet")
+        odometry = pq.read_table(run / "ingest" / "odometry.parquet")
+        extrinsics = json.loads((run / "ingest" / "extrinsics.json").read_text())
+        de = _depth_errors(detections.to_pydict(), truth)
+        k = -float(np.mean(de["rel_depth"]))
+        print(f"\n## {name}: {len(de['i'])} detections matched, mean relative depth error {-100 * k:+.3f} %")
+        print("| range (m) | n | rel. depth error (%) | other solution (%) |")
+        print("| --- | --- | --- | --- |")
+        for a, b in [(0, 1), (1, 2), (2, 3), (3, 5), (5, 99)]:
+            m = (de["range"] >= a) & (de["range"] < b)
+            rel, alt = 100 * de["rel_depth"][m].mean(), 100 * de["rel_depth_alt"][m].mean()
+            print(f"| {a}-{b} | {m.sum()} | {rel:+.3f} | {alt:+.3f} |")
+        print("| view angle (deg) | n | rel. depth error (%) | other solution (%) |")
+        print("| --- | --- | --- | --- |")
+        for a, b in [(0, 10), (10, 20), (20, 30), (30, 45), (45, 60), (60, 91)]:
+            m = (de["view_deg"] >= a) & (de["view_deg"] < b)
+            rel, alt = 100 * de["rel_depth"][m].mean(), 100 * de["rel_depth_alt"][m].mean()
+            print(f"| {a}-{b} | {m.sum()} | {rel:+.3f} | {alt:+.3f} |")
+        variants = [
+            ("as detected", detections, cfg0),
+            ("mixture mean of both solutions' centres", _edit_detections(detections, truth, "mixture_mean"), cfg0),
+            ("depth error removed (truth), lateral kept", _edit_detections(detections, truth, "depth"), cfg0),
+            (
+                "every range x (1 - mean relative depth error), one number",
+                _edit_detections(detections, truth, "scale", k),
+                cfg0,
+            ),
+            ("prior 1e-4", detections, cfg0.model_copy(update={"prior_sigma_m": 1e-4, "prior_sigma_rad": 1e-4})),
+            ("prior 1e-2", detections, cfg0.model_copy(update={"prior_sigma_m": 1e-2, "prior_sigma_rad": 1e-2})),
+            ("tag floor 0", detections, cfg0.model_copy(update={"tag_sigma_floor_m": 0.0})),
+            ("odometry noise from settings", detections, cfg0.model_copy(update={"odometry_noise": "settings"})),
+        ]
+        print("| planar problem | landmark NEES/2 | mean landmark σ (cm) | odometry χ²/dim at truth |")
+        print("| --- | --- | --- | --- |")
+        base = None
+        for label, table, cfg in variants:
+            r = _solve_nees(table, odometry, extrinsics, cfg, gt)
+            base = base or r
+            summary.setdefault(label, []).append(r["nees_per_dim"])
+            print(f"| {label} | {r['nees_per_dim']:.2f} | {r['sigma_cm']:.2f} | {r['odometry_chi2_per_dim']:.2f} |")
+        # (b) landmarks by their nearest sighting
+        near = {}
+        for i in de["i"]:
+            t = int(detections.column("tag_id")[int(i)].as_py())
+            near[t] = min(near.get(t, 99.0), float(de["range"][list(de["i"]).index(i)]))
+        print("| nearest sighting (m) | landmarks | NEES/2 as detected |")
+        print("| --- | --- | --- |")
+        for a, b in [(0, 1.5), (1.5, 2.5), (2.5, 99)]:
+            v = [n for t, n in base["per_landmark"].items() if a <= near.get(t, 99) < b]
+            print(f"| {a}-{b} | {len(v)} | {np.mean(v) if v else float('nan'):.2f} |")
+    if args.estimator_mc:
+        gt = json.loads(Path(args.bag[0]).with_name(Path(args.bag[0]).stem + ".ground_truth.json").read_text())
+        _estimator_bias(gt, args.mc_sigma_px, args.mc_draws, args.mc_stride)
+    print("\n| planar problem | mean landmark NEES/2 over the runs |")
+    print("| --- | --- |")
+    for label, v in summary.items():
+        print(f"| {label} | {np.mean(v):.2f} ({', '.join(f'{x:.2f}' for x in v)}) |")
+
+
 def _table(rows: list[dict]) -> None:
     print("\n| run | model | poses | landmarks | ATE (cm) | landmark RMSE (cm) | landmark NEES / dim |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
@@ -267,8 +517,15 @@ def main() -> None:
     p.add_argument("--models", nargs="*", default=["planar", "3d"])
     p.add_argument("--loops", type=float, default=1.5)
     p.add_argument("--floor", type=float, default=0.0, help="tag sigma floor (m and rad)")
+    p = sub.add_parser("diagnose")
+    p.add_argument("--bag", nargs="*", default=[], help="bags already run by 'accuracy' with the same --work")
+    p.add_argument("--work", default="/tmp/focusmap_graph_bench")
+    p.add_argument("--estimator-mc", action="store_true", help="also the estimator-only Monte Carlo (first bag)")
+    p.add_argument("--mc-sigma-px", type=float, default=0.14, help="corner noise of the Monte Carlo (detect's pooled)")
+    p.add_argument("--mc-draws", type=int, default=8)
+    p.add_argument("--mc-stride", type=int, default=4, help="every n-th frame of the ground truth")
     args = parser.parse_args()
-    {"timing": timing, "accuracy": accuracy, "synthetic": synthetic}[args.cmd](args)
+    {"timing": timing, "accuracy": accuracy, "synthetic": synthetic, "diagnose": diagnose}[args.cmd](args)
 
 
 if __name__ == "__main__":
