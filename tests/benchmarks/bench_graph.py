@@ -438,6 +438,32 @@ def diagnose(args: argparse.Namespace) -> None:
             m = (de["view_deg"] >= a) & (de["view_deg"] < b)
             rel, alt = 100 * de["rel_depth"][m].mean(), 100 * de["rel_depth_alt"][m].mean()
             print(f"| {a}-{b} | {m.sum()} | {rel:+.3f} | {alt:+.3f} |")
+        # corners outwards of the truth along their diagonals (a scale error of the quad), by shortest side
+        corners = {
+            (f["index"], t["id"]): np.array(t["corners_px"]).reshape(4, 2)
+            for f in gt["frames"]
+            for t in f["visible_tags"]
+        }
+        dd = detections.to_pydict()
+        rows = []
+        for j, i in enumerate(de["i"]):
+            ct = corners[(int(dd["frame"][i]), int(dd["tag_id"][i]))]
+            c = np.reshape(dd["corners"][i], (4, 2))
+            radial = ct - ct.mean(axis=0)
+            r = np.linalg.norm(radial, axis=1)
+            side = float(min(np.linalg.norm(np.roll(ct, -1, 0) - ct, axis=1)))
+            rows.append(
+                (side, float(((c - ct) * radial / r[:, None]).sum(1).mean()), float(r.mean()), de["rel_depth"][j])
+            )
+        C = np.array(rows)
+        print("| shortest side (px) | n | corners outwards (px) | share of half-diagonal (%) | rel. depth (%) |")
+        print("| --- | --- | --- | --- | --- |")
+        for a, b in [(0, 15), (15, 20), (20, 30), (30, 45), (45, 70), (70, 999)]:
+            m = (C[:, 0] >= a) & (C[:, 0] < b)
+            print(
+                f"| {a}-{b} | {m.sum()} | {C[m, 1].mean():+.4f} | {100 * (C[m, 1] / C[m, 2]).mean():+.3f} | "
+                f"{100 * C[m, 3].mean():+.3f} |"
+            )
         variants = [
             ("as detected", detections, cfg0),
             ("mixture mean of both solutions' centres", _edit_detections(detections, truth, "mixture_mean"), cfg0),
