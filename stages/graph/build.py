@@ -12,6 +12,8 @@ interpolated on SE(2)/SE(3) to the keyframe stamps. Factors:
   extrinsic does not change it). ``planar``: the tag centre in the base frame, its 3x3 covariance
   ``R_base_tag Σ_tt R_base_tag^T`` projected onto (x, y), expressed as a ``BearingRangeFactor2D``
   to a ``Point2`` landmark (the bearing-range form of the same 2D relative position, to first order).
+- ``scale_prior`` (``graph.tag_scale_sigma > 0``): the shared tag scale ``s`` ~ N(1, sigma²); every tag
+  factor then carries ``s`` as a third key and measures ``s`` times its range (planar) or translation (3d).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from stages.geometry import (
     rotate_covariance,
 )
 from stages.graph.config import GraphConfig
-from stages.graph.factors import FactorRow
+from stages.graph.factors import SCALE_KEY, FactorRow
 from stages.graph.problem import GraphProblem
 
 ODOMETRY_MIN_EIG_RATIO = 1e-3
@@ -329,6 +331,16 @@ def build_problem(
             )
         )
 
+    # the shared tag scale (the tolerance of the printed tag size)
+    use_scale = cfg.tag_scale_sigma > 0
+    if use_scale:
+        rows.append(
+            FactorRow(
+                "scale_prior", "PriorFactorDouble", (SCALE_KEY,), np.ones(1), np.array([[cfg.tag_scale_sigma**2]])
+            )
+        )
+    scale_keys = (SCALE_KEY,) if use_scale else ()
+
     # odometry or motion prior
     noise_source = "none"
     fallbacks = 0
@@ -441,7 +453,7 @@ def build_problem(
             row = FactorRow(
                 "tag",
                 "BearingRangeFactor2D",
-                (pose_keys[k], int(L(tag))),
+                (pose_keys[k], int(L(tag)), *scale_keys),
                 np.array([bearing, rng]),
                 cov_br,
                 cfg.robust_kernel,
@@ -456,7 +468,7 @@ def build_problem(
             row = FactorRow(
                 "tag",
                 "BetweenFactorPose3",
-                (pose_keys[k], int(L(tag))),
+                (pose_keys[k], int(L(tag)), *scale_keys),
                 pose3_to_vector(T_base_tag),
                 cov6,
                 cfg.robust_kernel,
@@ -490,6 +502,10 @@ def build_problem(
         else:
             initial.insert(key, rel3[k].compose(meas))
             var_types[key] = "Pose3"
+    if use_scale:
+        initial.insert(SCALE_KEY, 1.0)
+        var_types[SCALE_KEY] = "Scale"
+        info["tag_scale_sigma"] = cfg.tag_scale_sigma
     landmark_heights = {}
     for tag, hs in heights.items():
         z = np.array([h[0] for h in hs])

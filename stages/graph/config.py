@@ -70,6 +70,14 @@ class GraphConfig(BaseModel):
     tag_sigma_floor_rad: float = Field(
         0.005, ge=0, description="Floor added to the tag rotation sigma (3d model), rad."
     )
+    tag_scale_sigma: float = Field(
+        0.005,
+        ge=0,
+        description="Relative tolerance of the tag size (0.005 = 0.5 %): one shared scale s ~ N(1, sigma^2) "
+        "multiplies the range (planar) / translation (3d) of every tag measurement, so a tag printed slightly "
+        "large or small, or any range bias shared by all detections, is estimated against the odometry and "
+        "its uncertainty enters the marginals. 0: no scale variable (ranges taken as exact in scale).",
+    )
     robust_kernel: Literal["none", "huber", "cauchy"] = Field("none", description="Robust kernel on the tag factors.")
     robust_threshold: float = Field(
         1.345, gt=0, description="Robust kernel threshold, in whitened residual units (sigmas)."

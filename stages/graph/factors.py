@@ -13,6 +13,15 @@ Measurement layouts per ``type``:
 | ``BearingRangeFactor2D`` (Pose2 -> Point2) | bearing (rad), range (m) | 2x2 (bearing, range) |
 | ``BearingRangeFactor3D`` (Pose3 -> Point3) | ux, uy, uz (unit bearing), range (m) | 3x3 (Unit3 basis 2, range) |
 | ``PriorFactorPoint2`` / ``PriorFactorPoint3`` | x, y (, z) | 2x2 / 3x3 |
+| ``PriorFactorDouble`` (the tag scale ``s0``) | 1.0 | 1x1 (relative variance) |
+
+The tag scale: a ``BearingRangeFactor2D`` or ``BetweenFactorPose3`` row with a third key (the scale variable
+``S = symbol('s', 0)``, a ``Double``) measures ``s · measured``: the range (planar) or the translation (3d)
+of every tag measurement is multiplied by one shared unknown ``s`` (the error of the printed tag size; a
+tag printed 0.3 % large makes every range 0.3 % short). It becomes a ``gtsam.CustomFactor`` with exact
+Jacobians (:func:`scaled_bearing_range_error`, :func:`scaled_between_error`); the measurement and
+covariance columns keep their meaning, so a reader that ignores the third key gets the old factor at
+``s = 1``. ``s`` has a ``PriorFactorDouble`` N(1, sigma²) (kind ``scale_prior``, always kept).
 """
 
 from __future__ import annotations
@@ -27,9 +36,13 @@ import pyarrow as pa
 
 from stages.geometry import pose3_from_vector
 
-KINDS = ("prior", "odometry", "loop", "motion_prior", "tag")
+KINDS = ("prior", "odometry", "loop", "motion_prior", "tag", "scale_prior")
 """Factor kinds: ``tag`` rows are the landmark measurements (the candidates of the selection stages);
-``loop`` is a pose-to-pose edge between non-consecutive poses of an imported graph."""
+``loop`` is a pose-to-pose edge between non-consecutive poses of an imported graph; ``scale_prior`` is
+the prior N(1, sigma²) of the shared tag scale."""
+
+SCALE_KEY = int(gtsam.symbol("s", 0))
+"""Key of the shared tag scale ``s`` (a ``Double``; type name ``Scale`` in ``values.npz``)."""
 
 FACTOR_DIMS = {
     "PriorFactorPose2": 3,
@@ -40,6 +53,7 @@ FACTOR_DIMS = {
     "BearingRangeFactor3D": 3,
     "PriorFactorPoint2": 2,
     "PriorFactorPoint3": 3,
+    "PriorFactorDouble": 1,
 }
 
 
@@ -79,14 +93,101 @@ def noise_model(cov: np.ndarray, robust: str = "none", robust_k: float = 0.0) ->
     raise ValueError(f"unknown robust kernel {robust!r}; use none, huber or cauchy")
 
 
+def scaled_bearing_range_error(
+    pose: gtsam.Pose2, point: np.ndarray, s: float, bearing: float, rng: float
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Error of a bearing-range measurement whose range is ``s · rng``, and its Jacobians.
+
+    ``e = (wrap(bearing(pose, point) − bearing), range(pose, point) − s · rng)`` (gtsam's
+    ``BearingRangeFactor2D`` error at ``s = 1``); Jacobians in the tangent spaces of the Pose2 (x, y, θ),
+    the Point2 and the scale: 2x3, 2x2, 2x1.
+    """
+    Hb1, Hb2 = np.zeros((1, 3), order="F"), np.zeros((1, 2), order="F")
+    Hr1, Hr2 = np.zeros((1, 3), order="F"), np.zeros((1, 2), order="F")
+    b = pose.bearing(point, Hb1, Hb2)
+    r = pose.range(point, Hr1, Hr2)
+    e = np.array([gtsam.Rot2(bearing).localCoordinates(b)[0], r - s * rng])
+    return e, [np.vstack([Hb1, Hr1]), np.vstack([Hb2, Hr2]), np.array([[0.0], [-rng]])]
+
+
+def scaled_pose3(measured: gtsam.Pose3, s: float) -> gtsam.Pose3:
+    """``measured`` with its translation multiplied by ``s``."""
+    return gtsam.Pose3(measured.rotation(), s * np.asarray(measured.translation()))
+
+
+def scaled_between_error(
+    a: gtsam.Pose3, b: gtsam.Pose3, s: float, measured: gtsam.Pose3
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Error of a relative-pose measurement whose translation is ``s · t``, and its Jacobians.
+
+    ``e = Log(M(s)⁻¹ a⁻¹ b)`` with ``M(s) = (R, s t)`` (gtsam's ``BetweenFactorPose3`` error at ``s = 1``);
+    Jacobians 6x6, 6x6 (right perturbations, tangent order (r, t)) and 6x1. ``M(s + ds) = M(s) Exp((0, Rᵀ t ds))``.
+    """
+    Ha, Hb = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    pred = a.between(b, Ha, Hb)
+    M = scaled_pose3(measured, s)
+    Hm, Hp = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    E = M.between(pred, Hm, Hp)
+    Hlog = np.zeros((6, 6), order="F")
+    e = gtsam.Pose3.Logmap(E, Hlog)
+    dM = np.zeros((6, 1))
+    dM[3:, 0] = np.asarray(measured.rotation().matrix()).T @ np.asarray(measured.translation())
+    Hlp = Hlog @ Hp
+    return np.asarray(e, dtype=float), [Hlp @ Ha, Hlp @ Hb, Hlog @ Hm @ dM]
+
+
+def _scaled_bearing_range_factor(
+    keys: tuple[int, ...], m: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    bearing, rng = float(m[0]), float(m[1])
+    kx, kl, ks = keys
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        e, J = scaled_bearing_range_error(v.atPose2(kx), v.atPoint2(kl), v.atDouble(ks), bearing, rng)
+        if H is not None:
+            H[0], H[1], H[2] = J
+        return e
+
+    return gtsam.CustomFactor(noise, list(keys), error)
+
+
+def _scaled_between_factor(keys: tuple[int, ...], m: np.ndarray, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    measured = pose3_from_vector(m)
+    ka, kb, ks = keys
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        e, J = scaled_between_error(v.atPose3(ka), v.atPose3(kb), v.atDouble(ks), measured)
+        if H is not None:
+            H[0], H[1], H[2] = J
+        return e
+
+    return gtsam.CustomFactor(noise, list(keys), error)
+
+
+def scaled_measurement(row: FactorRow, s: float) -> np.ndarray:
+    """The measurement of a row at tag scale ``s`` (unchanged for rows without the scale key)."""
+    m = np.asarray(row.measurement, dtype=float).copy()
+    if len(row.keys) == 3 and row.type == "BearingRangeFactor2D":
+        m[1] *= s
+    elif len(row.keys) == 3 and row.type == "BetweenFactorPose3":
+        m[:3] *= s
+    return m
+
+
 def make_factor(row: FactorRow) -> gtsam.NonlinearFactor:
-    """The gtsam factor of a row."""
+    """The gtsam factor of a row (a ``CustomFactor`` for the tag rows that carry the scale key)."""
     d = row.dim
     cov = np.asarray(row.covariance, dtype=float).reshape(d, d)
     noise = noise_model(cov, row.robust, row.robust_k)
     m = np.asarray(row.measurement, dtype=float)
     k = row.keys
     t = row.type
+    if len(k) == 3 and t == "BearingRangeFactor2D":
+        return _scaled_bearing_range_factor(k, m, noise)
+    if len(k) == 3 and t == "BetweenFactorPose3":
+        return _scaled_between_factor(k, m, noise)
+    if t == "PriorFactorDouble":
+        return gtsam.PriorFactorDouble(k[0], float(m[0]), noise)
     if t == "PriorFactorPose2":
         return gtsam.PriorFactorPose2(k[0], gtsam.Pose2(m[0], m[1], m[2]), noise)
     if t == "BetweenFactorPose2":
@@ -115,10 +216,10 @@ def build_graph(rows: Iterable[FactorRow]) -> gtsam.NonlinearFactorGraph:
 
 
 def key_name(key: int) -> str:
-    """``x12`` / ``l17`` for symbol keys, the number otherwise."""
+    """``x12`` / ``l17`` / ``s0`` for symbol keys, the number otherwise."""
     sym = gtsam.Symbol(int(key))
     ch = sym.chr()
-    if ch in (ord("x"), ord("l")):
+    if ch in (ord("x"), ord("l"), ord("s")):
         return f"{chr(ch)}{sym.index()}"
     return str(int(key))
 

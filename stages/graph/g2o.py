@@ -36,7 +36,7 @@ from stages.geometry import (
     relative_position_to_bearing_range_2d,
     relative_position_to_bearing_range_3d,
 )
-from stages.graph.factors import FactorRow
+from stages.graph.factors import FactorRow, scaled_measurement
 from stages.graph.problem import GraphProblem, value_vector
 
 OFFSET_TAG = "# focusmap: landmark_id_offset"
@@ -388,7 +388,10 @@ def write_g2o(problem: GraphProblem, values: gtsam.Values) -> str:
 
     Bearing-range factors are written as relative landmark positions (``EDGE_SE2_XY`` /
     ``EDGE_SE3_TRACKXYZ``) with the covariance mapped back to first order; priors as ``EDGE_PRIOR_SE2`` /
-    ``EDGE_SE3_PRIOR``. :func:`read_graph_file` reads the file back into the same graph.
+    ``EDGE_SE3_PRIOR``. :func:`read_graph_file` reads the file back into the same graph. g2o has no
+    shared scale: tag measurements that carry the tag scale ``s`` are written at its value in ``values``
+    (range, translation times ``s``; a comment line gives ``s``) and its prior is left out, so the file
+    is the graph with the scale fixed at that value.
     """
     n = len(problem.pose_keys)
     max_tag = max(problem.landmark_keys, default=0)
@@ -416,10 +419,16 @@ def write_g2o(problem: GraphProblem, values: gtsam.Values) -> str:
             out.append(f"VERTEX_TRACKXYZ {vid[k]} {_fmt(v[:3])}")
         else:
             out.append(f"VERTEX_SE3:QUAT {vid[k]} {_fmt(v[:7])}")
+    scale_key = problem.scale_key
+    s = float(values.atDouble(scale_key)) if scale_key is not None and values.exists(scale_key) else 1.0
+    if scale_key is not None:
+        out.append(f"# focusmap: tag_scale {s:.9g} (tag measurements below are written at this scale)")
     for row in problem.rows:
+        if row.kind == "scale_prior":
+            continue
         C = np.asarray(row.covariance, dtype=float).reshape(row.dim, row.dim)
-        m = np.asarray(row.measurement, dtype=float)
-        ids = [vid[k] for k in row.keys]
+        m = scaled_measurement(row, s)
+        ids = [vid[k] for k in row.keys if k != scale_key]
         if row.type == "BetweenFactorPose2":
             out.append(f"EDGE_SE2 {ids[0]} {ids[1]} {_fmt(m)} {_fmt(_upper_list(np.linalg.inv(C)))}")
         elif row.type == "PriorFactorPose2":

@@ -35,7 +35,9 @@ class LoadedGraph:
         pose_keys: pose keys in time order.
         pose_stamps_ns: their stamps (imported graphs: vertex id x 1 s).
         landmark_keys: landmark key by tag id (sorted by tag id).
-        var_types: gtsam type of each variable (``Pose2``, ``Pose3``, ``Point2``, ``Point3``), by key.
+        var_types: gtsam type of each variable (``Pose2``, ``Pose3``, ``Point2``, ``Point3``, and ``Scale`` for
+            the shared tag scale, a gtsam ``Double``), by key. The scale is neither a pose nor a landmark: it is
+            in no ``pose_keys`` / ``landmark_keys``; see :attr:`scale_key`.
         model: ``planar`` or ``3d``.
         marginals: marginal covariance of each key (tangent space), from ``marginals.npz``.
     """
@@ -53,13 +55,18 @@ class LoadedGraph:
     marginals: dict[int, np.ndarray]
 
     @property
+    def scale_key(self) -> int | None:
+        """Key of the shared tag scale ``s`` (every tag factor's third key), or None when the graph has none."""
+        return next((k for k, t in self.var_types.items() if t == "Scale"), None)
+
+    @property
     def tag_factor_indices(self) -> np.ndarray:
         """Indices of the tag-measurement factors (the selection candidates)."""
         return np.array([i for i, r in enumerate(self.rows) if r.kind == "tag"], dtype=np.int64)
 
     @property
     def fixed_factor_indices(self) -> np.ndarray:
-        """Indices of every other factor (priors, odometry, loops, motion priors)."""
+        """Indices of every other factor (priors, the tag-scale prior, odometry, loops, motion priors)."""
         return np.array([i for i, r in enumerate(self.rows) if r.kind != "tag"], dtype=np.int64)
 
 
@@ -112,7 +119,9 @@ def build_reduced(
     """A graph of only the given factors, with the optimised values of the variables they touch.
 
     Variables that no kept factor touches are left out of the values (a dropped landmark), so the
-    pair can be optimised directly.
+    pair can be optimised directly. Factor ``j`` of the result is the ``j``-th smallest kept index; when
+    a kept tag factor uses the tag scale and its prior (``scale_prior``) was not kept, the prior is
+    appended after them (the scale is never left without its prior).
     """
     keep = sorted({int(i) for i in keep_factor_indices})
     graph = gtsam.NonlinearFactorGraph()
@@ -122,6 +131,12 @@ def build_reduced(
             raise IndexError(f"factor index {i} out of range (graph has {len(loaded.rows)} factors)")
         graph.add(make_factor(loaded.rows[i]))
         used.update(loaded.rows[i].keys)
+    scale = loaded.scale_key
+    if scale is not None and scale in used:
+        kept = set(keep)
+        for i, row in enumerate(loaded.rows):
+            if row.kind == "scale_prior" and i not in kept:
+                graph.add(make_factor(row))
     values = gtsam.Values()
     for k in loaded.var_types:
         if k in used:
@@ -136,5 +151,7 @@ def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, var_type: str) -
         dst.insert(key, src.atPose3(key))
     elif var_type == "Point2":
         dst.insert(key, src.atPoint2(key))
+    elif var_type == "Scale":
+        dst.insert(key, src.atDouble(key))
     else:
         dst.insert(key, src.atPoint3(key))

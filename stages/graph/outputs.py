@@ -176,7 +176,19 @@ def write_artifacts(
     out.write_text("graph.g2o", write_g2o(problem, solution.values))
 
     kinds = Counter(r.kind for r in rows)
+    scale: dict[str, float] | None = None
+    if problem.scale_key is not None:
+        sk = problem.scale_key
+        prior = next((r for r in rows if r.kind == "scale_prior"), None)
+        scale = {
+            "value": float(solution.values.atDouble(sk)),
+            "sigma": float(np.sqrt(marginals[sk][0, 0])),
+            "prior_sigma": float(np.sqrt(np.asarray(prior.covariance, dtype=float).ravel()[0]))
+            if prior is not None
+            else float("nan"),
+        }
     return {
+        "tag_scale": scale,
         "model": problem.model,
         "poses": len(problem.pose_keys),
         "landmarks": len(problem.landmark_keys),

@@ -12,11 +12,12 @@ from stages.geometry import pose2_to_vector, pose3_from_vector, pose3_to_vector
 from stages.graph.factors import FactorRow
 
 Model = Literal["planar", "3d"]
-VarType = Literal["Pose2", "Pose3", "Point2", "Point3"]
-VAR_DIMS: dict[str, int] = {"Pose2": 3, "Pose3": 6, "Point2": 2, "Point3": 3}
+VarType = Literal["Pose2", "Pose3", "Point2", "Point3", "Scale"]
+VAR_DIMS: dict[str, int] = {"Pose2": 3, "Pose3": 6, "Point2": 2, "Point3": 3, "Scale": 1}
 """Tangent dimension of each variable type."""
 VALUE_WIDTH = 7
-"""Width of stored value vectors: Pose2 x y theta, Pose3 x y z qx qy qz qw, Point2 x y, Point3 x y z (NaN-padded)."""
+"""Width of stored value vectors: Pose2 x y theta, Pose3 x y z qx qy qz qw, Point2 x y, Point3 x y z,
+Scale s (a gtsam ``Double``: the shared tag scale) (NaN-padded)."""
 
 
 @dataclass
@@ -53,7 +54,14 @@ class GraphProblem:
             return f"pose {i} (t={(self.pose_stamps_ns[i] - t0) / 1e9:.3f} s, stamp_ns {self.pose_stamps_ns[i]})"
         if key in self._landmark_id:
             return f"tag {self._landmark_id[key]}"
+        if self.var_types.get(key) == "Scale":
+            return "the tag scale s"
         return f"variable {key}"
+
+    @property
+    def scale_key(self) -> int | None:
+        """Key of the shared tag scale ``s``, or None when the graph has none (``graph.tag_scale_sigma: 0``)."""
+        return next((k for k, t in self.var_types.items() if t == "Scale"), None)
 
     @property
     def _pose_index(self) -> dict[int, int]:
@@ -75,6 +83,8 @@ def value_vector(values: gtsam.Values, key: int, var_type: str) -> np.ndarray:
         out[:2] = values.atPoint2(key)
     elif var_type == "Point3":
         out[:3] = values.atPoint3(key)
+    elif var_type == "Scale":
+        out[0] = values.atDouble(key)
     else:
         raise ValueError(f"unknown variable type {var_type!r}")
     return out
@@ -91,6 +101,8 @@ def insert_value(values: gtsam.Values, key: int, var_type: str, vec: np.ndarray)
         values.insert(key, v[:2].copy())
     elif var_type == "Point3":
         values.insert(key, v[:3].copy())
+    elif var_type == "Scale":
+        values.insert(key, float(v[0]))
     else:
         raise ValueError(f"unknown variable type {var_type!r}")
 

@@ -65,10 +65,17 @@ def check_problem(problem: GraphProblem) -> None:
             a = parent[a]
         return a
 
+    # the shared tag scale (its own prior) joins every tag factor: it must not join their poses and landmarks
+    scale = {k for k in keys if problem.var_types[k] == "Scale"}
+    for k in scale:
+        parent[k] = anchor
     for row in problem.rows:
         for k in row.keys:
             touched[k] += row.dim
-        ks = list(row.keys) if len(row.keys) > 1 else [row.keys[0], anchor]
+        rk = [k for k in row.keys if k not in scale]
+        if not rk:
+            continue
+        ks = rk if len(row.keys) > 1 else [rk[0], anchor]
         root = find(ks[0])
         for k in ks[1:]:
             parent[find(k)] = root

@@ -173,6 +173,8 @@ def accuracy(args: argparse.Namespace) -> None:
                     "model": model,
                     "graph_s": round(times["graph"], 2),
                     "tag_measurements": summ["tag_measurements"],
+                    "tag_scale": (summ.get("tag_scale") or {}).get("value", float("nan")),
+                    "tag_scale_sigma": (summ.get("tag_scale") or {}).get("sigma", float("nan")),
                 }
             )
             rows.append(res)
@@ -506,12 +508,16 @@ def diagnose(args: argparse.Namespace) -> None:
 
 
 def _table(rows: list[dict]) -> None:
-    print("\n| run | model | poses | landmarks | ATE (cm) | landmark RMSE (cm) | landmark NEES / dim |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print(
+        "\n| run | model | poses | landmarks | ATE (cm) | landmark RMSE (cm) | landmark NEES / dim | tag scale s (σ) |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
+        sc = r.get("tag_scale", float("nan"))
+        scale = "-" if not np.isfinite(sc) else f"{sc:.5f} ({r.get('tag_scale_sigma', float('nan')):.5f})"
         print(
             f"| {r['run']} | {r['model']} | {r['poses']} | {r['landmarks']} | {r['ate_cm']:.1f} | "
-            f"{r['landmark_rmse_cm']:.1f} | {r['nees_per_dim']:.2f} |"
+            f"{r['landmark_rmse_cm']:.1f} | {r['nees_per_dim']:.2f} | {scale} |"
         )
     for model in sorted({r["model"] for r in rows}):
         sel = [r for r in rows if r["model"] == model]

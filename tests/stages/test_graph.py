@@ -29,7 +29,7 @@ from stages.geometry import (
 )
 from stages.graph import GraphConfig, build_reduced, import_graph, load_graph
 from stages.graph.build import build_problem
-from stages.graph.factors import FactorRow, build_graph
+from stages.graph.factors import SCALE_KEY, FactorRow, build_graph
 from stages.graph.g2o import read_graph_file, write_g2o
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
@@ -108,7 +108,17 @@ def test_structure_counts(sim, model: str) -> None:
     assert len(p.pose_keys) > len(det_stamps)  # plus odometry keyframes where none was seen
     assert p.pose_stamps_ns == sorted(p.pose_stamps_ns)
     assert p.info["odometry_noise"] == "messages"
-    assert len(p.var_types) == len(p.pose_keys) + len(tags)
+    # the shared tag scale: one variable, one prior, the third key of every tag factor
+    assert kinds["scale_prior"] == 1
+    assert p.scale_key == SCALE_KEY and p.var_types[SCALE_KEY] == "Scale"
+    assert all(r.keys[2] == SCALE_KEY for r in p.rows if r.kind == "tag")
+    assert SCALE_KEY not in p.pose_keys and SCALE_KEY not in p.landmark_keys.values()
+    assert len(p.var_types) == len(p.pose_keys) + len(tags) + 1
+    old = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model, tag_scale_sigma=0))
+    assert old.scale_key is None and "scale_prior" not in {r.kind for r in old.rows}
+    assert len(old.var_types) == len(p.pose_keys) + len(tags) and all(
+        len(r.keys) == 2 for r in old.rows if r.kind == "tag"
+    )
     lm_type = "Point2" if model == "planar" else "Pose3"
     assert {p.var_types[k] for k in p.landmark_keys.values()} == {lm_type}
 
@@ -307,7 +317,10 @@ def test_g2o_written_by_the_stage_reads_back(sim) -> None:
         assert sorted(back.landmark_keys) == sorted(p.landmark_keys)
         assert Counter(r.kind for r in back.rows)["tag"] == Counter(r.kind for r in p.rows)["tag"]
         err_back = build_graph(back.rows).error(back.initial)
-        assert err_back == pytest.approx(g.error(sol.values), rel=1e-3)
+        # g2o has no shared scale: the tag measurements are written at the estimated s, its prior is left out
+        assert f"tag_scale {sol.values.atDouble(SCALE_KEY):.9g}" in text
+        prior_err = sum(g.at(i).error(sol.values) for i, r in enumerate(p.rows) if r.kind == "scale_prior")
+        assert err_back == pytest.approx(g.error(sol.values) - prior_err, rel=1e-3)
 
 
 # ------------------------------------------------------------------ the stage in a run folder
