@@ -31,7 +31,7 @@ from stages.graph import GraphConfig, build_reduced, import_graph, load_graph
 from stages.graph.build import build_problem
 from stages.graph.factors import SCALE_KEY, FactorRow, build_graph
 from stages.graph.g2o import read_graph_file, write_g2o
-from stages.graph.problem import GraphProblem
+from stages.graph.problem import VAR_DIMS, GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
 from stages.graph.synthetic import synthetic_run
 
@@ -172,7 +172,7 @@ def test_marginals_equal_inverse_of_information() -> None:
         ordering.push_back(k)
     H, _ = g.linearize(sol.values).hessian(ordering)
     cov = np.linalg.inv(H)
-    dims = [3 if p.var_types[k] == "Pose2" else 2 for k in keys]
+    dims = [VAR_DIMS[p.var_types[k]] for k in keys]
     offs = np.concatenate([[0], np.cumsum(dims)])
     for i, k in enumerate(keys):
         block = cov[offs[i] : offs[i + 1], offs[i] : offs[i + 1]]
