@@ -16,6 +16,7 @@ LQG navigation with the case's map (``stages.navigation.simulate``).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,6 +26,15 @@ import numpy.typing as npt
 import pyarrow as pa
 
 from pipeline.errors import ConfigError, StageError
+from stages.evaluate.analysis import (
+    MeasurementConsistency,
+    NavigationMargin,
+    aligned_error,
+    landmark_consistency,
+    measurement_consistency,
+    oracle_rows,
+    residuals_by_range,
+)
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
 from stages.navigation import (
@@ -44,7 +54,7 @@ from stages.navigation import (
 )
 from stages.navigation.truth import MapTruth
 from stages.optimize.core import ReducedMap, landmark_errors, map_size, mean_or_nan, solve_reduced
-from stages.risk import LandmarkMap, PathRisk, path_risk
+from stages.risk import LandmarkMap, PathRisk, RiskParams, path_risk
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
 from stages.select_landmarks import choose as choose_landmarks
 from stages.select_measurements.config import SelectMeasurementsConfig
@@ -110,6 +120,8 @@ class NavigationSetup:
     true_landmarks: dict[int, FloatArray]
     params: NavigationParams
     min_clearance_m: float
+    margin_m: FloatArray | None = None
+    """(K,) clearance of the nominal path minus the robot radius, per step."""
 
 
 @dataclass
@@ -130,6 +142,18 @@ class EvalInputs:
     focus: list[int] = field(default_factory=list)
     """The collision-focused landmarks (Alg. 2, budget α): what every case's entropy and focused error are on."""
     focus_seconds: float = 0.0
+    consistency: dict[str, MeasurementConsistency] = field(default_factory=dict)
+    """Every measurement of the full graph at the truth (empty without a ground truth)."""
+    by_range: list[dict[str, float]] = field(default_factory=list)
+    """Tag residuals at the truth by measured range."""
+
+    @property
+    def risk_params(self) -> RiskParams:
+        """The risk model of select_landmarks, with evaluate's robot radius when that is set."""
+        params = self.landmarks.params
+        if self.cfg.robot_radius_m is not None:
+            params = dataclasses.replace(params, robot_radius_m=self.cfg.robot_radius_m)
+        return params
 
     @property
     def alpha(self) -> int:
@@ -215,7 +239,8 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
         obstacles: Obstacles = SegmentWalls(inputs.truth.walls)
     else:
         obstacles = _scan_pose_grid(inputs)
-    clearance = float(obstacles.distance(path.poses[:, :2]).min())
+    clearances = obstacles.distance(path.poses[:, :2])
+    clearance = float(clearances.min())
     if cfg.trials > 0 and clearance <= radius:
         raise StageError(
             f"the nominal path passes {clearance:.3f} m from an obstacle ({obstacles.kind}), inside the robot radius "
@@ -225,7 +250,7 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
     vis = visibility_schedule(path.stamps_ns, [o[0] for o in obs], [o[1] for o in obs], cfg.visibility_window_s)
     truth_lm, _ = inputs.reference_positions(optimal)
     gains = lqr_gains(path, params.Wx, params.Wu)
-    return NavigationSetup(path, gains, vis, obstacles, truth_lm, params, clearance)
+    return NavigationSetup(path, gains, vis, obstacles, truth_lm, params, clearance, clearances - radius)
 
 
 @dataclass
@@ -239,6 +264,7 @@ class CaseResult:
     risk: PathRisk
     navigation: NavigationResult | None
     row: dict[str, Any]
+    margin: NavigationMargin | None = None
 
 
 def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
@@ -261,6 +287,9 @@ def prepare(inputs: EvalInputs) -> None:
         cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
         choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
         inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
+    if inputs.truth is not None and not inputs.consistency and inputs.loaded.model == "planar":
+        inputs.consistency = measurement_consistency(inputs.loaded, inputs.truth)
+        inputs.by_range = residuals_by_range(inputs.loaded, inputs.truth)
 
 
 def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) -> CaseResult:
@@ -290,7 +319,7 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
     reference, ref_name = inputs.reference_positions(optimal if optimal is not None else reduced)
     errs = landmark_errors(reduced.landmark_map, reference)
     focus = set(inputs.focus)
-    risk = path_risk(inputs.landmarks.geometry, reduced.landmark_map, reduced.observed_tag_ids, inputs.landmarks.params)
+    risk = path_risk(inputs.landmarks.geometry, reduced.landmark_map, reduced.observed_tag_ids, inputs.risk_params)
     size = map_size(loaded, reduced)
     observed = set(reduced.observed_tag_ids)
     row: dict[str, Any] = {
@@ -325,6 +354,8 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         "bytes_fraction": float(size["bytes_fraction"]),
         "status": measurement.message if measurement is not None else "",
     }
+    row.update(_why_columns(inputs, reduced, selected, reference, focus))
+    row["risk_margin_sigmas"] = _margin_sigmas(risk.max)
     result = CaseResult(case, tags, measurement, reduced, risk, None, row)
     navigate(inputs, result)
     return result
@@ -357,6 +388,78 @@ def navigate(inputs: EvalInputs, result: CaseResult) -> None:
             "rms_estimation_error_m": nav.rms_estimation_error_m,
         }
     )
+    if setup.margin_m is not None and len(nav.step_rms_deviation_m) == len(setup.margin_m):
+        margin = NavigationMargin(setup.margin_m, nav.step_rms_deviation_m, nav.step_ekf_sigma_m)
+        result.margin = margin
+        result.row.update(margin.summary())
+
+
+WHY_COLUMNS = (
+    "focused_error_aligned_m",
+    "focused_sigma_m",
+    "focused_nees",
+    "focused_outside_95",
+    "kept_tag_nees",
+    "kept_range_bias_m",
+    "oracle_focused_error_m",
+    "oracle_focused_error_aligned_m",
+    "oracle_focused_nees",
+    "oracle_error_all_m",
+)
+"""Columns of the consistency analysis (NaN without a ground truth)."""
+
+
+def _margin_sigmas(p: float) -> float:
+    """The risk model's margin in σ at its riskiest keyframe, ``Φ⁻¹(1 − max P)`` (inf when P underflows)."""
+    from scipy.stats import norm
+
+    if not np.isfinite(p):
+        return float("nan")
+    return float(norm.isf(p)) if p > 0 else float("inf")
+
+
+def _why_columns(
+    inputs: EvalInputs, reduced: ReducedMap, selected: Sequence[int], reference: dict[int, FloatArray], focus: set[int]
+) -> dict[str, float]:
+    """NEES of the focused landmarks, the kept measurements at the truth, and the oracle re-solve's errors."""
+    out = dict.fromkeys(WHY_COLUMNS, float("nan"))
+    out.update({"tight_margin_m": float("nan"), "tight_deviation_m": float("nan"), "tight_ekf_sigma_m": float("nan")})
+    out.update({"margin_sigmas": float("nan"), "min_margin_m": float("nan")})
+    truth = inputs.truth
+    if truth is None or inputs.loaded.model != "planar":
+        return out
+    lm = reduced.landmark_map
+    lc = landmark_consistency(lm.tag_ids, lm.positions, lm.covariances, reference, focus)
+    out["focused_error_aligned_m"] = aligned_error(lm.tag_ids, lm.positions, reference, focus)
+    out.update(
+        {"focused_sigma_m": lc.mean_sigma_m, "focused_nees": lc.mean_nees, "focused_outside_95": lc.share_outside_95}
+    )
+    kept = [i for i in reduced.full_index.tolist() if inputs.loaded.rows[i].kind == "tag"]
+    mc = measurement_consistency(inputs.loaded, truth, kept).get("tag")
+    if mc is not None:
+        out.update({"kept_tag_nees": mc.mean_nees, "kept_range_bias_m": float(mc.mean_residual[1])})
+    if inputs.cfg.oracle_measurements and kept:
+        oracle = solve_reduced(
+            inputs.loaded,
+            reduced.focused_tag_ids,
+            kept,
+            inputs.heights,
+            "dead_reckoning",
+            entropy_tag_ids=inputs.focus,
+            row_override=oracle_rows(inputs.loaded, truth, kept, inputs.cfg.seed),
+        )
+        olm = oracle.landmark_map
+        oc = landmark_consistency(olm.tag_ids, olm.positions, olm.covariances, reference, focus)
+        errs = landmark_errors(olm, reference)
+        out.update(
+            {
+                "oracle_focused_error_m": oc.mean_error_m,
+                "oracle_focused_nees": oc.mean_nees,
+                "oracle_focused_error_aligned_m": aligned_error(olm.tag_ids, olm.positions, reference, focus),
+                "oracle_error_all_m": mean_or_nan(errs.values()),
+            }
+        )
+    return out
 
 
 def run_all(inputs: EvalInputs, todo: Sequence[Case], progress: Any = None) -> list[CaseResult]:

@@ -54,3 +54,13 @@ class EvaluateConfig(BaseModel):
     grid_min_hits: int = Field(2, ge=1, description="Laser returns a cell needs to count as occupied.")
     scan_stride: int = Field(2, ge=1, description="Use every n-th laser scan for the occupancy grid.")
     plots: bool = Field(True, description="Draw the report's PNG figures (needs matplotlib).")
+    oracle_measurements: bool = Field(
+        True,
+        description="With a ground truth, re-solve every case with its kept tag measurements replaced by "
+        "ground-truth-consistent ones (truth + noise drawn from the stated covariance) and report that error beside "
+        "the real one: separates what the selection does from biases in the measurements.",
+    )
+    regime: str = Field(
+        "default",
+        description="Name of the navigation regime, printed in the report (configs/office_hard.yaml sets 'hard').",
+    )

@@ -12,7 +12,7 @@ from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids
 from stages.evaluate.cases import EvalInputs, cases, cases_table, greedy_rows, map_rows, risk_rows, run_all
 from stages.evaluate.config import EvaluateConfig
-from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report
+from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
 from stages.optimize.core import landmark_heights
 from stages.optimize.stage import load_truth
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
@@ -102,6 +102,8 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
             for name, row in by_case.items()
         },
         "expectation": expectation_checks(results),
+        "regime": cfg.regime,
+        "why": why_findings(inputs, results),
         "report": str(ctx.run.stage_dir("evaluate") / "report.html"),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
     }

@@ -21,7 +21,7 @@ Trials run vectorised: all ``N`` trials advance together, one landmark update at
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -185,6 +185,10 @@ class NavigationResult:
     """(keep_paths, K, 2) true positions of the first trials (frozen at their collision)."""
     mean_estimate_sigma_m: float
     """Mean of sqrt(trace of the EKF position covariance) over the active steps."""
+    step_rms_deviation_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """(K,) per step, RMS distance of the active trials' true positions from the nominal pose of that step."""
+    step_ekf_sigma_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """(K,) per step, mean over the active trials of the EKF's position σ (sqrt of the largest xy eigenvalue)."""
 
 
 def visibility_schedule(
@@ -246,12 +250,27 @@ def simulate(
     paths[:, 0] = x[:keep, :2]
     se_track = se_est = sig_sum = 0.0
     n_active = 0
+    step_dev = np.zeros(K)
+    step_sig = np.zeros(K)
+    step_n = np.zeros(K)
+
+    def per_step(k: int, active: npt.NDArray[np.bool_]) -> None:
+        if not active.any():
+            return
+        step_dev[k] = float(np.square(x[active, :2] - path.poses[k, :2]).sum())
+        Pxy = P[active, :2, :2]
+        tr, det = Pxy[:, 0, 0] + Pxy[:, 1, 1], Pxy[:, 0, 0] * Pxy[:, 1, 1] - Pxy[:, 0, 1] * Pxy[:, 1, 0]
+        lam = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+        step_sig[k] = float(np.sqrt(np.maximum(lam, 0.0)).sum())
+        step_n[k] = float(active.sum())
+
     eye3 = np.eye(3)
     if obstacles is not None:
         d0 = obstacles.distance(x[:, :2])
         hit = d0 < params.robot_radius_m
         collided |= hit
         col_step[hit] = 0
+    per_step(0, ~collided)
     for k in range(K - 1):
         e = xh - path.poses[k]
         e[:, 2] = wrap(e[:, 2])
@@ -304,6 +323,7 @@ def simulate(
             se_est += float((np.square(xh[active, :2] - x[active, :2])).sum())
             sig_sum += float(np.sqrt(np.maximum(P[active, 0, 0] + P[active, 1, 1], 0.0)).sum())
             n_active += int(active.sum())
+            per_step(k + 1, active)
         if obstacles is not None:
             hit = active & (obstacles.distance(x[:, :2]) < params.robot_radius_m)
             collided |= hit
@@ -323,4 +343,6 @@ def simulate(
         rms_estimation_error_m=float(np.sqrt(se_est / denom)),
         sample_paths=paths,
         mean_estimate_sigma_m=sig_sum / denom,
+        step_rms_deviation_m=np.sqrt(step_dev / np.maximum(step_n, 1)),
+        step_ekf_sigma_m=step_sig / np.maximum(step_n, 1),
     )

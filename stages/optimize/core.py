@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pipeline.errors import StageError
-from stages.graph.factors import build_graph
+from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.problem import VAR_DIMS, GraphProblem, insert_value, value_vector
 from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
@@ -88,6 +88,7 @@ def solve_reduced(
     relative_error_tol: float = 1e-6,
     unobserved_sigma_m: float = 100.0,
     entropy_tag_ids: Iterable[int] | None = None,
+    row_override: Mapping[int, FactorRow] | None = None,
 ) -> ReducedMap:
     """Build the reduced graph (every non-tag factor + the selected tag factors of focused landmarks), solve it.
 
@@ -102,6 +103,8 @@ def solve_reduced(
         unobserved_sigma_m: prior sigma of focused landmarks without measurements, in the entropy.
         entropy_tag_ids: the landmarks the entropy is taken over (default: the focused ones). Evaluate passes
             the collision-focused set here for every case, so the "full" cases are scored on the same landmarks.
+        row_override: full-graph factor index to a replacement row (same keys and type), e.g. evaluate's
+            ground-truth-consistent measurements (``stages.evaluate.analysis.oracle_rows``).
 
     Raises:
         StageError: the reduced graph is singular (names the variable).
@@ -125,7 +128,8 @@ def solve_reduced(
     kept_tags = [i for i in selected if loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id in fset]
     dropped = sum(1 for i in selected if loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id not in fset)
     keep = np.array(sorted(set(loaded.fixed_factor_indices.tolist()) | set(kept_tags)), dtype=np.int64)
-    rows = [loaded.rows[i] for i in keep]
+    override = row_override or {}
+    rows = [override.get(int(i), loaded.rows[i]) for i in keep]
     used = {k for r in rows for k in r.keys}
     src = loaded.initial if initialise_from == "dead_reckoning" else loaded.values
     initial = gtsam.Values()

@@ -107,6 +107,10 @@ def test_every_case_is_in_the_table(evaluated) -> None:
         assert r["trials"] == 6 and 0.0 <= r["collision_ci_low"] <= r["collision_rate"] <= r["collision_ci_high"] <= 1
         assert r["error_reference"] == "ground_truth" and math.isfinite(r["focused_error_m"])
         assert 0.0 <= r["max_collision_probability"] <= 1.0
+        # the why-analysis: NEES, rigid-aligned and oracle errors, the navigation margin in sigmas
+        for col in ("focused_nees", "focused_error_aligned_m", "oracle_focused_error_m", "kept_tag_nees"):
+            assert math.isfinite(r[col]), col
+        assert r["tight_margin_m"] > 0 and r["margin_sigmas"] > 0 and r["risk_margin_sigmas"] > 0
 
 
 def test_report_figures_summary_and_recording(evaluated) -> None:
@@ -122,6 +126,7 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
         "maps.parquet",
         "path_risk.parquet",
         "greedy.parquet",
+        "margin.png",
     ):
         assert (out / f).is_file(), f
     md = (out / "report.md").read_text()
@@ -129,6 +134,12 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
     assert "data:image/png;base64," in (out / "report.html").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["headline"]["case"] == "focus_info" and summary["alpha"] == 5 and summary["K"] == 15
+    assert "## Why" in md and "oracle" in md and "margin / deviation" in md
+    why = summary["why"]
+    # the synthetic generator's tag noise is what its covariance says: NEES near the dimension, no range bias
+    tag = why["tag_measurements"]
+    print("synthetic tag NEES at the truth", tag["mean_nees"], "mean whitened", tag["mean_whitened"])
+    assert 1.0 < tag["mean_nees"] < 3.0 and abs(tag["mean_whitened"][1]) < 0.3
     from rerun.chunk import RrdReader
 
     paths = {c.entity_path for c in RrdReader(evaluated.rrd_path("evaluate")).stream()}

@@ -162,3 +162,14 @@ def test_ground_truth_in_the_map_frame(tmp_path: Path) -> None:
     np.testing.assert_allclose(truth.poses[1], [1, 0, 0], atol=1e-12)
     np.testing.assert_allclose(truth.tags[1], [0, -1], atol=1e-12)  # 1 m ahead-right: x forward, y left
     np.testing.assert_allclose(truth.walls[0], [-1, 1, -1, -3], atol=1e-12)
+
+
+def test_per_step_deviation_and_ekf_sigma(corridor) -> None:
+    """The per-step RMS deviation and EKF σ behind evaluate's margin-vs-σ: one value per step, consistent overall."""
+    path, gains, ids, xy, vis, _walls, truth = corridor
+    res = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, None, NavigationParams(trials=20), seed=3)
+    assert res.step_rms_deviation_m.shape == (len(path),) and res.step_ekf_sigma_m.shape == (len(path),)
+    assert np.all(res.step_ekf_sigma_m > 0)
+    # no collisions: every step has all trials, so the overall RMS is the RMS over steps 1..K-1
+    overall = np.sqrt(np.mean(res.step_rms_deviation_m[1:] ** 2))
+    assert overall == pytest.approx(res.rms_tracking_error_m, rel=1e-9)
