@@ -369,6 +369,63 @@ def _low_rank(block: FloatArray, tol: float = 1e-12) -> FloatArray:
     return np.asarray(V[:, keep] * np.sqrt(w[keep]))
 
 
+DENSE_MAX_DIM = 6000
+"""Up to this trajectory dimension the MI greedy carries the dense covariance (one inverse, rank-r downdates:
+predictable, ~1 s at n = 1,707 on one BLAS thread); above it, a sparse factorisation and r solves per gain (its cost
+depends on the fill-in: 5 ms per gain on the sample's graph, 150 ms on a seed whose landmarks tie far-apart poses)."""
+
+
+def _dense_mi_ops(
+    info0: FloatArray | sp.spmatrix, factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+) -> tuple[Callable[[int], float], Callable[[int], None]]:
+    dense = info0.toarray() if sp.issparse(info0) else np.asarray(info0)
+    Sigma = np.linalg.inv(dense)
+
+    def gain(l_: int) -> float:
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return 0.0
+        M = np.eye(B.shape[1]) + B.T @ Sigma[np.ix_(cols, cols)] @ B
+        return 0.5 * float(np.linalg.slogdet(M)[1])
+
+    def add(l_: int) -> None:
+        nonlocal Sigma
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return
+        SB = Sigma[:, cols] @ B
+        Sigma = Sigma - SB @ np.linalg.solve(np.eye(B.shape[1]) + B.T @ SB[cols], SB.T)
+
+    return gain, add
+
+
+def _sparse_mi_ops(
+    info0: FloatArray | sp.spmatrix, factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+) -> tuple[Callable[[int], float], Callable[[int], None]]:
+    n = info0.shape[0]
+    lam = _as_sparse(info0)
+    factor = _Factor(lam)
+
+    def gain(l_: int) -> float:
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return 0.0
+        rhs = np.zeros((n, B.shape[1]))
+        rhs[cols] = B
+        M = np.eye(B.shape[1]) + B.T @ np.asarray(factor.lu.solve(rhs))[cols]  # Bᵀ Σ_cc B, r solves
+        return 0.5 * float(np.linalg.slogdet(M)[1])
+
+    def add(l_: int) -> None:
+        nonlocal lam, factor
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return
+        lam = (lam + _scatter(n, [(cols, B @ B.T)])).tocsc()
+        factor = _Factor(lam)
+
+    return gain, add
+
+
 @_blas_single
 def select_mutual_information(
     info0: FloatArray,
@@ -394,26 +451,11 @@ def select_mutual_information(
         return LandmarkSelection([], [], st)
     budget = min(budget, L)
     n = info0.shape[0]
-    lam = _as_sparse(info0)
-    factor = _Factor(lam)
     factors = [(np.asarray(c, dtype=np.int64), _low_rank(b)) for c, b in contributions]
-
-    def gain(l_: int) -> float:
-        cols, B = factors[l_]
-        if B.shape[1] == 0:
-            return 0.0
-        rhs = np.zeros((n, B.shape[1]))
-        rhs[cols] = B
-        M = np.eye(B.shape[1]) + B.T @ np.asarray(factor.lu.solve(rhs))[cols]  # Bᵀ Σ_cc B, r solves
-        return 0.5 * float(np.linalg.slogdet(M)[1])
-
-    def add(l_: int) -> None:
-        nonlocal lam, factor
-        cols, B = factors[l_]
-        if B.shape[1] == 0:
-            return
-        lam = (lam + _scatter(n, [(cols, B @ B.T)])).tocsc()
-        factor = _Factor(lam)
+    if n <= DENSE_MAX_DIM:
+        gain, add = _dense_mi_ops(info0, factors)
+    else:
+        gain, add = _sparse_mi_ops(info0, factors)
 
     picks: list[int] = []
     gains: list[float] = []
@@ -493,10 +535,10 @@ def landmark_leverage_probabilities(
     """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1)."""
     n, N = info0.shape[0], len(contributions)
     lam = (_as_sparse(info0) + _scatter(n, contributions)).tocsc()
-    factor = _Factor(lam)
     support = [np.asarray(c, dtype=np.int64) for c, _ in contributions]
     used = np.unique(np.concatenate(support)) if any(len(c) for c in support) else np.zeros(0, dtype=np.int64)
-    X = factor.inverse_columns(used)  # Σ[:, used]
+    # Σ[:, used]: one dense inverse beats n sparse solves when the fill-in is large
+    X = np.linalg.inv(lam.toarray())[:, used] if n <= DENSE_MAX_DIM else _Factor(lam).inverse_columns(used)
     pos = np.full(n, -1, dtype=np.int64)
     pos[used] = np.arange(len(used))
     own = np.array(

@@ -49,7 +49,10 @@ COMPARE = (
 def load(path: Path) -> tuple[str, dict[str, dict[str, Any]]]:
     """(run name, case name → row) from a run folder or a cases.parquet file."""
     file = path if path.suffix == ".parquet" else path / "evaluate" / "cases.parquet"
-    name = path.stem if path.suffix == ".parquet" else path.name
+    if path.suffix != ".parquet":
+        name = path.name
+    else:  # a copied RUN/evaluate/cases.parquet is named by its folder
+        name = path.parent.name if path.stem == "cases" else path.stem
     t = pq.read_table(file).to_pylist()
     return name, {r["case"]: r for r in t}
 

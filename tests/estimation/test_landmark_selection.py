@@ -155,9 +155,13 @@ def _dense_leverage_probabilities(info0, contrib):
     return np.array([base + float(np.sum(Sigma[np.ix_(c, c)] * B)) for c, B in contrib]) / info0.shape[0]
 
 
-def test_sparse_leverage_and_mi_equal_the_dense_formulas() -> None:
+@pytest.mark.parametrize("dense_max_dim", [0, 6000])
+def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, dense_max_dim) -> None:
     """The sparse factorisations give the dense inverse's numbers (probabilities, draw measures, MI gains)."""
+    import stages.estimation.landmark_selection as ls
     from stages.estimation.landmark_selection import _measure, _measure_information, _scatter
+
+    monkeypatch.setattr(ls, "DENSE_MAX_DIM", dense_max_dim)
 
     info0, contrib = _random_mi_problem(np.random.default_rng(3), T=12, L=20)
     np.testing.assert_allclose(
