@@ -95,7 +95,7 @@ def test_bearing_range_conversion_round_trips() -> None:
 
 @pytest.mark.parametrize("model", ["planar", "3d"])
 def test_structure_counts(sim, model: str) -> None:
-    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model))
+    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model, tag_scale_sigma=0.005))
     kinds = Counter(r.kind for r in p.rows)
     n_det = sim.detections.num_rows
     tags = set(sim.detections.column("tag_id").to_pylist())
@@ -114,7 +114,7 @@ def test_structure_counts(sim, model: str) -> None:
     assert all(r.keys[2] == SCALE_KEY for r in p.rows if r.kind == "tag")
     assert SCALE_KEY not in p.pose_keys and SCALE_KEY not in p.landmark_keys.values()
     assert len(p.var_types) == len(p.pose_keys) + len(tags) + 1
-    old = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model, tag_scale_sigma=0))
+    old = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model))
     assert old.scale_key is None and "scale_prior" not in {r.kind for r in old.rows}
     assert len(old.var_types) == len(p.pose_keys) + len(tags) and all(
         len(r.keys) == 2 for r in old.rows if r.kind == "tag"
@@ -306,7 +306,7 @@ def test_import_bad_files(tmp_path: Path) -> None:
 
 def test_g2o_written_by_the_stage_reads_back(sim) -> None:
     for model in ("planar", "3d"):
-        p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model))
+        p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model, tag_scale_sigma=0.005))
         g, sol, _ = _solve(p)
         text = write_g2o(p, sol.values)
         back_path = Path(f"/tmp/focusmap_graph_roundtrip_{model}.g2o")

@@ -207,7 +207,7 @@ def test_stage_artifacts_and_what_later_stages_see(tmp_path: Path) -> None:
         if name == "ingest":
             (d / "extrinsics.json").write_text(json.dumps(sim.extrinsics))
         run.record(name, {"fingerprint": name, "summary": {}})
-    run_stage(run, reg, "graph", load_settings(reg.models()))
+    run_stage(run, reg, "graph", load_settings(reg.models(), overrides=["graph.tag_scale_sigma=0.005"]))
     out = run.stage_dir("graph")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tag_scale"]["prior_sigma"] == pytest.approx(0.005)
