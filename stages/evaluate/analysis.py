@@ -307,19 +307,41 @@ def aligned_error(
     landmarks, common to all of them; this removes it and leaves the error of the map's shape, the part a robot
     localising against the map feels. NaN with fewer than 3 landmarks.
     """
-    want = {int(t) for t in only}
+    fit = rigid_alignment(tag_ids, positions, reference, only)
+    if fit is None:
+        return float("nan")
+    R, t = fit
+    want = {int(x) for x in only}
+    ids = [int(x) for x in np.asarray(tag_ids).tolist()]
+    keep = [k for k, x in enumerate(ids) if x in want and x in reference]
+    A = np.asarray(positions, dtype=float)[keep, :2]
+    B = np.array([np.asarray(reference[ids[k]], dtype=float)[:2] for k in keep])
+    moved = A @ R.T + t
+    return float(np.linalg.norm(moved - B, axis=1).mean())
+
+
+def rigid_alignment(
+    tag_ids: npt.ArrayLike,
+    positions: FloatArray,
+    reference: Mapping[int, FloatArray],
+    only: Iterable[int] | None = None,
+) -> tuple[FloatArray, FloatArray] | None:
+    """``(R, t)`` of the best rigid planar motion ``p ↦ R p + t`` of the map's landmarks onto ``reference``.
+
+    None with fewer than 3 common landmarks.
+    """
+    want = None if only is None else {int(t) for t in only}
     pairs = [
         (np.asarray(p, dtype=float)[:2], np.asarray(reference[int(t)], dtype=float)[:2])
         for t, p in zip(np.asarray(tag_ids).tolist(), positions, strict=True)
-        if int(t) in want and int(t) in reference
+        if (want is None or int(t) in want) and int(t) in reference
     ]
     if len(pairs) < 3:
-        return float("nan")
+        return None
     A = np.array([a for a, _ in pairs])
     B = np.array([b for _, b in pairs])
     ca, cb = A.mean(axis=0), B.mean(axis=0)
     U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
     D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
     R = Vt.T @ D @ U.T
-    moved = (A - ca) @ R.T + cb
-    return float(np.linalg.norm(moved - B, axis=1).mean())
+    return R, cb - R @ ca

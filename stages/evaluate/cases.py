@@ -34,9 +34,11 @@ from stages.evaluate.analysis import (
     measurement_consistency,
     oracle_rows,
     residuals_by_range,
+    rigid_alignment,
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
+from stages.navigation import LandmarkMap as NavMap
 from stages.navigation import (
     NavigationParams,
     NavigationResult,
@@ -355,6 +357,17 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         "status": measurement.message if measurement is not None else "",
     }
     row.update(_why_columns(inputs, reduced, selected, reference, focus))
+    row.update(
+        dict.fromkeys(
+            (
+                "collision_rate_aligned",
+                "collision_ci_low_aligned",
+                "collision_ci_high_aligned",
+                "rms_tracking_error_aligned_m",
+            ),
+            float("nan"),
+        )
+    )
     row["risk_margin_sigmas"] = _margin_sigmas(risk.max)
     result = CaseResult(case, tags, measurement, reduced, risk, None, row)
     navigate(inputs, result)
@@ -377,6 +390,34 @@ def navigate(inputs: EvalInputs, result: CaseResult) -> None:
         seed=inputs.cfg.seed,
     )
     result.navigation = nav
+    if inputs.cfg.aligned_navigation and inputs.truth is not None:
+        lm = result.reduced.landmark_map
+        fit = rigid_alignment(lm.tag_ids, lm.positions, setup.true_landmarks)
+        if fit is not None:
+            R, t = fit
+            moved = NavMap(
+                np.asarray(lm.tag_ids),
+                np.asarray(lm.positions)[:, :2] @ R.T + t,
+                np.einsum("ij,njk,lk->nil", R, np.asarray(lm.covariances)[:, :2, :2], R),
+            )
+            al = simulate(
+                setup.path,
+                setup.gains,
+                moved,
+                setup.true_landmarks,
+                setup.visibility,
+                setup.obstacles,
+                setup.params,
+                seed=inputs.cfg.seed,
+            )
+            result.row.update(
+                {
+                    "collision_rate_aligned": al.collision_rate,
+                    "collision_ci_low_aligned": al.ci_low,
+                    "collision_ci_high_aligned": al.ci_high,
+                    "rms_tracking_error_aligned_m": al.rms_tracking_error_m,
+                }
+            )
     result.row.update(
         {
             "collision_rate": nav.collision_rate,

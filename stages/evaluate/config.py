@@ -60,6 +60,12 @@ class EvaluateConfig(BaseModel):
         "ground-truth-consistent ones (truth + noise drawn from the stated covariance) and report that error beside "
         "the real one: separates what the selection does from biases in the measurements.",
     )
+    aligned_navigation: bool = Field(
+        True,
+        description="With a ground truth, also navigate every case with its map moved by the best rigid motion onto "
+        "the true landmarks (collision_rate_aligned): the robot then feels the map's shape errors but not the drift "
+        "between the start and the landmarks that moves the whole map in the first-pose frame.",
+    )
     regime: str = Field(
         "default",
         description="Name of the navigation regime, printed in the report (configs/office_hard.yaml sets 'hard').",

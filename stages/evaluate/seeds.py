@@ -31,6 +31,7 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("focused_nees", "focused NEES", "{:.2f}"),
     ("max_collision_probability", "max P", "{:.1e}"),
     ("collision_rate", "collision rate", "{:.3f}"),
+    ("collision_rate_aligned", "collision rate, aligned map", "{:.3f}"),
     ("selection_s", "selection (s)", "{:.2f}"),
 )
 """(column, header, format) of the tables."""
@@ -42,6 +43,7 @@ COMPARE = (
     "oracle_focused_error_aligned_m",
     "max_collision_probability",
     "collision_rate",
+    "collision_rate_aligned",
 )
 """Columns on which focus_info is compared with every other case (lower is better)."""
 
@@ -49,10 +51,9 @@ COMPARE = (
 def load(path: Path) -> tuple[str, dict[str, dict[str, Any]]]:
     """(run name, case name → row) from a run folder or a cases.parquet file."""
     file = path if path.suffix == ".parquet" else path / "evaluate" / "cases.parquet"
-    if path.suffix != ".parquet":
-        name = path.name
-    else:  # a copied RUN/evaluate/cases.parquet is named by its folder
-        name = path.parent.name if path.stem == "cases" else path.stem
+    # a copied RUN/evaluate/cases.parquet is named by its folder
+    stem = path.parent.name if path.stem == "cases" else path.stem
+    name = stem if path.suffix == ".parquet" else path.name
     t = pq.read_table(file).to_pylist()
     return name, {r["case"]: r for r in t}
 

@@ -63,5 +63,23 @@ def test_seed_summary_counts_wins(tmp_path) -> None:
     write("s2", -3.0, -5.0)
     md = report([tmp_path / "s1.parquet", tmp_path / "s2.parquet"])
     assert "mean ± sd over 2 runs" in md and "-6.5 ± 4.9" in md
+    head = next(x for x in md.splitlines() if x.startswith("| focus_info lower than |"))
     line = next(x for x in md.splitlines() if x.startswith("| focus_ds |"))
-    assert line.split("|")[2].strip() == "1/2" and line.split("|")[-2].strip() == "2/2"
+    cells = dict(zip([c.strip() for c in head.split("|")], [c.strip() for c in line.split("|")], strict=True))
+    assert cells["focused_entropy"] == "1/2" and cells["collision_rate"] == "2/2"
+    assert cells["collision_rate_aligned"] == "0/0"  # not in these tables
+
+
+def test_rigid_alignment_recovers_the_motion() -> None:
+    from stages.evaluate.analysis import rigid_alignment
+
+    rng = np.random.default_rng(2)
+    truth = rng.uniform(-5, 5, size=(8, 2))
+    c, s = np.cos(-0.2), np.sin(-0.2)
+    R0 = np.array([[c, -s], [s, c]])
+    est = (truth - [1.0, 2.0]) @ R0  # truth = R0 est + [1, 2]
+    fit = rigid_alignment(np.arange(8), est, dict(enumerate(truth)))
+    assert fit is not None
+    np.testing.assert_allclose(fit[0], R0, atol=1e-12)
+    np.testing.assert_allclose(est @ fit[0].T + fit[1], truth, atol=1e-12)
+    assert rigid_alignment(np.arange(2), est[:2], dict(enumerate(truth))) is None
