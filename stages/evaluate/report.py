@@ -521,9 +521,11 @@ def margin_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Pa
     fig, ax = plt.subplots(figsize=(10, 3.8))
     ax.semilogy(t, np.maximum(have[0].margin.margin_m, 1e-4), color="k", lw=1.5, label="clearance − radius")
     for r in have:
-        ax.semilogy(t, np.maximum(3 * r.margin.deviation_m, 1e-4), lw=0.8, label=f"3 × RMS dev. {r.row['label']}")
+        ax.semilogy(t, 3 * r.margin.deviation_m, lw=0.8, label=f"3 × RMS dev. {r.row['label']}")
+    ax.set_ylim(bottom=1e-2)
     ax.set_xlabel("time along the path (s)")
     ax.set_ylabel("m")
+    ax.set_title("margin vs 3 × RMS deviation of the trials (a line ends when all its trials collided)", fontsize=9)
     ax.legend(fontsize=6, ncol=3)
     fig.tight_layout()
     fig.savefig(out_dir / "margin.png", dpi=110)

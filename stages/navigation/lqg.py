@@ -186,7 +186,8 @@ class NavigationResult:
     mean_estimate_sigma_m: float
     """Mean of sqrt(trace of the EKF position covariance) over the active steps."""
     step_rms_deviation_m: FloatArray = field(default_factory=lambda: np.zeros(0))
-    """(K,) per step, RMS distance of the active trials' true positions from the nominal pose of that step."""
+    """(K,) per step, RMS distance of the active trials' true positions from the nominal pose of that step (NaN once
+    every trial has collided)."""
     step_ekf_sigma_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     """(K,) per step, mean over the active trials of the EKF's position σ (sqrt of the largest xy eigenvalue)."""
 
@@ -343,6 +344,6 @@ def simulate(
         rms_estimation_error_m=float(np.sqrt(se_est / denom)),
         sample_paths=paths,
         mean_estimate_sigma_m=sig_sum / denom,
-        step_rms_deviation_m=np.sqrt(step_dev / np.maximum(step_n, 1)),
-        step_ekf_sigma_m=step_sig / np.maximum(step_n, 1),
+        step_rms_deviation_m=np.where(step_n > 0, np.sqrt(step_dev / np.maximum(step_n, 1)), np.nan),
+        step_ekf_sigma_m=np.where(step_n > 0, step_sig / np.maximum(step_n, 1), np.nan),
     )
