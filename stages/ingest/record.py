@@ -9,18 +9,20 @@ import pyarrow.parquet as pq
 import rerun as rr
 
 from pipeline.context import StageContext
-from pipeline.recording import quat_xyzw_from_matrix, set_stamp
-from stages.ingest.convert import quat_to_matrix
+from pipeline.recording import set_stamp
 
 
-def _pose_matrices(odom: Any) -> np.ndarray:
-    n = odom.num_rows
-    T = np.tile(np.eye(4), (n, 1, 1))
-    cols = {c: odom.column(c).to_numpy() for c in ("x", "y", "z", "qx", "qy", "qz", "qw")}
-    for i in range(n):
-        T[i, :3, :3] = quat_to_matrix(cols["qx"][i], cols["qy"][i], cols["qz"][i], cols["qw"][i])
-        T[i, :3, 3] = cols["x"][i], cols["y"][i], cols["z"][i]
-    return T
+def _pose_matrices(odom: Any) -> tuple[np.ndarray, np.ndarray]:
+    """4x4 odometry poses and their unit quaternions (x, y, z, w, as ROS and Rerun order them), vectorised."""
+    from scipy.spatial.transform import Rotation
+
+    quats = np.column_stack([odom.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")])
+    quats[np.linalg.norm(quats, axis=1) == 0] = [0.0, 0.0, 0.0, 1.0]
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    T = np.tile(np.eye(4), (odom.num_rows, 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(quats).as_matrix()
+    T[:, :3, 3] = np.column_stack([odom.column(c).to_numpy() for c in ("x", "y", "z")])
+    return T, quats
 
 
 def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any]) -> None:
@@ -31,11 +33,10 @@ def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any
     rec.log("/ingest/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     odom = pq.read_table(out / "odometry.parquet")
-    poses = _pose_matrices(odom) if odom.num_rows else np.zeros((0, 4, 4))
+    poses, quats = _pose_matrices(odom) if odom.num_rows else (np.zeros((0, 4, 4)), np.zeros((0, 4)))
     stamps = odom.column("stamp_ns").to_numpy() if odom.num_rows else np.zeros(0, dtype=np.int64)
     if len(poses):
         rec.log("/ingest/world/odometry/path", rr.LineStrips3D([poses[:, :3, 3]], colors=[[90, 160, 255]]), static=True)
-        quats = np.array([quat_xyzw_from_matrix(T[:3, :3]) for T in poses])
         rec.send_columns(
             "/ingest/world/odometry/base",
             indexes=[rr.TimeColumn("time", timestamp=stamps.astype("datetime64[ns]"))],
@@ -47,12 +48,13 @@ def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any
     if scans.num_rows and len(poses):
         T_base_laser = np.asarray(sensors.get("laser", {}).get("T_base_sensor", np.eye(4)))
         s_stamps = scans.column("stamp_ns").to_numpy()
+        meta = {c: scans.column(c).to_numpy() for c in ("angle_min", "angle_increment", "range_min", "range_max")}
+        ranges = scans.column("ranges")
         cloud = []
         for i in range(0, scans.num_rows, rr_cfg.scan_stride):
-            row = scans.slice(i, 1).to_pylist()[0]
-            r = np.asarray(row["ranges"], dtype=float)
-            a = row["angle_min"] + row["angle_increment"] * np.arange(len(r))
-            ok = np.isfinite(r) & (r >= row["range_min"]) & (r <= row["range_max"])
+            r = ranges[i].values.to_numpy(zero_copy_only=False).astype(float)
+            a = meta["angle_min"][i] + meta["angle_increment"][i] * np.arange(len(r))
+            ok = np.isfinite(r) & (r >= meta["range_min"][i]) & (r <= meta["range_max"][i])
             pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
             j = int(np.clip(np.searchsorted(stamps, s_stamps[i]), 0, len(stamps) - 1))
             world = (poses[j] @ T_base_laser @ pts.T).T[:, :3]
