@@ -51,18 +51,23 @@ def expectation_checks(results: Sequence[CaseResult]) -> list[str]:
     for metric, name in (
         ("focused_entropy", "focused entropy"),
         ("focused_error_m", "focused error"),
+        ("focused_error_aligned_m", "focused error after rigid alignment"),
         ("max_collision_probability", "max collision probability"),
         ("collision_rate", "collision rate"),
+        ("collision_rate_aligned", "collision rate with the map aligned"),
     ):
         for other in ("focus_ds", "full_info", "full_ds"):
             if other not in rows:
                 continue
-            a, b = fi[metric], rows[other][metric]
+            a, b = fi.get(metric, float("nan")), rows[other].get(metric, float("nan"))
             if not (np.isfinite(a) and np.isfinite(b)):
                 lines.append(f"- {name}: focus,info vs {other}: not available")
                 continue
-            if metric == "collision_rate":
-                overlap = not (fi["collision_ci_high"] < rows[other]["collision_ci_low"])
+            if metric in ("collision_rate", "collision_rate_aligned"):
+                sfx = "_aligned" if metric.endswith("_aligned") else ""
+                hi_a, lo_b = fi[f"collision_ci_high{sfx}"], rows[other][f"collision_ci_low{sfx}"]
+                hi_b, lo_a = rows[other][f"collision_ci_high{sfx}"], fi[f"collision_ci_low{sfx}"]
+                overlap = not (hi_a < lo_b or hi_b < lo_a)
                 verdict = (
                     "lower" if a < b and not overlap else ("indistinguishable (CIs overlap)" if overlap else "HIGHER")
                 )
