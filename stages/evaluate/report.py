@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from stages.evaluate.analysis import CHI2_2_95
 from stages.evaluate.cases import CaseResult, EvalInputs
 
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
@@ -431,13 +432,22 @@ def _findings(inputs: EvalInputs, rows: dict[str, dict[str, Any]]) -> list[str]:
     )
     opt = rows.get("optimal")
     if opt is not None and math.isfinite(opt.get("focused_nees", float("nan"))):
-        out.append(
-            f"- The full graph (optimal) fuses all of them: its focused landmarks have NEES {opt['focused_nees']:.1f} "
-            f"(expected 2) and error {opt['focused_error_m']:.4f} m against σ {opt['focused_sigma_m']:.4f} m, while "
-            f"with oracle measurements the same graph has error {_g(opt['oracle_focused_error_m'])} m and NEES "
-            f"{_g(opt['oracle_focused_nees'], '{:.2f}')}: with many measurements the error is set by the shared bias, "
-            "not by the variance the entropy measures."
+        nees, o_nees = opt["focused_nees"], opt.get("oracle_focused_nees", float("nan"))
+        facts = (
+            f"its focused landmarks have NEES {nees:.1f} (expected 2) and error {opt['focused_error_m']:.4f} m against "
+            f"σ {opt['focused_sigma_m']:.4f} m; with oracle measurements error {_g(opt['oracle_focused_error_m'])} m "
+            f"and NEES {_g(o_nees, '{:.2f}')}"
         )
+        if nees > CHI2_2_95 and not (o_nees > CHI2_2_95):
+            verdict = (
+                "with many measurements the error is set by a bias shared by the measurements, not by the variance "
+                "the entropy measures."
+            )
+        elif nees > CHI2_2_95:
+            verdict = "inconsistent with the real and with the oracle measurements: the model, not only the data."
+        else:
+            verdict = "consistent (the graph's model absorbs what bias the measurements have, or there is none)."
+        out.append(f"- The full graph (optimal) fuses all of them: {facts}: {verdict}")
     fi = rows.get("focus_info", {})
     if math.isfinite(fi.get("focused_sigma_m", float("nan"))):
         out.append(
