@@ -135,8 +135,14 @@ def _print_result(result: Any) -> None:
     from rich.console import Console
 
     console = Console(stderr=False, highlight=False, soft_wrap=True)
-    keys = [k for k in result.summary if k not in ("seconds", "topics", "camera", "notes", "read_seconds")][:6]
-    figures = "  ".join(f"{k}={result.summary[k]}" for k in keys if not isinstance(result.summary[k], dict | list))
+    keys = [
+        k
+        for k, v in result.summary.items()
+        if k not in ("seconds", "topics", "camera", "notes", "read_seconds") and v is not None
+    ][:6]
+    figures = "  ".join(
+        f"{k}={result.summary[k]}" for k in keys if not isinstance(result.summary[k], dict | list | None)
+    )
     status = "up to date" if result.status == "skipped" else f"done in {result.seconds:.1f} s"
     console.print(f"[bold]{result.stage:<20}[/bold] {status:<16} {figures}")
     for note in result.summary.get("notes", []) if result.status == "done" else []:
