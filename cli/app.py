@@ -9,9 +9,7 @@ from __future__ import annotations
 import functools
 import json
 import os
-import shutil
 import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -361,16 +359,32 @@ def _print_headline(run: Any) -> None:
 def view(
     run_dir: RunDirArg,
     print_only: Annotated[bool, typer.Option("--print", help="Only print the viewer command.")] = False,
+    screenshot: Annotated[
+        Path | None,
+        typer.Option(
+            "--screenshot",
+            help="Save a PNG of the recordings from a headless viewer instead of opening a window "
+            "(needs a Vulkan driver, e.g. Debian's mesa-vulkan-drivers).",
+        ),
+    ] = None,
+    at: Annotated[
+        float, typer.Option("--at", min=0.0, max=1.0, help="With --screenshot: time cursor, as a fraction of the run.")
+    ] = 0.5,
 ) -> None:
     """Open every stage recording of a run in the Rerun viewer, as one recording."""
+    from pipeline.viewer import rerun_executable
+    from pipeline.viewer import screenshot as take_screenshot
+
     run = _open_run(run_dir)
     files = sorted(str(p) for p in run.path.glob("*.rrd"))
     if not files:
         raise InputError(f"no .rrd recordings in {str(run.path)!r}; run a stage first")
     if (run.path / "focusmap.rbl").is_file():
         files.append(str(run.path / "focusmap.rbl"))
-    exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
-    cmd = [exe, *files]
+    if screenshot is not None:
+        typer.echo(f"picture: {take_screenshot([Path(f) for f in files], screenshot, at=at)}")
+        return
+    cmd = [rerun_executable(), *files]
     if print_only:
         typer.echo(" ".join(cmd))
         return

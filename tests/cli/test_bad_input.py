@@ -143,3 +143,18 @@ def test_view_opens_every_stage_recording_with_the_run_layout(tmp_path: Path) ->
     assert args[1:] == [str(tmp_path / "runs" / "ok" / "ingest.rrd"), str(tmp_path / "runs" / "ok" / "focusmap.rbl")]
     proc = focusmap("view", tmp_path / "runs" / "nothing")
     assert_one_error_line(proc, "does not exist")
+
+
+def test_view_screenshot_from_a_headless_viewer(tmp_path: Path) -> None:
+    """A picture of the run without a screen; skipped where the machine has no Vulkan driver."""
+    from pipeline.errors import PipelineError
+    from pipeline.viewer import screenshot
+
+    bag = write_minimal_bag(tmp_path / "ok.bag")
+    assert focusmap("ingest", bag, "--out", tmp_path / "runs").returncode == 0
+    out = tmp_path / "view.png"
+    try:
+        screenshot([tmp_path / "runs" / "ok" / "ingest.rrd"], out, timeout_s=60)
+    except PipelineError as err:
+        pytest.skip(f"no headless viewer here: {err}")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
