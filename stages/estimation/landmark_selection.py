@@ -330,7 +330,7 @@ def _scatter(n: int, parts: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]) 
 
 
 class _Factor:
-    """Sparse LU of a symmetric positive definite matrix: log-determinant and columns of its inverse."""
+    """Sparse LU of a symmetric positive definite matrix (SuperLU, symmetric mode): log-determinant and solves."""
 
     def __init__(self, A: sp.spmatrix) -> None:
         self.n = A.shape[0]
@@ -340,14 +340,194 @@ class _Factor:
     def logdet(self) -> float:
         return float(np.sum(np.log(np.abs(self.lu.U.diagonal()))))
 
-    def inverse_columns(self, cols: npt.NDArray[np.int64]) -> FloatArray:
-        """``A⁻¹[:, cols]`` (n × len(cols))."""
-        E = np.zeros((self.n, len(cols)))
-        E[np.asarray(cols, dtype=np.int64), np.arange(len(cols))] = 1.0
-        return np.asarray(self.lu.solve(E))
 
-    def inverse(self) -> FloatArray:
-        return self.inverse_columns(np.arange(self.n))
+# ------------------------------------------------------------------ selected inversion on BFS level blocks
+LEVEL_BLOCK_MIN = 96
+"""Consecutive BFS levels are merged into blocks of at least this many variables (fewer, larger dense products)."""
+
+
+def _bfs_levels(graph: sp.csr_matrix) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Per vertex, ``(component, level)``: BFS depth from a pseudo-peripheral vertex of its component.
+
+    Edges join only vertices of the same or of adjacent levels (BFS property), so a matrix with this
+    pattern is block tridiagonal when its rows are ordered by level (Cuthill-McKee level structure).
+    """
+    import scipy.sparse.csgraph as csgraph
+
+    n = graph.shape[0]
+    _, comp = csgraph.connected_components(graph, directed=False)
+    level = np.zeros(n, dtype=np.int64)
+    for c in range(int(comp.max()) + 1 if n else 0):
+        members = np.flatnonzero(comp == c)
+        start, depth = int(members[0]), None
+        for _ in range(3):  # George-Liu: jump to a vertex of the last level until the depth stops growing
+            d = csgraph.shortest_path(graph, indices=start, unweighted=True, directed=False)[members]
+            ecc = int(d.max())
+            if depth is not None and ecc <= depth:
+                break
+            depth, dist = ecc, d
+            last = members[d == ecc]
+            deg = np.diff(graph.indptr)[last]
+            start = int(last[np.argmin(deg)])
+        level[members] = dist.astype(np.int64)
+    return comp.astype(np.int64), level
+
+
+class _LevelBlocks:
+    """A sparsity pattern in block-tridiagonal form, and the selected inverse of SPD matrices with that pattern.
+
+    The variables are ordered by (connected component, BFS level) and consecutive levels merged into blocks of
+    at least ``min_block`` variables. Any SPD matrix whose pattern lies inside the given one is block tridiagonal
+    in that order; the forward block Cholesky recursion gives its log-determinant and the backward (RTS /
+    Takahashi) recursion the blocks ``Σ_kk`` and ``Σ_{k+1,k}`` of its inverse, which hold ``Σ[i, j]`` for every
+    nonzero ``(i, j)`` of the pattern. Cost ``O(Σ_k b_k³)`` instead of ``O(n³)``; no ``n × n`` array.
+    """
+
+    def __init__(self, pattern: sp.spmatrix, min_block: int | None = None) -> None:
+        min_block = LEVEL_BLOCK_MIN if min_block is None else min_block
+        g = sp.csr_matrix(pattern, copy=True)
+        g.data = np.ones_like(g.data)
+        g = (g + g.T).tocsr()
+        self.n = n = g.shape[0]
+        comp, level = _bfs_levels(g)
+        order = np.lexsort((np.arange(n), level, comp))
+        key = comp[order] * (n + 1) + level[order]
+        lev_start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        starts = [0]
+        for s in lev_start[1:]:  # merge consecutive levels (of any component) into blocks of >= min_block
+            if s - starts[-1] >= min_block:
+                starts.append(int(s))
+        self.perm = order.astype(np.int64)
+        self.iperm = np.empty(n, dtype=np.int64)
+        self.iperm[self.perm] = np.arange(n)
+        self.start = np.array([*starts, n], dtype=np.int64)
+        self.size = np.diff(self.start)
+        self.K = len(self.size)
+        self.block_of = np.repeat(np.arange(self.K), self.size)[self.iperm]  # block of each original index
+        self.local = np.arange(n) - self.start[np.repeat(np.arange(self.K), self.size)]
+        self.local = self.local[self.iperm]
+        sz = self.size
+        self.off_d = np.r_[0, np.cumsum(sz * sz)].astype(np.int64)
+        self.off_c = np.r_[0, np.cumsum(sz[1:] * sz[:-1])].astype(np.int64)  # C_k = A[block k+1, block k]
+
+    def cost(self) -> float:
+        """Flops of one selected inversion, roughly (``Σ_k b_k³`` times a small constant)."""
+        return float(np.sum(self.size.astype(float) ** 3)) * 6.0
+
+    def _index(self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]):
+        """Flat positions of entries ``(i, j)``: ``(diag, upper, pos)``; ``pos`` indexes the diagonal or the lower
+        store (``upper``: the entry is ``(j, i)`` of the lower store)."""
+        bi, bj = self.block_of[rows], self.block_of[cols]
+        li, lj = self.local[rows], self.local[cols]
+        diag = bi == bj
+        lower = bi == bj + 1
+        upper = bj == bi + 1
+        if not np.all(diag | lower | upper):
+            raise ValueError("matrix pattern outside the level-block structure")
+        pos = np.empty(len(rows), dtype=np.int64)
+        pos[diag] = self.off_d[bi[diag]] + li[diag] * self.size[bi[diag]] + lj[diag]
+        k = bj[lower]
+        pos[lower] = self.off_c[k] + li[lower] * self.size[k] + lj[lower]
+        k = bi[upper]
+        pos[upper] = self.off_c[k] + lj[upper] * self.size[k] + li[upper]
+        return diag, upper, pos
+
+    def store(self, A: sp.spmatrix) -> tuple[FloatArray, FloatArray]:
+        """``A``'s diagonal blocks and lower neighbour blocks, flat (the input of :meth:`factor`)."""
+        coo = sp.coo_matrix(A)
+        coo.sum_duplicates()
+        diag, upper, pos = self._index(coo.row.astype(np.int64), coo.col.astype(np.int64))
+        D = np.zeros(int(self.off_d[-1]))
+        C = np.zeros(int(self.off_c[-1]))
+        D[pos[diag]] = coo.data[diag]
+        low = ~diag & ~upper
+        C[pos[low]] = coo.data[low]
+        return D, C
+
+    def add(self, D: FloatArray, C: FloatArray, cols: npt.NDArray[np.int64], block: FloatArray) -> None:
+        """``A[cols, cols] += block`` in the flat store (in place)."""
+        rows = np.repeat(cols, len(cols))
+        cc = np.tile(cols, len(cols))
+        diag, upper, pos = self._index(rows, cc)
+        vals = np.asarray(block, dtype=float).ravel()
+        np.add.at(D, pos[diag], vals[diag])
+        low = ~diag & ~upper
+        np.add.at(C, pos[low], vals[low])
+
+    def _blocks(self, D: FloatArray, C: FloatArray) -> tuple[list[FloatArray], list[FloatArray]]:
+        sz = self.size
+        Ds = [D[self.off_d[k] : self.off_d[k + 1]].reshape(sz[k], sz[k]) for k in range(self.K)]
+        Cs = [C[self.off_c[k] : self.off_c[k + 1]].reshape(sz[k + 1], sz[k]) for k in range(self.K - 1)]
+        return Ds, Cs
+
+    def logdet(self, D: FloatArray, C: FloatArray) -> float:
+        """``log det A`` (forward block Cholesky only)."""
+        Ds, Cs = self._blocks(D, C)
+        total = 0.0
+        S = Ds[0]
+        for k in range(self.K):
+            Lk = np.linalg.cholesky(S)
+            total += 2.0 * float(np.sum(np.log(np.diag(Lk))))
+            if k + 1 < self.K:
+                X = sla.solve_triangular(Lk, Cs[k].T, lower=True, check_finite=False)  # L⁻¹ C_kᵀ
+                S = Ds[k + 1] - X.T @ X
+        return total
+
+    def factor(self, D: FloatArray, C: FloatArray) -> _SelectedInverse:
+        """Forward block Cholesky and backward selected inversion of the matrix stored in ``(D, C)``."""
+        Ds, Cs = self._blocks(D, C)
+        K = self.K
+        Sinv: list[FloatArray] = []
+        W: list[FloatArray] = []  # W_k = C_k S_k⁻¹
+        total = 0.0
+        S = Ds[0]
+        for k in range(K):
+            Lk = np.linalg.cholesky(S)
+            total += 2.0 * float(np.sum(np.log(np.diag(Lk))))
+            Li = sla.solve_triangular(Lk, np.eye(len(S)), lower=True, check_finite=False)
+            Sinv.append(Li.T @ Li)
+            if k + 1 < K:
+                W.append(Cs[k] @ Sinv[k])
+                S = Ds[k + 1] - W[k] @ Cs[k].T
+        sig_d = np.empty_like(D)
+        sig_c = np.empty_like(C)
+        Sk1 = Sinv[K - 1]
+        sig_d[self.off_d[K - 1] :] = Sk1.ravel()
+        for k in range(K - 2, -1, -1):
+            Lk = -Sk1 @ W[k]  # Σ[k+1, k]
+            Sk = Sinv[k] - W[k].T @ Lk
+            Sk = 0.5 * (Sk + Sk.T)
+            sig_d[self.off_d[k] : self.off_d[k + 1]] = Sk.ravel()
+            sig_c[self.off_c[k] : self.off_c[k + 1]] = Lk.ravel()
+            Sk1 = Sk
+        return _SelectedInverse(self, total, sig_d, sig_c)
+
+
+@dataclass
+class _SelectedInverse:
+    """Entries of ``A⁻¹`` on the level-block structure of ``A``, and ``log det A``."""
+
+    blocks: _LevelBlocks
+    logdet: float
+    sig_d: FloatArray
+    sig_c: FloatArray
+
+    def entries(self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]) -> FloatArray:
+        """``A⁻¹[rows[i], cols[i]]`` for entries inside the structure."""
+        diag, _, pos = self.blocks._index(rows, cols)
+        out = np.empty(len(pos))
+        out[diag] = self.sig_d[pos[diag]]
+        out[~diag] = self.sig_c[pos[~diag]]
+        return out
+
+    def block(self, cols: npt.NDArray[np.int64]) -> FloatArray:
+        """``A⁻¹[cols, cols]``."""
+        m = len(cols)
+        return self.entries(np.repeat(cols, m), np.tile(cols, m)).reshape(m, m)
+
+    def trace(self) -> float:
+        b = self.blocks
+        return float(sum(np.trace(self.sig_d[b.off_d[k] : b.off_d[k + 1]].reshape(s, s)) for k, s in enumerate(b.size)))
 
 
 # ------------------------------------------------------------------ mutual information (Beinhofer et al.)
@@ -370,9 +550,9 @@ def _low_rank(block: FloatArray, tol: float = 1e-12) -> FloatArray:
 
 
 DENSE_MAX_DIM = 6000
-"""Up to this trajectory dimension the MI greedy carries the dense covariance (one inverse, rank-r downdates:
-predictable, ~1 s at n = 1,707 on one BLAS thread); above it, a sparse factorisation and r solves per gain (its cost
-depends on the fill-in: 5 ms per gain on the sample's graph, 150 ms on a seed whose landmarks tie far-apart poses)."""
+"""Largest trajectory dimension for which the MI greedy may carry the dense covariance (one inverse, rank-r
+downdates), chosen only when the level blocks are so large that it is cheaper; above it the level-block selected
+inverse is used regardless (it never needs an ``n × n`` array)."""
 
 
 def _dense_mi_ops(
@@ -426,6 +606,48 @@ def _sparse_mi_ops(
     return gain, add
 
 
+def _selected_mi_ops(
+    info0: FloatArray | sp.spmatrix,
+    factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    blocks: _LevelBlocks,
+) -> tuple[Callable[[int], float], Callable[[int], None]]:
+    """Gains from the selected inverse of the current information (refactorised after each pick, ``O(Σ b_k³)``)."""
+    D, C = blocks.store(_as_sparse(info0))
+    state = {"inv": blocks.factor(D, C)}
+
+    def gain(l_: int) -> float:
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return 0.0
+        M = np.eye(B.shape[1]) + B.T @ state["inv"].block(cols) @ B
+        return 0.5 * float(np.linalg.slogdet(M)[1])
+
+    def add(l_: int) -> None:
+        cols, B = factors[l_]
+        if B.shape[1] == 0:
+            return
+        blocks.add(D, C, cols, B @ B.T)
+        state["inv"] = blocks.factor(D, C)
+
+    return gain, add
+
+
+MI_BACKEND: Literal["auto", "selected", "dense", "sparse"] = "auto"
+"""How the MI greedy evaluates gains (``auto``: the cheapest by a flop count; the others for tests and benchmarks).
+
+``selected``: the level-block selected inverse of the current information, recomputed after each pick
+(``budget · O(Σ b_k³)``); ``dense``: one dense inverse and rank-r downdates (``O(n³) + budget · O(n² r)``);
+``sparse``: a sparse factorisation per pick and r solves per gain (memory-lean fallback above ``DENSE_MAX_DIM``)."""
+
+
+def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float) -> str:
+    if MI_BACKEND != "auto":
+        return MI_BACKEND
+    if budget * blocks.cost() <= float(n) ** 3 + budget * 2.0 * float(n) ** 2 * rank or n > DENSE_MAX_DIM:
+        return "selected"
+    return "dense"
+
+
 @_blas_single
 def select_mutual_information(
     info0: FloatArray,
@@ -452,7 +674,12 @@ def select_mutual_information(
     budget = min(budget, L)
     n = info0.shape[0]
     factors = [(np.asarray(c, dtype=np.int64), _low_rank(b)) for c, b in contributions]
-    if n <= DENSE_MAX_DIM:
+    blocks = _LevelBlocks(_as_sparse(info0) + _scatter(n, [(c, np.ones((len(c), len(c)))) for c, _ in factors]))
+    rank = float(np.mean([B.shape[1] for _, B in factors]))
+    backend = _mi_backend(n, budget, blocks, rank)
+    if backend == "selected":
+        gain, add = _selected_mi_ops(info0, factors, blocks)
+    elif backend == "dense":
         gain, add = _dense_mi_ops(info0, factors)
     else:
         gain, add = _sparse_mi_ops(info0, factors)
@@ -517,40 +744,69 @@ def _measure(cov: FloatArray, measure: Measure) -> float:
     return float(np.linalg.slogdet(cov)[1])
 
 
-def _measure_information(lam: sp.spmatrix, measure: Measure) -> float:
-    """:func:`_measure` of ``lam⁻¹`` from a sparse factorisation of the information ``lam`` (no dense inverse)."""
-    if measure == "logdet":
-        return -_Factor(lam).logdet()
+def _measure_information(lam: sp.spmatrix, measure: Measure, blocks: _LevelBlocks | None = None) -> float:
+    """:func:`_measure` of ``lam⁻¹`` from a sparse factorisation of the information ``lam`` (no dense inverse).
+
+    ``blocks``: a level-block structure that contains ``lam``'s pattern (built from it if not given).
+    """
     if measure == "max_eig":
         dense = lam.shape[0] <= 200
         w = np.linalg.eigvalsh(lam.toarray())[0] if dense else spla.eigsh(lam, k=1, sigma=0.0, which="LM")[0][0]
         return 1.0 / float(w)
-    return float(np.trace(_Factor(lam).inverse()))
+    blocks = _LevelBlocks(lam) if blocks is None else blocks
+    D, C = blocks.store(lam)
+    if measure == "logdet":
+        return -blocks.logdet(D, C)
+    return blocks.factor(D, C).trace()
+
+
+def _all_information(
+    info0: FloatArray | sp.spmatrix, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+) -> tuple[sp.csc_matrix, _LevelBlocks]:
+    """``Λ₀ + Σ_l Λ_l`` and its level-block structure (which holds the pattern of every subset's information)."""
+    lam = (_as_sparse(info0) + _scatter(info0.shape[0], contributions)).tocsc()
+    pattern = lam + _scatter(info0.shape[0], [(c, np.ones((len(c), len(c)))) for c, _ in contributions])
+    return lam, _LevelBlocks(pattern)
+
+
+def _leverage_probabilities(
+    info0: FloatArray | sp.spmatrix,
+    contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    lam: sp.csc_matrix,
+    blocks: _LevelBlocks,
+) -> FloatArray:
+    n, N = info0.shape[0], len(contributions)
+    D, C = blocks.store(lam)
+    inv = blocks.factor(D, C)  # Σ = Λ_all⁻¹ on the pattern of Λ_all: every landmark's support block is in it
+    rows, cols, data, owner = [], [], [], []
+    for l_, (c, B) in enumerate(contributions):
+        c = np.asarray(c, dtype=np.int64)
+        rows.append(np.repeat(c, len(c)))
+        cols.append(np.tile(c, len(c)))
+        data.append(np.asarray(B, dtype=float).ravel())
+        owner.append(np.full(len(c) * len(c), l_, dtype=np.int64))
+    r_ = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+    if len(r_):
+        sig = inv.entries(r_, np.concatenate(cols))
+        own = np.bincount(np.concatenate(owner), weights=sig * np.concatenate(data), minlength=N)
+    else:
+        own = np.zeros(N)
+    # Σ (Λ₀ + Σ_l Λ_l) = I, so tr(Σ Λ₀) = n − Σ_l tr(Σ Λ_l): no other entry of Σ is needed
+    base = (n - float(own.sum())) / N
+    return np.asarray((base + own) / n)
 
 
 @_blas_single
 def landmark_leverage_probabilities(
     info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
 ) -> FloatArray:
-    """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1)."""
-    n, N = info0.shape[0], len(contributions)
-    lam = (_as_sparse(info0) + _scatter(n, contributions)).tocsc()
-    support = [np.asarray(c, dtype=np.int64) for c, _ in contributions]
-    used = np.unique(np.concatenate(support)) if any(len(c) for c in support) else np.zeros(0, dtype=np.int64)
-    # Σ[:, used]: one dense inverse beats n sparse solves when the fill-in is large
-    X = np.linalg.inv(lam.toarray())[:, used] if n <= DENSE_MAX_DIM else _Factor(lam).inverse_columns(used)
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[used] = np.arange(len(used))
-    own = np.array(
-        [
-            float(np.sum(X[c][:, pos[c]] * B)) if len(c) else 0.0
-            for c, (_, B) in zip(support, contributions, strict=True)
-        ]
-    )
-    # Σ (Λ₀ + Σ_l Λ_l) = I, so tr(Σ Λ₀) = n − Σ_l tr(Σ Λ_l): no other column of Σ is needed
-    base = (n - float(own.sum())) / N
-    r = base + own
-    return r / n
+    """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1).
+
+    ``tr(Σ Λ_l)`` only reads ``Σ = Λ_all⁻¹`` on landmark l's support, which is inside the sparsity pattern of
+    ``Λ_all``: one selected inversion (:class:`_LevelBlocks`) gives all of them, without the dense inverse.
+    """
+    lam, blocks = _all_information(info0, contributions)
+    return _leverage_probabilities(info0, contributions, lam, blocks)
 
 
 @_blas_single
@@ -564,24 +820,35 @@ def select_landmark_leverage(
 ) -> LandmarkSelection:
     """Leverage sampling: ``draws`` independent draws with replacement until ``budget`` distinct, keep the best.
 
-    Scores are the sampling probabilities of the picks; ``extra['measure']`` is the kept draw's value.
+    Scores are the sampling probabilities of the picks; ``extra['measure']`` is the kept draw's value. Each
+    draw's measure comes from the level-block factorisation of ``Λ_all``'s pattern (log det: forward block
+    Cholesky; trace: selected inversion; largest eigenvalue: shift-invert Lanczos).
     """
     L = len(contributions)
     st = _status(budget, L)
     if st in ("no_landmarks", "budget_zero"):
         return LandmarkSelection([], [], st)
     budget = min(budget, L)
-    pi = landmark_leverage_probabilities(info0, contributions)
+    lam_all, blocks = _all_information(info0, contributions)
+    pi = _leverage_probabilities(info0, contributions, lam_all, blocks)
     n = info0.shape[0]
     base = _as_sparse(info0)
+    D0, C0 = blocks.store(base)
     rng = np.random.default_rng(seed)
     best: tuple[float, list[int]] | None = None
     for _ in range(draws):
         chosen: dict[int, None] = {}
         while len(chosen) < budget:
             chosen[int(rng.choice(L, p=pi))] = None
-        lam = (base + _scatter(n, [contributions[l_] for l_ in chosen])).tocsc()
-        value = _measure_information(lam, measure)
+        if measure == "max_eig":
+            lam = (base + _scatter(n, [contributions[l_] for l_ in chosen])).tocsc()
+            value = _measure_information(lam, measure)
+        else:
+            D, C = D0.copy(), C0.copy()
+            for l_ in chosen:
+                cols, B = contributions[l_]
+                blocks.add(D, C, np.asarray(cols, dtype=np.int64), B)
+            value = -blocks.logdet(D, C) if measure == "logdet" else blocks.factor(D, C).trace()
         if best is None or value < best[0]:
             best = (value, list(chosen))
     assert best is not None
