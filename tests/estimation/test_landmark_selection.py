@@ -155,13 +155,18 @@ def _dense_leverage_probabilities(info0, contrib):
     return np.array([base + float(np.sum(Sigma[np.ix_(c, c)] * B)) for c, B in contrib]) / info0.shape[0]
 
 
-@pytest.mark.parametrize("dense_max_dim", [0, 6000])
-def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, dense_max_dim) -> None:
-    """The sparse factorisations give the dense inverse's numbers (probabilities, draw measures, MI gains)."""
+@pytest.mark.parametrize("backend", ["selected", "dense", "sparse"])
+@pytest.mark.parametrize("min_block", [1, 96])
+def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, backend, min_block) -> None:
+    """The level-block selected inverse gives the dense inverse's numbers (probabilities, draw measures, MI gains).
+
+    ``min_block = 1``: many blocks (one per BFS level); 96: the whole 36-dimensional problem in one block.
+    """
     import stages.estimation.landmark_selection as ls
     from stages.estimation.landmark_selection import _measure, _measure_information, _scatter
 
-    monkeypatch.setattr(ls, "DENSE_MAX_DIM", dense_max_dim)
+    monkeypatch.setattr(ls, "MI_BACKEND", backend)
+    monkeypatch.setattr(ls, "LEVEL_BLOCK_MIN", min_block)
 
     info0, contrib = _random_mi_problem(np.random.default_rng(3), T=12, L=20)
     np.testing.assert_allclose(
@@ -174,3 +179,43 @@ def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, dense_max_
     sel = select_mutual_information(info0, contrib, 6)
     assert mutual_information(info0, contrib, sel.picks) == pytest.approx(sum(sel.scores), rel=1e-9)
     assert select_mutual_information(sp.csc_matrix(info0), contrib, 6).picks == sel.picks
+    monkeypatch.setattr(ls, "MI_BACKEND", "dense")
+    ref = select_mutual_information(info0, contrib, 6)
+    assert ref.picks == sel.picks
+    np.testing.assert_allclose(ref.scores, sel.scores, rtol=1e-9)
+
+
+@pytest.mark.parametrize("min_block", [1, 4, 10_000])
+def test_level_blocks_selected_inverse_on_the_pattern(min_block) -> None:
+    """Σ on every nonzero of the pattern and log det, against the dense inverse: a chain with landmarks tying far-apart
+    poses (loop closures), a second disconnected chain, and a landmark whose support is not contiguous."""
+    from stages.estimation.landmark_selection import _LevelBlocks, _scatter
+
+    rng = np.random.default_rng(7)
+    info0, contrib = _random_mi_problem(rng, T=30, L=25)
+    n = info0.shape[0]
+    big = np.zeros((n + 9, n + 9))  # + a separate 3-pose chain (another connected component)
+    big[:n, :n] = info0
+    for t in range(3):
+        idx = np.arange(n + 3 * t, n + 3 * t + 3)
+        big[np.ix_(idx, idx)] += (2.0 + t) * np.eye(3)
+    far = np.r_[np.arange(0, 3), np.arange(n - 3, n)]  # first and last pose
+    J = rng.normal(size=(4, 6))
+    contrib.append((far, J.T @ J))
+    lam = sp.csc_matrix(big) + _scatter(n + 9, contrib)
+    blocks = _LevelBlocks(lam, min_block)
+    D, C = blocks.store(lam)
+    inv = blocks.factor(D, C)
+    dense = np.linalg.inv(lam.toarray())
+    coo = sp.coo_matrix(lam)
+    np.testing.assert_allclose(
+        inv.entries(coo.row.astype(np.int64), coo.col.astype(np.int64)), dense[coo.row, coo.col], rtol=1e-9, atol=1e-14
+    )
+    np.testing.assert_allclose(inv.block(far), dense[np.ix_(far, far)], rtol=1e-9, atol=1e-14)
+    assert inv.logdet == pytest.approx(np.linalg.slogdet(lam.toarray())[1], rel=1e-12)
+    assert blocks.logdet(D, C) == pytest.approx(inv.logdet, rel=1e-12)
+    assert inv.trace() == pytest.approx(np.trace(dense), rel=1e-10)
+    # probabilities with the far-apart support: still the dense formula, still summing to 1
+    pi = landmark_leverage_probabilities(big, contrib)
+    np.testing.assert_allclose(pi, _dense_leverage_probabilities(big, contrib), rtol=1e-9)
+    assert pi.sum() == pytest.approx(1.0, abs=1e-12)
