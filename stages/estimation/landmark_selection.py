@@ -469,7 +469,7 @@ class _LevelBlocks:
             Lk = np.linalg.cholesky(S)
             total += 2.0 * float(np.sum(np.log(np.diag(Lk))))
             if k + 1 < self.K:
-                X = sla.solve_triangular(Lk, Cs[k].T, lower=True, check_finite=False)  # L⁻¹ C_kᵀ
+                X = np.linalg.inv(Lk) @ Cs[k].T  # L⁻¹ C_kᵀ
                 S = Ds[k + 1] - X.T @ X
         return total
 
@@ -484,7 +484,7 @@ class _LevelBlocks:
         for k in range(K):
             Lk = np.linalg.cholesky(S)
             total += 2.0 * float(np.sum(np.log(np.diag(Lk))))
-            Li = sla.solve_triangular(Lk, np.eye(len(S)), lower=True, check_finite=False)
+            Li = np.linalg.inv(Lk)  # numpy's LAPACK: scipy.linalg links its own, multi-threaded OpenBLAS
             Sinv.append(Li.T @ Li)
             if k + 1 < K:
                 W.append(Cs[k] @ Sinv[k])
