@@ -41,6 +41,7 @@ from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from stages.estimation.linear_system import Factor, LinearSystem
@@ -236,9 +237,8 @@ def _batched_logdet(M: FloatArray) -> FloatArray:
         return np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
 
 
-def _openblas_thread_api() -> tuple[Callable[[], int], Callable[[int], None]] | None:
-    """``(get, set)`` for the number of threads of the OpenBLAS that numpy links, if it can be found."""
-    libdir = Path(np.__file__).resolve().parent.parent / "numpy.libs"
+def _openblas_thread_api(libdir: Path) -> tuple[Callable[[], int], Callable[[int], None]] | None:
+    """``(get, set)`` for the number of threads of the OpenBLAS in a wheel's ``.libs``, if it can be found."""
     for path in sorted(libdir.glob("libscipy_openblas*.so*")) + sorted(libdir.glob("libopenblas*.so*")):
         try:
             lib = ctypes.CDLL(str(path))
@@ -254,26 +254,33 @@ def _openblas_thread_api() -> tuple[Callable[[], int], Callable[[int], None]] | 
     return None  # pragma: no cover - depends on the environment
 
 
-_BLAS_THREADS = _openblas_thread_api()
+_BLAS_THREADS = [
+    api
+    for api in (
+        _openblas_thread_api(Path(np.__file__).resolve().parent.parent / "numpy.libs"),
+        _openblas_thread_api(Path(sla.__file__).resolve().parent.parent.parent / "scipy.libs"),
+    )
+    if api is not None
+]
+"""numpy's OpenBLAS and SciPy's (the SciPy wheel ships its own: ``solve_triangular`` goes through it)."""
 
 
 @contextmanager
 def _single_threaded_blas() -> Iterator[None]:
-    """Run numpy's BLAS on one thread inside the block (restored after).
+    """Run numpy's and SciPy's BLAS on one thread inside the block (restored after).
 
     The greedy loop makes thousands of small dense products; OpenBLAS threads them, and on a loaded
-    machine the threads wait on each other (measured: the loop 3x slower with 2 shared cores busy).
+    machine the threads wait on each other (measured: the loop 3x slower with 2 shared cores busy;
+    SciPy's small triangular solves took 1 ms each when threaded).
     """
-    if _BLAS_THREADS is None:  # pragma: no cover - depends on the environment
-        yield
-        return
-    get, put = _BLAS_THREADS
-    before = int(get())
-    put(1)
+    before = [int(get()) for get, _ in _BLAS_THREADS]
+    for _, put in _BLAS_THREADS:
+        put(1)
     try:
         yield
     finally:
-        put(before)
+        for (_, put), b in zip(_BLAS_THREADS, before, strict=True):
+            put(b)
 
 
 _TRACK_FOCUSED_MAX = 128
@@ -364,6 +371,118 @@ class _Tracker:
             self.refactorisations += 1
             return True
         return False
+
+
+_TRACKER: Literal["auto", "window", "capacitance"] = "auto"
+"""How ``Σ_S`` is kept between sparse factorisations: ``window`` (sequential Woodbury window stored at
+the tracked rows, Schur-reduced system; cost grows with the candidates' rows), ``capacitance`` (nothing
+stored at the tracked rows; two solves per step with the last factor of the whole compact graph, cost
+fixed by the graph; see :class:`_CapacitanceTracker`), ``auto``: ``capacitance`` once the candidates'
+and focused columns exceed ``_CAPACITANCE_ABOVE`` of the state, else ``window``."""
+
+_CAPACITANCE_ABOVE = 0.5
+"""``auto``: the fraction of the state above which the capacitance tracker is used (measured on the
+benchmark graph, all landmarks focused: window 0.50 ms/step at 9% of the state, 2.7 ms/step at 77%;
+capacitance 2.1 and 2.7 ms/step)."""
+
+_REFACTOR_ON_FIRST_OBSERVATION = False
+"""Capacitance tracker: also refactorise right after a pick that observes a landmark that ``Λ_last``
+holds only through the weak prior (the pick that makes ``C`` ill-conditioned, cond ~1e6). Not needed
+for exactness once ``C`` is kept as a Cholesky factor (measured: same picks, gains within 1e-8 of the
+dense reference either way), and costly when most picks are first observations."""
+
+
+class _CapacitanceTracker:
+    """Solves with ``Λ_S = Λ_last + A_Wᵀ A_W`` (the picks ``W`` since the last factorisation).
+
+    Capacitance form: ``Σ_S b = Σ_last (b − A_Wᵀ C⁻¹ A_W Σ_last b)``, ``C = I + A_W Σ_last A_Wᵀ``
+    (``k m × k m``). ``C`` is kept as its Cholesky factor, bordered by each pick: with
+    ``u = A_W Σ_last A_jᵀ`` and ``l = L⁻¹ u`` the new row is ``[lᵀ, chol(T_j)]``, where
+    ``T_j = I + A_j Σ_last A_jᵀ − lᵀ l = I + A_j Σ_S A_jᵀ`` is the pick's own ``T``. Stored per pick: its
+    columns, its Jacobian and ``W Σ_last A_jᵀ``; nothing of the size of the state or of the candidates.
+    """
+
+    def __init__(
+        self,
+        info: sp.csc_matrix,
+        m: int,
+        d: int,
+        fcols: IntArray,
+        add_info: Callable[[list[int]], sp.spmatrix],
+        refactor_every: int | None,
+        weak: npt.NDArray[np.bool_] | None,
+        max_window: int = 256,
+    ) -> None:
+        self.info = info
+        self.n = int(info.shape[0])
+        self.m = m
+        self.add_info = add_info
+        self.fixed = refactor_every
+        self.cap = max(1, refactor_every or max_window)
+        self.cols = np.zeros((self.cap, d), dtype=np.int64)
+        self.A = np.zeros((self.cap, m, d))
+        self.WX = np.zeros((len(fcols), self.cap * m))  # W Σ_last A_iᵀ
+        self.L = np.zeros((self.cap * m, self.cap * m))  # Cholesky factor of C
+        self.weak = weak  # per compact column: only the weak prior in Λ_last
+        self.window: list[int] = []
+        self.refactorisations = 0
+        self.first_observation_refactorisations = 0
+        self.factor_s = 0.0
+        self.t_window = 0.0
+        self._factorise()
+
+    def _factorise(self) -> None:
+        tf = time.perf_counter()
+        self.solver = SPDSolver(self.info)
+        self.t_factor = time.perf_counter() - tf
+        self.factor_s += self.t_factor
+
+    def solve_last(self, rhs: FloatArray) -> FloatArray:
+        return self.solver.solve(rhs)
+
+    def gather(self, x: FloatArray) -> FloatArray:
+        """``A_W x`` (``k m × q``)."""
+        k = len(self.window)
+        return np.matmul(self.A[:k], x[self.cols[:k]]).reshape(k * self.m, x.shape[1])
+
+    def lsolve(self, u: FloatArray) -> FloatArray:
+        km = len(self.window) * self.m
+        return sla.solve_triangular(self.L[:km, :km], u, lower=True, check_finite=False)
+
+    def ltsolve(self, v: FloatArray) -> FloatArray:
+        km = len(self.window) * self.m
+        return sla.solve_triangular(self.L[:km, :km], v, lower=True, trans="T", check_finite=False)
+
+    def scatter(self, y: FloatArray, rhs: FloatArray) -> None:
+        """``rhs += A_Wᵀ y``."""
+        k = len(self.window)
+        vals = np.matmul(np.swapaxes(self.A[:k], 1, 2), y.reshape(k, self.m, y.shape[1]))
+        np.add.at(rhs, self.cols[:k].ravel(), vals.reshape(-1, y.shape[1]))
+
+    def add(self, j: int, cols: IntArray, A: FloatArray, wx: FloatArray, lt: FloatArray, T: FloatArray) -> bool:
+        k = len(self.window)
+        km, m = k * self.m, self.m
+        self.L[km : km + m, :km] = lt
+        self.L[km : km + m, km : km + m] = np.linalg.cholesky(0.5 * (T + T.T))
+        self.cols[k] = cols
+        self.A[k] = A
+        self.WX[:, km : km + m] = wx
+        self.window.append(j)
+        first = False
+        if self.weak is not None:
+            nzc = cols[np.any(A != 0, axis=0)]
+            first = bool(self.weak[nzc].any())
+            self.weak[nzc] = False
+        if first and _REFACTOR_ON_FIRST_OBSERVATION:
+            self.first_observation_refactorisations += 1
+        elif not (len(self.window) == self.cap or (self.fixed is None and self.t_window > self.t_factor)):
+            return False
+        self.info = sp.csc_matrix(self.info + self.add_info(self.window))
+        self._factorise()
+        self.t_window = 0.0
+        self.window = []
+        self.refactorisations += 1
+        return True
 
 
 def _candidate_operator(Ac: FloatArray, tcols: IntArray, n: int) -> sp.csr_matrix:
@@ -509,7 +628,10 @@ def select_information(
     # them plus the picks: track that smaller system when it is much smaller (exact).
     t_red = time.perf_counter()
     info_t, rows_t = prob.info0, rows
-    if len(rows) < _REDUCE_BELOW * n:
+    capacitance = _TRACKER == "capacitance" or (_TRACKER == "auto" and len(rows) > _CAPACITANCE_ABOVE * n)
+    if capacitance:
+        Yt = None  # Σ Wᵀ p comes with the second solve at no extra cost
+    elif len(rows) < _REDUCE_BELOW * n:
         reduced = schur_complement(prob.info0, rows)
         if reduced is not None:
             info_t, rows_t = reduced, None
@@ -526,7 +648,15 @@ def select_information(
     t_update = 0.0
     t_loop = time.perf_counter()
     with _single_threaded_blas():
-        tracker = _Tracker(info_t, rows_t, m, add_info, refactor_every)
+        ctracker: _CapacitanceTracker | None = None
+        if capacitance:
+            weak = np.zeros(n, dtype=bool)
+            weak[sub.columns(prob.landmark_vars)] = True
+            for bf in prob.base:
+                weak[sub.factor_columns(bf)] = False
+            ctracker = _CapacitanceTracker(info_t, m, d, fcols, add_info, refactor_every, weak)
+        else:
+            tracker = _Tracker(info_t, rows_t, m, add_info, refactor_every)
         for _ in range(budget):
             det_m = _det_eye_plus_sym(Mu, m)
             det_k = _det_eye_plus_sym(Ku, m)
@@ -540,14 +670,46 @@ def select_information(
             gains.append(float(gain[j]))
             picked[j] = True
             wj = width[j]
-            Vt = tracker.solve(cols[j, :wj], Ac[j, :, :wj].T, pos[j, :wj])  # (Σ A_jᵀ)ᵀ at rows
-            T = eye_m + Ac[j] @ Vt[:, pos[j]].T
-            Tinv = _sym_inv(T)
-            w = np.ascontiguousarray(Vt[:, fpos].T)  # W Σ A_jᵀ, (f, m)
-            p = P @ w
-            E = T - w.T @ p
-            Einv = _sym_inv(E)
-            if Yt is None:
+            if ctracker is not None:
+                cj, Aj = cols[j, :wj], Ac[j, :, :wj]
+                rhs = np.zeros((n, m))
+                rhs[cj] = Aj.T
+                x1 = ctracker.solve_last(rhs)  # Σ_last A_jᵀ
+                T = eye_m + Aj @ x1[cj]
+                wx = x1[fcols]  # W Σ_last A_jᵀ
+                w = wx
+                k = len(ctracker.window)
+                if k:
+                    lt = ctracker.lsolve(ctracker.gather(x1))  # L⁻¹ A_W Σ_last A_jᵀ
+                    T = T - lt.T @ lt
+                    y = ctracker.ltsolve(lt)  # C⁻¹ A_W Σ_last A_jᵀ
+                    w = wx - ctracker.WX[:, : k * m] @ y
+                else:
+                    lt = np.zeros((0, m))
+                Tinv = _sym_inv(T)
+                p = P @ w
+                E = T - w.T @ p
+                Einv = _sym_inv(E)
+                rhs = np.zeros((n, 2 * m))
+                rhs[fcols, m:] = p
+                if k:
+                    y2 = ctracker.ltsolve(ctracker.lsolve(ctracker.WX[:, : k * m].T @ p))
+                    ctracker.scatter(np.hstack([y, -y2]), rhs)
+                Z = ctracker.solve_last(rhs)
+                V = x1 - Z[:, :m] if k else x1  # Σ_S A_jᵀ
+                Vt = np.ascontiguousarray(V[rows].T)
+                Xt = np.ascontiguousarray(Z[rows, m:].T)  # (Σ_S Wᵀ p)ᵀ at rows
+            else:
+                Vt = tracker.solve(cols[j, :wj], Ac[j, :, :wj].T, pos[j, :wj])  # (Σ A_jᵀ)ᵀ at rows
+                T = eye_m + Ac[j] @ Vt[:, pos[j]].T
+                Tinv = _sym_inv(T)
+                w = np.ascontiguousarray(Vt[:, fpos].T)  # W Σ A_jᵀ, (f, m)
+                p = P @ w
+                E = T - w.T @ p
+                Einv = _sym_inv(E)
+            if ctracker is not None:
+                pass  # Xt came with the second solve
+            elif Yt is None:
                 Xt = tracker.solve(fcols, p, fpos)  # (Σ Wᵀ p)ᵀ at rows
             else:
                 Xt = p.T @ Yt
@@ -566,15 +728,24 @@ def select_information(
             SF -= w @ Tinv @ w.T
             P += p @ Einv @ p.T
             t_update += time.perf_counter() - tu
-            if tracker.add(j, Vt, Tinv):
+            if ctracker is not None:
+                if ctracker.add(j, cols[j], Ac[j], wx, lt.T, T):
+                    P = _sym_inv(SF)
+            elif tracker.add(j, Vt, Tinv):
                 P = _sym_inv(SF)
     stats["loop_s"] = time.perf_counter() - t_loop
     stats["update_s"] = t_update
-    stats["factor_s"] = tracker.factor_s
+    if ctracker is not None:
+        stats["factor_s"] = ctracker.factor_s
+        stats["refactorisations"] = float(ctracker.refactorisations)
+        stats["first_observation_refactorisations"] = float(ctracker.first_observation_refactorisations)
+    else:
+        stats["factor_s"] = tracker.factor_s
+        stats["refactorisations"] = float(tracker.refactorisations)
     stats["solve_s"] = stats["loop_s"] - t_update
-    stats["refactorisations"] = float(tracker.refactorisations)
     stats["tracked_rows"] = float(len(rows))
     stats["reduced"] = float(rows_t is None)
+    stats["capacitance"] = float(ctracker is not None)
     h1 = h0 - float(np.sum(gains))
     return MeasurementSelection(picks, gains, "ok", N, budget, h0, h1, stats)
 

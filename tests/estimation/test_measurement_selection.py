@@ -196,3 +196,37 @@ def test_schur_complement_is_the_inverse_of_the_covariance_block() -> None:
     assert S is not None
     ref = np.linalg.inv(np.linalg.inv(A.toarray())[np.ix_(keep, keep)])
     np.testing.assert_allclose(S.toarray(), ref, atol=1e-10)
+
+
+@pytest.mark.parametrize("first_observation", [False, True])
+@pytest.mark.parametrize("case", ["planar", "all_focused", "refactorisations", "w100"])
+def test_capacitance_tracker_equals_reference(monkeypatch, case: str, first_observation: bool) -> None:
+    """The capacitance-form tracker (two fixed-size solves per step, ``C`` as a bordered Cholesky
+    factor) on the cases above, with and without refactorising at a landmark's first observation."""
+    import stages.estimation.measurement_selection as ms
+
+    monkeypatch.setattr(ms, "_TRACKER", "capacitance")
+    monkeypatch.setattr(ms, "_REFACTOR_ON_FIRST_OBSERVATION", first_observation)
+    if case == "planar":
+        pp, system, lms = _planar(2)
+        focused = lms[:3]
+        cand = [f for f in pp.measurement_factors if set(system.factors[f].variables) & set(focused)]
+        base, budget, every = default_base(system, cand), min(8, len(cand) - 1), 64
+    elif case == "all_focused":
+        pp, system, focused = _planar(7, n_poses=40, n_lm=6, n_meas=40)
+        cand = pp.measurement_factors
+        base, budget, every = default_base(system, cand), 10, 4
+    elif case == "refactorisations":
+        pp = planar_problem(150, 12, 220, seed=11, extent=40.0, sensor_range=12.0)
+        system = LinearSystem.from_gtsam(pp.graph, pp.values)
+        focused = system.variables_of_kind("landmark")  # all 12: many first observations in one window
+        cand = pp.measurement_factors
+        base, budget, every = default_base(system, cand), 24, 64
+    else:
+        system, base, cand = _pose_graph("w100.graph", 100)
+        focused, budget, every = [99, 50], 6, 2
+    fast = select_information(system, cand, focused, budget, base=base, refactor_every=every)
+    assert fast.stats["capacitance"] == 1.0
+    picks, gains = reference_greedy(system, cand, focused, budget, base)
+    assert fast.picks == picks
+    np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
