@@ -22,7 +22,9 @@ mutual-information form (``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_c�
 ``Σ`` only at the rows the gains read (the exact Schur complement of ``Λ₀`` onto the candidates' and
 focused columns plus the picks), one sparse solve per step from the last factorisation plus a
 Woodbury window over the picks since (a second one when more than 128 columns are focused), and
-``O(N_candidates · m² · d)`` small dense work. No dense ``n × n`` matrix is ever formed.
+``O(N_candidates · m² · d)`` small dense work. When the candidates' columns cover most of the state, the
+capacitance form instead (two solves per step with the factor of the whole compact graph, whose size
+does not depend on the candidates). No dense ``n × n`` matrix is ever formed.
 
 Initial information ``Λ₀`` = the base factors (odometry and prior) plus a weak isotropic prior of
 standard deviation ``landmark_prior_sigma`` on every landmark variable, so landmarks that the base
@@ -380,10 +382,10 @@ stored at the tracked rows; two solves per step with the last factor of the whol
 fixed by the graph; see :class:`_CapacitanceTracker`), ``auto``: ``capacitance`` once the candidates'
 and focused columns exceed ``_CAPACITANCE_ABOVE`` of the state, else ``window``."""
 
-_CAPACITANCE_ABOVE = 0.5
-"""``auto``: the fraction of the state above which the capacitance tracker is used (measured on the
-benchmark graph, all landmarks focused: window 0.50 ms/step at 9% of the state, 2.7 ms/step at 77%;
-capacitance 2.1 and 2.7 ms/step)."""
+_CAPACITANCE_ABOVE = 0.75
+"""``auto``: the fraction of the state above which the capacitance tracker is used. Measured on the
+benchmark graph (all landmarks focused, 100 steps): window 0.64 ms/step at 9% of the state and 2.5–2.7
+at 77%, 3.0–3.5 on the whole graph; capacitance 2.3 and 2.7–3.0 ms/step (flat): they tie near 75%."""
 
 _REFACTOR_ON_FIRST_OBSERVATION = False
 """Capacitance tracker: also refactorise right after a pick that observes a landmark that ``Λ_last``
@@ -553,7 +555,10 @@ def select_information(
     sparse information is the exact Schur complement of ``Λ₀`` onto them, plus the picks). ``V`` is one
     solve (the last sparse factor plus a Woodbury window over the picks since); ``Σ Wᵀ p`` is read from
     ``W Σ`` kept at the tracked rows when at most 128 columns are focused, else a second solve. Plus
-    ``O(N_candidates · m² · d)`` batched dense work.
+    ``O(N_candidates · m² · d)`` batched dense work. When the candidates' and focused columns exceed 75%
+    of the state, the capacitance tracker (:class:`_CapacitanceTracker`) is used instead: two solves
+    per step with the last factor of the whole compact graph, per-step cost independent of the
+    candidates apart from the ``O(N)`` update.
 
     Args:
         system: the linearised full graph (whitened Jacobians at the full-graph solution).
@@ -646,6 +651,7 @@ def select_information(
     picks: list[int] = []
     gains: list[float] = []
     t_update = 0.0
+    t_gain = 0.0
     t_loop = time.perf_counter()
     with _single_threaded_blas():
         ctracker: _CapacitanceTracker | None = None
@@ -658,6 +664,7 @@ def select_information(
         else:
             tracker = _Tracker(info_t, rows_t, m, add_info, refactor_every)
         for _ in range(budget):
+            tg = time.perf_counter()
             det_m = _det_eye_plus_sym(Mu, m)
             det_k = _det_eye_plus_sym(Ku, m)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -666,6 +673,7 @@ def select_information(
                 gain = np.where(det_k <= 0, -np.inf, np.where(det_m <= 0, np.inf, gain))
             gain[picked] = -np.inf
             j = int(np.argmax(gain))
+            t_gain += time.perf_counter() - tg
             picks.append(cand[j])
             gains.append(float(gain[j]))
             picked[j] = True
@@ -735,6 +743,7 @@ def select_information(
                 P = _sym_inv(SF)
     stats["loop_s"] = time.perf_counter() - t_loop
     stats["update_s"] = t_update
+    stats["gain_s"] = t_gain
     if ctracker is not None:
         stats["factor_s"] = ctracker.factor_s
         stats["refactorisations"] = float(ctracker.refactorisations)

@@ -107,12 +107,16 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--draws", type=int, default=5, help="leverage draws")
     ap.add_argument("--flat-steps", type=int, default=100, help="greedy steps for the per-step timing")
+    ap.add_argument(
+        "--tracker", choices=["auto", "window", "capacitance"], default="auto", help="tracker for the totals"
+    )
     ap.add_argument("--memory-probe", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_probe:
         memory_probe(args.memory_probe)
         return
     print(f"uptime before: {uptime()}")
+    ms._TRACKER = args.tracker
     pp = planar_problem(args.poses, args.landmarks, args.measurements, seed=0, extent=200, sensor_range=30)
     system = LinearSystem.from_gtsam(pp.graph, pp.values)
     lms = system.variables_of_kind("landmark")
@@ -157,28 +161,37 @@ def main() -> None:
             f"the entropy leverage removes); greedy's bookkept entropy vs a fresh factorisation: "
             f"{s.entropy_after - fresh:+.4f} nats"
         )
-    # time per step as the candidates grow: all landmarks focused, the first n measurements as candidates;
-    # by default (the tracked system is the Schur complement onto the candidates' columns, so it grows
-    # with them) and with the tracked system held at the whole graph (isolates the per-candidate work)
+    # time per step as the candidates grow: all landmarks focused, the first n measurements as candidates
+    # (graph and focus fixed, only the candidate set grows). Trackers: the sequential window on the
+    # Schur-reduced system (grows with the candidates' rows), the capacitance form on the whole compact
+    # graph (fixed-size solves), and the default (``auto``: whichever the size of the candidates' rows picks)
     steps = args.flat_steps
     sizes = (1000, args.measurements)
-    per_step: dict[tuple[str, int], list[float]] = {(v, nc): [] for v in ("reduced", "whole graph") for nc in sizes}
-    info: dict[tuple[str, int], dict[str, float]] = {}
+    variants = ("window", "capacitance", "auto")
+    per_step: dict[tuple[str, int], list[float]] = {(v, nc): [] for v in variants for nc in sizes}
+    info: dict[tuple[str, int], list[dict[str, float]]] = {key: [] for key in per_step}
     for _ in range(args.repeats):
         for variant, nc in per_step:
-            ms._REDUCE_BELOW = 1.0 if variant == "reduced" else 0.0
+            ms._TRACKER = variant
             s = select_information(system, pp.measurement_factors[:nc], lms, steps)
             per_step[(variant, nc)].append(1e3 * s.stats["loop_s"] / steps)
-            info[(variant, nc)] = s.stats
-    ms._REDUCE_BELOW = 1.0
-    for variant in ("reduced", "whole graph"):
+            info[(variant, nc)].append(s.stats)
+    ms._TRACKER = args.tracker
+
+    def med(variant: str, nc: int, key: str) -> float:
+        return float(np.median([1e3 * st[key] / steps for st in info[(variant, nc)]]))
+
+    for variant in variants:
         a, b = (float(np.median(per_step[(variant, nc)])) for nc in sizes)
-        ia, ib = info[(variant, sizes[0])], info[(variant, sizes[1])]
+        ua, ub = (med(variant, nc, "update_s") + med(variant, nc, "gain_s") for nc in sizes)
+        fa, fb = (med(variant, nc, "factor_s") for nc in sizes)
+        ia, ib = info[(variant, sizes[0])][-1], info[(variant, sizes[1])][-1]
         print(
-            f"all landmarks focused, {steps} steps, tracked system {variant}: {a:.2f} ms/step with {sizes[0]:,} "
-            f"candidates ({ia['tracked_rows']:.0f} tracked rows), {b:.2f} ms/step with {sizes[1]:,} "
-            f"({ib['tracked_rows']:.0f} rows) = {b / a:.2f}x; per-candidate updates "
-            f"{1e3 * ia['update_s'] / steps:.2f} vs {1e3 * ib['update_s'] / steps:.2f} ms/step"
+            f"all landmarks focused, {steps} steps, tracker {variant}: {a:.2f} ms/step with {sizes[0]:,} candidates "
+            f"({ia['tracked_rows']:.0f} candidate rows, capacitance {ia['capacitance']:.0f}), {b:.2f} ms/step with "
+            f"{sizes[1]:,} ({ib['tracked_rows']:.0f} rows, capacitance {ib['capacitance']:.0f}) = {b / a:.2f}x; "
+            f"O(N) part (per-candidate updates + gain evaluation) {ua:.2f} vs {ub:.2f} ms/step; the rest "
+            f"{a - ua:.2f} vs {b - ub:.2f} ({(b - ub) / (a - ua):.2f}x), of which factorisations {fa:.2f} vs {fb:.2f}"
         )
     # memory: the greedy alone in a fresh process (peak RSS after building the graph and after the
     # greedy), and the Python/numpy allocations during one greedy (tracemalloc)
