@@ -160,6 +160,7 @@ def test_fast_equals_reference_through_refactorisations(monkeypatch, track_focus
     Schur reduction onto the tracked rows."""
     import stages.estimation.measurement_selection as ms
 
+    monkeypatch.setattr(ms, "_TRACKER", "window")  # this test covers the window tracker's paths
     if not track_focused:
         monkeypatch.setattr(ms, "_TRACK_FOCUSED_MAX", 0)
     monkeypatch.setattr(ms, "_REDUCE_BELOW", 1.0 if reduce else 0.0)
