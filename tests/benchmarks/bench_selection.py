@@ -108,7 +108,10 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=5, help="leverage draws")
     ap.add_argument("--flat-steps", type=int, default=100, help="greedy steps for the per-step timing")
     ap.add_argument(
-        "--tracker", choices=["auto", "window", "capacitance"], default="auto", help="tracker for the totals"
+        "--tracker",
+        choices=["auto", "window", "capacitance"],
+        default=None,
+        help="tracker for the totals (default: the module default)",
     )
     ap.add_argument("--memory-probe", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -116,7 +119,9 @@ def main() -> None:
         memory_probe(args.memory_probe)
         return
     print(f"uptime before: {uptime()}")
+    args.tracker = args.tracker or ms._TRACKER
     ms._TRACKER = args.tracker
+    print(f"tracker for the totals: {args.tracker}")
     pp = planar_problem(args.poses, args.landmarks, args.measurements, seed=0, extent=200, sensor_range=30)
     system = LinearSystem.from_gtsam(pp.graph, pp.values)
     lms = system.variables_of_kind("landmark")
