@@ -6,15 +6,11 @@ Conventions: planar poses are ``(x, y, θ)``; 3-D poses are gtsam ``Pose3`` tang
 
 from __future__ import annotations
 
-import ctypes
-import functools
 import heapq
 import itertools
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -23,65 +19,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.stats import norm
 
+from stages.estimation.blas import blas_single
+
 FloatArray = npt.NDArray[np.float64]
 Measure = Literal["logdet", "trace", "max_eig"]
 T = TypeVar("T")
-
-
-def _openblas_thread_api() -> tuple[Callable[[], int], Callable[[int], None]] | None:
-    """``(get, set)`` for the number of threads of the OpenBLAS that numpy links, if it can be found.
-
-    (The same lookup as ``measurement_selection``'s; kept here so the two modules do not import each other's
-    private helpers.)
-    """
-    libdir = Path(np.__file__).resolve().parent.parent / "numpy.libs"
-    for path in sorted(libdir.glob("libscipy_openblas*.so*")) + sorted(libdir.glob("libopenblas*.so*")):
-        try:
-            lib = ctypes.CDLL(str(path))
-        except OSError:  # pragma: no cover - depends on the environment
-            continue
-        for prefix, suffix in (("scipy_", "64_"), ("scipy_", ""), ("", "64_"), ("", "")):
-            get = getattr(lib, f"{prefix}openblas_get_num_threads{suffix}", None)
-            put = getattr(lib, f"{prefix}openblas_set_num_threads{suffix}", None)
-            if get is not None and put is not None:
-                get.restype = ctypes.c_int
-                put.argtypes = [ctypes.c_int]
-                return get, put
-    return None  # pragma: no cover - depends on the environment
-
-
-_BLAS_THREADS = _openblas_thread_api()
-
-
-@contextmanager
-def single_threaded_blas() -> Iterator[None]:
-    """Run numpy's BLAS on one thread inside the block (restored after).
-
-    The selections below make many small dense products and eigendecompositions (≤ 300×300); OpenBLAS threads
-    them, and on a loaded 2-core machine the threads wait on each other (measured: 74 eigh of ~100×100 took 9 s
-    threaded under load).
-    """
-    if _BLAS_THREADS is None:  # pragma: no cover - depends on the environment
-        yield
-        return
-    get, put = _BLAS_THREADS
-    before = int(get())
-    put(1)
-    try:
-        yield
-    finally:
-        put(before)
-
-
-def _blas_single(fn: Callable[..., T]) -> Callable[..., T]:
-    """Decorator: run ``fn`` inside :func:`single_threaded_blas`."""
-
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> T:
-        with single_threaded_blas():
-            return fn(*args, **kwargs)
-
-    return wrapper
 
 
 # ------------------------------------------------------------------ belief stabilisation (eq. 19, 26)
@@ -648,7 +590,7 @@ def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float) -> str:
     return "dense"
 
 
-@_blas_single
+@blas_single
 def select_mutual_information(
     info0: FloatArray,
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
@@ -796,7 +738,7 @@ def _leverage_probabilities(
     return np.asarray((base + own) / n)
 
 
-@_blas_single
+@blas_single
 def landmark_leverage_probabilities(
     info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
 ) -> FloatArray:
@@ -809,7 +751,7 @@ def landmark_leverage_probabilities(
     return _leverage_probabilities(info0, contributions, lam, blocks)
 
 
-@_blas_single
+@blas_single
 def select_landmark_leverage(
     info0: FloatArray,
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],

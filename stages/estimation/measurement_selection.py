@@ -33,12 +33,9 @@ leaves unobserved have finite, comparable first gains.
 
 from __future__ import annotations
 
-import ctypes
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -46,6 +43,7 @@ import numpy.typing as npt
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from stages.estimation.blas import single_threaded_blas
 from stages.estimation.linear_system import Factor, LinearSystem
 from stages.estimation.sparse_cov import (
     SPDSolver,
@@ -239,52 +237,6 @@ def _batched_logdet(M: FloatArray) -> FloatArray:
         return np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
 
 
-def _openblas_thread_api(libdir: Path) -> tuple[Callable[[], int], Callable[[int], None]] | None:
-    """``(get, set)`` for the number of threads of the OpenBLAS in a wheel's ``.libs``, if it can be found."""
-    for path in sorted(libdir.glob("libscipy_openblas*.so*")) + sorted(libdir.glob("libopenblas*.so*")):
-        try:
-            lib = ctypes.CDLL(str(path))
-        except OSError:  # pragma: no cover - depends on the environment
-            continue
-        for prefix, suffix in (("scipy_", "64_"), ("scipy_", ""), ("", "64_"), ("", "")):
-            get = getattr(lib, f"{prefix}openblas_get_num_threads{suffix}", None)
-            put = getattr(lib, f"{prefix}openblas_set_num_threads{suffix}", None)
-            if get is not None and put is not None:
-                get.restype = ctypes.c_int
-                put.argtypes = [ctypes.c_int]
-                return get, put
-    return None  # pragma: no cover - depends on the environment
-
-
-_BLAS_THREADS = [
-    api
-    for api in (
-        _openblas_thread_api(Path(np.__file__).resolve().parent.parent / "numpy.libs"),
-        _openblas_thread_api(Path(sla.__file__).resolve().parent.parent.parent / "scipy.libs"),
-    )
-    if api is not None
-]
-"""numpy's OpenBLAS and SciPy's (the SciPy wheel ships its own: ``solve_triangular`` goes through it)."""
-
-
-@contextmanager
-def _single_threaded_blas() -> Iterator[None]:
-    """Run numpy's and SciPy's BLAS on one thread inside the block (restored after).
-
-    The greedy loop makes thousands of small dense products; OpenBLAS threads them, and on a loaded
-    machine the threads wait on each other (measured: the loop 3x slower with 2 shared cores busy;
-    SciPy's small triangular solves took 1 ms each when threaded).
-    """
-    before = [int(get()) for get, _ in _BLAS_THREADS]
-    for _, put in _BLAS_THREADS:
-        put(1)
-    try:
-        yield
-    finally:
-        for (_, put), b in zip(_BLAS_THREADS, before, strict=True):
-            put(b)
-
-
 _TRACK_FOCUSED_MAX = 128
 """Up to this many focused columns, ``Σ Wᵀ`` is kept at the tracked rows instead of solved for per step."""
 
@@ -294,39 +246,27 @@ _REDUCE_BELOW = 1.0
 than this fraction of the state (measured: worth it even at 77% of the state, 4.9 vs 7.2 ms/step)."""
 
 
-class _Tracker:
-    """``Σ_S b`` at the rows ``rows`` of the state, for sparse right-hand sides, kept exact as picks join ``Λ_S``.
+class _Refactorising:
+    """What both trackers share: the sparse factor of ``Λ_last``, the picks since it, and when to refactorise.
 
-    ``Σ_S = Λ_S⁻¹`` with ``Λ_S = Λ_last + Σ_{i in window} A_iᵀ A_i``: a sparse factorisation of
-    ``Λ_last`` (the information at the last refactorisation) plus the sequential Woodbury correction
-    ``Σ_S = Σ_last − Σ_i V_i T_i⁻¹ V_iᵀ`` over the picks since, ``V_i = Σ_{i-1} A_iᵀ``. Only the rows
-    that the gains read (the candidates' and the focused columns) of each ``V_i`` are stored, and the
-    correction of ``Σ_S b`` needs ``V_iᵀ b``, i.e. the stored rows at the nonzeros of ``b``.
-
-    Refactorisation: every ``refactor_every`` picks, or (``None``) once the Woodbury work since the last
-    factorisation has cost as much as that factorisation did — for a window cost growing linearly
-    with its length this is the schedule with the least total cost (at most ``max_window`` picks).
+    Refactorisation: every ``refactor_every`` picks, or (``None``) once the window's work since the last
+    factorisation has cost as much as that factorisation did (at most ``max_window`` picks).
     """
 
     def __init__(
         self,
         info: sp.csc_matrix,
-        rows: IntArray | None,
         m: int,
         add_info: Callable[[list[int]], sp.spmatrix],
         refactor_every: int | None,
-        max_window: int = 256,
+        max_window: int,
     ) -> None:
         self.info = info
         self.n = int(info.shape[0])
-        self.rows = rows  # None: ``info`` is already the (Schur-reduced) information of the tracked rows
-        n_rows = self.n if rows is None else len(rows)
         self.m = m
         self.add_info = add_info
         self.fixed = refactor_every
         self.cap = max(1, refactor_every or max_window)
-        self.win = np.empty((self.cap * m, n_rows))  # Vᵢᵀ at ``rows``, m rows per pick
-        self.win_Tinv = np.empty((self.cap, m, m))
         self.window: list[int] = []
         self.refactorisations = 0
         self.factor_s = 0.0
@@ -338,6 +278,45 @@ class _Tracker:
         self.solver = SPDSolver(self.info)
         self.t_factor = time.perf_counter() - tf
         self.factor_s += self.t_factor
+
+    def _window_full(self) -> bool:
+        return len(self.window) == self.cap or (self.fixed is None and self.t_window > self.t_factor)
+
+    def _refactorise(self) -> None:
+        """Fold the window's picks into ``Λ_last`` and factorise it again."""
+        self.info = sp.csc_matrix(self.info + self.add_info(self.window))
+        self._factorise()
+        self.t_window = 0.0
+        self.window = []
+        self.refactorisations += 1
+
+
+class _Tracker(_Refactorising):
+    """``Σ_S b`` at the rows ``rows`` of the state, for sparse right-hand sides, kept exact as picks join ``Λ_S``.
+
+    ``Σ_S = Λ_S⁻¹`` with ``Λ_S = Λ_last + Σ_{i in window} A_iᵀ A_i``: a sparse factorisation of
+    ``Λ_last`` (the information at the last refactorisation) plus the sequential Woodbury correction
+    ``Σ_S = Σ_last − Σ_i V_i T_i⁻¹ V_iᵀ`` over the picks since, ``V_i = Σ_{i-1} A_iᵀ``. Only the rows
+    that the gains read (the candidates' and the focused columns) of each ``V_i`` are stored, and the
+    correction of ``Σ_S b`` needs ``V_iᵀ b``, i.e. the stored rows at the nonzeros of ``b``. For a
+    window cost growing linearly with its length, the adaptive refactorisation schedule has the least
+    total cost.
+    """
+
+    def __init__(
+        self,
+        info: sp.csc_matrix,
+        rows: IntArray | None,
+        m: int,
+        add_info: Callable[[list[int]], sp.spmatrix],
+        refactor_every: int | None,
+        max_window: int = 256,
+    ) -> None:
+        super().__init__(info, m, add_info, refactor_every, max_window)
+        self.rows = rows  # None: ``info`` is already the (Schur-reduced) information of the tracked rows
+        n_rows = self.n if rows is None else len(rows)
+        self.win = np.empty((self.cap * m, n_rows))  # Vᵢᵀ at ``rows``, m rows per pick
+        self.win_Tinv = np.empty((self.cap, m, m))
 
     def solve(self, nz: IntArray, vals: FloatArray, nz_pos: IntArray) -> FloatArray:
         """``(Σ_S b)ᵀ`` at ``rows`` (shape ``q × len(rows)``) for ``b`` with rows ``vals`` at ``nz`` (``q`` columns).
@@ -365,12 +344,8 @@ class _Tracker:
         self.win[k * self.m : (k + 1) * self.m] = Vt
         self.win_Tinv[k] = Tinv
         self.window.append(j)
-        if len(self.window) == self.cap or (self.fixed is None and self.t_window > self.t_factor):
-            self.info = sp.csc_matrix(self.info + self.add_info(self.window))
-            self._factorise()
-            self.t_window = 0.0
-            self.window = []
-            self.refactorisations += 1
+        if self._window_full():
+            self._refactorise()
             return True
         return False
 
@@ -399,7 +374,7 @@ for exactness once ``C`` is kept as a Cholesky factor (measured: same picks, gai
 dense reference either way), and costly when most picks are first observations."""
 
 
-class _CapacitanceTracker:
+class _CapacitanceTracker(_Refactorising):
     """Solves with ``Λ_S = Λ_last + A_Wᵀ A_W`` (the picks ``W`` since the last factorisation).
 
     Capacitance form: ``Σ_S b = Σ_last (b − A_Wᵀ C⁻¹ A_W Σ_last b)``, ``C = I + A_W Σ_last A_Wᵀ``
@@ -420,29 +395,13 @@ class _CapacitanceTracker:
         weak: npt.NDArray[np.bool_] | None,
         max_window: int = 256,
     ) -> None:
-        self.info = info
-        self.n = int(info.shape[0])
-        self.m = m
-        self.add_info = add_info
-        self.fixed = refactor_every
-        self.cap = max(1, refactor_every or max_window)
+        super().__init__(info, m, add_info, refactor_every, max_window)
         self.cols = np.zeros((self.cap, d), dtype=np.int64)
         self.A = np.zeros((self.cap, m, d))
         self.WX = np.zeros((len(fcols), self.cap * m))  # W Σ_last A_iᵀ
         self.L = np.zeros((self.cap * m, self.cap * m))  # Cholesky factor of C
         self.weak = weak  # per compact column: only the weak prior in Λ_last
-        self.window: list[int] = []
-        self.refactorisations = 0
         self.first_observation_refactorisations = 0
-        self.factor_s = 0.0
-        self.t_window = 0.0
-        self._factorise()
-
-    def _factorise(self) -> None:
-        tf = time.perf_counter()
-        self.solver = SPDSolver(self.info)
-        self.t_factor = time.perf_counter() - tf
-        self.factor_s += self.t_factor
 
     def solve_last(self, rhs: FloatArray) -> FloatArray:
         return self.solver.solve(rhs)
@@ -482,13 +441,9 @@ class _CapacitanceTracker:
             self.weak[nzc] = False
         if first and _REFACTOR_ON_FIRST_OBSERVATION:
             self.first_observation_refactorisations += 1
-        elif not (len(self.window) == self.cap or (self.fixed is None and self.t_window > self.t_factor)):
+        elif not self._window_full():
             return False
-        self.info = sp.csc_matrix(self.info + self.add_info(self.window))
-        self._factorise()
-        self.t_window = 0.0
-        self.window = []
-        self.refactorisations += 1
+        self._refactorise()
         return True
 
 
@@ -658,7 +613,7 @@ def select_information(
     t_update = 0.0
     t_gain = 0.0
     t_loop = time.perf_counter()
-    with _single_threaded_blas():
+    with single_threaded_blas():
         ctracker: _CapacitanceTracker | None = None
         if capacitance:
             weak = np.zeros(n, dtype=bool)
