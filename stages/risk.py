@@ -54,6 +54,7 @@ from stages.estimation.landmark_selection import (
 if TYPE_CHECKING:
     import gtsam
 
+    from pipeline.context import StageContext
     from stages.graph.load import LoadedGraph
 
 FloatArray = npt.NDArray[np.float64]
@@ -495,3 +496,39 @@ def risk_table(geometry: PathGeometry, risk_all: PathRisk, risk_focused: PathRis
             "mahalanobis_focused": risk_focused.mahalanobis,
         }
     )
+
+
+@dataclass(frozen=True)
+class PathInputs:
+    """What the path-risk computation reads from a run folder (each None where the run lacks it)."""
+
+    scans: pa.Table | None
+    T_base_laser: FloatArray | None
+    detections: pa.Table | None
+    laser_note: str
+
+
+def read_path_inputs(ctx: StageContext) -> PathInputs:
+    """Ingest's laser scans and laser extrinsic and detect's detections, from the run's artifacts.
+
+    ``laser_note`` says why there are no scans ("" when there are).
+    """
+    scans = T_base_laser = detections = None
+    note = ""
+    if ctx.has_input("ingest"):
+        ingest = ctx.input("ingest")
+        if ingest.exists("scans.parquet"):
+            scans = ingest.read_table("scans.parquet")
+            if scans.num_rows == 0:
+                note = "ingest found no laser scans in the recording"
+        else:
+            note = "ingest wrote no scans.parquet (the recording has no LaserScan topic)"
+        if ingest.exists("extrinsics.json"):
+            laser = ingest.read_json("extrinsics.json").get("sensors", {}).get("laser")
+            if laser is not None:
+                T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float)
+    else:
+        note = "the run has no ingest stage (a graph from 'focusmap import-graph')"
+    if ctx.has_input("detect") and ctx.input("detect").exists("detections.parquet"):
+        detections = ctx.input("detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
+    return PathInputs(scans, T_base_laser, detections, note)

@@ -13,8 +13,10 @@ from pipeline.recording import colormap, ellipsoids
 from stages.evaluate.cases import EvalInputs, cases, cases_table, greedy_rows, map_rows, risk_rows, run_all
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
+from stages.graph.load import load_graph
+from stages.navigation.truth import load_truth
 from stages.optimize.core import landmark_heights
-from stages.optimize.stage import load_truth
+from stages.risk import read_path_inputs
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
 from stages.select_measurements.config import SelectMeasurementsConfig
 
@@ -26,17 +28,12 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     sl_cfg: SelectLandmarksConfig = ctx.settings.sections.get("select_landmarks") or SelectLandmarksConfig()
     sm_cfg: SelectMeasurementsConfig = ctx.settings.sections.get("select_measurements") or SelectMeasurementsConfig()
-    landmarks = LandmarkInputs.load(ctx, sl_cfg)
-    loaded = landmarks.loaded
-    scans = T_base_laser = None
-    if ctx.has_input("ingest") and ctx.input("ingest").exists("scans.parquet"):
-        scans = ctx.input("ingest").read_table("scans.parquet")
-        laser = (
-            ctx.input("ingest").read_json("extrinsics.json").get("sensors", {}).get("laser")
-            if ctx.input("ingest").exists("extrinsics.json")
-            else None
-        )
-        T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float) if laser else None
+    loaded = load_graph(ctx.input("graph"))
+    read = read_path_inputs(ctx)  # once, for the landmark inputs and the navigation's occupancy grid
+    landmarks = LandmarkInputs.from_pieces(
+        loaded, read.scans, read.T_base_laser, read.detections, sl_cfg, read.laser_note
+    )
+    scans, T_base_laser = read.scans, read.T_base_laser
     inputs = EvalInputs(
         loaded=loaded,
         landmarks=landmarks,

@@ -15,11 +15,16 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from pipeline.errors import InputError
+
+if TYPE_CHECKING:
+    from pipeline.context import StageContext
+    from stages.graph.load import LoadedGraph
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -117,3 +122,9 @@ class MapTruth:
         t = self.pose_stamps_ns.astype(float)
         q = np.asarray(stamps_ns, dtype=float).reshape(-1)
         return np.column_stack([np.interp(q, t, self.poses[:, i]) for i in range(3)])
+
+
+def load_truth(ctx: StageContext, loaded: LoadedGraph) -> MapTruth | None:
+    """The run's ground truth in the map frame, if a ``<name>.ground_truth.json`` sits beside its source."""
+    path = ground_truth_file(ctx.run.source)
+    return GroundTruth.load(path).in_map(loaded.pose_stamps_ns[0]) if path is not None else None

@@ -13,7 +13,7 @@ from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids, set_stamp
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.outputs import write_artifacts
-from stages.navigation.truth import GroundTruth, MapTruth, ground_truth_file
+from stages.navigation.truth import MapTruth, load_truth
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
@@ -24,32 +24,15 @@ from stages.optimize.core import (
     risk_params,
     solve_reduced,
 )
-from stages.risk import LandmarkMap, PathGeometry, PathRisk, path_geometry, path_risk
+from stages.risk import LandmarkMap, PathGeometry, PathRisk, path_geometry, path_risk, read_path_inputs
 
 ENTITY = "/optimize"
 
 
-def load_truth(ctx: StageContext, loaded: LoadedGraph) -> MapTruth | None:
-    """The run's ground truth in the map frame, if a ``<name>.ground_truth.json`` sits beside its source."""
-    path = ground_truth_file(ctx.run.source)
-    return GroundTruth.load(path).in_map(loaded.pose_stamps_ns[0]) if path is not None else None
-
-
 def load_geometry(ctx: StageContext, loaded: LoadedGraph) -> PathGeometry:
     """Clearances and visibility of the recorded path (scans from ingest, detections from detect when present)."""
-    params = risk_params(ctx.settings.sections)
-    scans = T_base_laser = detections = None
-    if ctx.has_input("ingest"):
-        ingest = ctx.input("ingest")
-        if ingest.exists("scans.parquet"):
-            scans = ingest.read_table("scans.parquet")
-        if ingest.exists("extrinsics.json"):
-            laser = ingest.read_json("extrinsics.json").get("sensors", {}).get("laser")
-            if laser is not None:
-                T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float)
-    if ctx.has_input("detect") and ctx.input("detect").exists("detections.parquet"):
-        detections = ctx.input("detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
-    return path_geometry(loaded, scans, T_base_laser, detections, params)
+    read = read_path_inputs(ctx)
+    return path_geometry(loaded, read.scans, read.T_base_laser, read.detections, risk_params(ctx.settings.sections))
 
 
 def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:

@@ -36,6 +36,7 @@ from stages.risk import (
     measurement_information,
     path_geometry,
     path_risk,
+    read_path_inputs,
     stabilised_covariances,
 )
 from stages.select_landmarks.config import NEEDS_LASER, SelectLandmarksConfig
@@ -91,26 +92,8 @@ class LandmarkInputs:
         from stages.graph.load import load_graph
 
         loaded = load_graph(ctx.input("graph"))
-        scans = T_base_laser = detections = None
-        note = ""
-        if ctx.has_input("ingest"):
-            ingest = ctx.input("ingest")
-            if ingest.exists("scans.parquet"):
-                scans = ingest.read_table("scans.parquet")
-                if scans.num_rows == 0:
-                    note = "ingest found no laser scans in the recording"
-            else:
-                note = "ingest wrote no scans.parquet (the recording has no LaserScan topic)"
-            if ingest.exists("extrinsics.json"):
-                sensors = ingest.read_json("extrinsics.json").get("sensors", {})
-                laser = sensors.get("laser")
-                if laser is not None:
-                    T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float)
-        else:
-            note = "the run has no ingest stage (a graph from 'focusmap import-graph')"
-        if ctx.has_input("detect") and ctx.input("detect").exists("detections.parquet"):
-            detections = ctx.input("detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
-        return cls.from_pieces(loaded, scans, T_base_laser, detections, cfg, note)
+        read = read_path_inputs(ctx)
+        return cls.from_pieces(loaded, read.scans, read.T_base_laser, read.detections, cfg, read.laser_note)
 
     @property
     def has_laser(self) -> bool:
