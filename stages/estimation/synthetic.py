@@ -97,3 +97,26 @@ def planar_problem(
     for k in sorted({k for _, k in measured}):  # unmeasured landmarks are not in the graph
         values.insert(L(k), gtsam.Point2(*landmarks[k]))
     return PlanarProblem(graph, values, poses, landmarks, measurement_factors, measured)
+
+
+def random_mi_problem(
+    rng: np.random.Generator, T: int = 8, L: int = 15
+) -> tuple[FloatArray, list[tuple[npt.NDArray[np.int64], FloatArray]]]:
+    """A planar pose chain (strong prior on the first pose) and ``L`` random landmark information blocks on 1-3 poses.
+
+    The small landmark-selection problems of the tests and of ``bench_landmarks`` (greedy vs brute force).
+    """
+    n = 3 * T
+    info0 = np.zeros((n, n))
+    info0[:3, :3] += 1e4 * np.eye(3)
+    for t in range(T - 1):
+        J = np.hstack([-np.eye(3), np.eye(3)]) * rng.uniform(3, 10)
+        idx = np.arange(3 * t, 3 * t + 6)
+        info0[np.ix_(idx, idx)] += J.T @ J
+    contrib = []
+    for _ in range(L):
+        poses = rng.choice(T, size=rng.integers(1, 4), replace=False)
+        cols = np.concatenate([np.arange(3 * p, 3 * p + 3) for p in sorted(poses)])
+        J = rng.normal(size=(2 * len(poses), len(cols))) * rng.uniform(0.5, 5)
+        contrib.append((cols, J.T @ J))
+    return info0, contrib

@@ -34,24 +34,7 @@ from stages.estimation.landmark_selection import (
     select_landmark_leverage,
     select_mutual_information,
 )
-
-
-def small_problem(rng: np.random.Generator, T: int = 8, L: int = 15):
-    """A pose chain with random landmark contributions over 1-3 poses (as the tests use)."""
-    n = 3 * T
-    info0 = np.zeros((n, n))
-    info0[:3, :3] += 1e4 * np.eye(3)
-    for t in range(T - 1):
-        J = np.hstack([-np.eye(3), np.eye(3)]) * rng.uniform(3, 10)
-        idx = np.arange(3 * t, 3 * t + 6)
-        info0[np.ix_(idx, idx)] += J.T @ J
-    contrib = []
-    for _ in range(L):
-        poses = rng.choice(T, size=rng.integers(1, 4), replace=False)
-        cols = np.concatenate([np.arange(3 * p, 3 * p + 3) for p in sorted(poses)])
-        J = rng.normal(size=(2 * len(poses), len(cols))) * rng.uniform(0.5, 5)
-        contrib.append((cols, J.T @ J))
-    return info0, contrib
+from stages.estimation.synthetic import random_mi_problem
 
 
 def planar_problem(rng: np.random.Generator, T: int, L: int, seen_from: int = 12):
@@ -161,7 +144,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     ratios = [1.0] if not args.small else []
     for _ in range(args.small):
-        info0, contrib = small_problem(rng)
+        info0, contrib = random_mi_problem(rng)
         greedy = select_mutual_information(info0, contrib, 5)
         opt, _ = brute_force_mutual_information(info0, contrib, 5)
         ratios.append(mutual_information(info0, contrib, greedy.picks) / opt)

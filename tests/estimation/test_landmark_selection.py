@@ -21,6 +21,7 @@ from stages.estimation.landmark_selection import (
     select_mutual_information,
     stabilised_covariance,
 )
+from stages.estimation.synthetic import random_mi_problem
 
 Q = np.diag([0.02, 0.02, 0.005]) ** 2
 
@@ -66,28 +67,11 @@ def test_halfplane_probability_matches_monte_carlo_against_laser_points() -> Non
     assert 0.05 < p < 0.1
 
 
-def _random_mi_problem(rng: np.random.Generator, T: int = 8, L: int = 15):
-    n = 3 * T
-    info0 = np.zeros((n, n))
-    info0[:3, :3] += 1e4 * np.eye(3)
-    for t in range(T - 1):
-        J = np.hstack([-np.eye(3), np.eye(3)]) * rng.uniform(3, 10)
-        idx = np.arange(3 * t, 3 * t + 6)
-        info0[np.ix_(idx, idx)] += J.T @ J
-    contrib = []
-    for _ in range(L):
-        poses = rng.choice(T, size=rng.integers(1, 4), replace=False)
-        cols = np.concatenate([np.arange(3 * p, 3 * p + 3) for p in sorted(poses)])
-        J = rng.normal(size=(2 * len(poses), len(cols))) * rng.uniform(0.5, 5)
-        contrib.append((cols, J.T @ J))
-    return info0, contrib
-
-
 def test_mi_greedy_near_brute_force_and_lazy_equals_plain() -> None:
     rng = np.random.default_rng(1)
     ratios = []
     for _ in range(25):
-        info0, contrib = _random_mi_problem(rng)
+        info0, contrib = random_mi_problem(rng)
         lazy = select_mutual_information(info0, contrib, 5, lazy=True)
         plain = select_mutual_information(info0, contrib, 5, lazy=False)
         assert lazy.picks == plain.picks
@@ -103,7 +87,7 @@ def test_mi_greedy_near_brute_force_and_lazy_equals_plain() -> None:
 
 
 def test_landmark_leverage_probabilities_sum_to_one() -> None:
-    info0, contrib = _random_mi_problem(np.random.default_rng(2))
+    info0, contrib = random_mi_problem(np.random.default_rng(2))
     pi = landmark_leverage_probabilities(info0, contrib)
     assert pi.sum() == pytest.approx(1.0, abs=1e-9)
     sel = select_landmark_leverage(info0, contrib, 5, draws=10, seed=4)
@@ -141,7 +125,7 @@ def test_landmark_budget_edge_cases() -> None:
     assert select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 0).status == "budget_zero"
     over = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 99)
     assert over.status == "budget_exceeds_landmarks" and sorted(over.picks) == list(range(6))
-    info0, contrib = _random_mi_problem(np.random.default_rng(0), L=4)
+    info0, contrib = random_mi_problem(np.random.default_rng(0), L=4)
     assert select_mutual_information(info0, contrib, 0).picks == []
     assert sorted(select_mutual_information(info0, contrib, 9).picks) == [0, 1, 2, 3]
 
@@ -168,7 +152,7 @@ def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, backend, m
     monkeypatch.setattr(ls, "MI_BACKEND", backend)
     monkeypatch.setattr(ls, "LEVEL_BLOCK_MIN", min_block)
 
-    info0, contrib = _random_mi_problem(np.random.default_rng(3), T=12, L=20)
+    info0, contrib = random_mi_problem(np.random.default_rng(3), T=12, L=20)
     np.testing.assert_allclose(
         landmark_leverage_probabilities(info0, contrib), _dense_leverage_probabilities(info0, contrib), rtol=1e-9
     )
@@ -192,7 +176,7 @@ def test_level_blocks_selected_inverse_on_the_pattern(min_block) -> None:
     from stages.estimation.landmark_selection import _LevelBlocks, _scatter
 
     rng = np.random.default_rng(7)
-    info0, contrib = _random_mi_problem(rng, T=30, L=25)
+    info0, contrib = random_mi_problem(rng, T=30, L=25)
     n = info0.shape[0]
     big = np.zeros((n + 9, n + 9))  # + a separate 3-pose chain (another connected component)
     big[:n, :n] = info0
