@@ -427,42 +427,31 @@ class _Mcap(_Impl):
         from mcap_ros2.decoder import DecoderFactory
 
         factory = DecoderFactory()
-        decoders: dict[int, Any] = {}
+        decoders: dict[tuple[Path, int], Any] = {}  # channel ids are per file
 
-        def decode_with(schema: Any, channel: Any) -> Any:
-            dec = decoders.get(channel.id)
+        def raw(f: Path, schema: Any, channel: Any, message: Any) -> RawMessage:
+            dec = decoders.get((f, channel.id))
             if dec is None:
                 dec = factory.decoder_for(channel.message_encoding, schema)
                 if dec is None:
                     raise InputError(f"no decoder for {channel.message_encoding} messages on {channel.topic}")
-                decoders[channel.id] = dec
-            return dec
+                decoders[(f, channel.id)] = dec
+            return RawMessage(
+                channel.topic, _normalise_type(schema.name), message.log_time, message.data, lambda d, _t: dec(d)
+            )
 
         for f in self.files:
             with f.open("rb") as fh:
                 if self.rec.salvage:
                     for schema, channel, message in _intact_messages(fh, []):
                         if channel.topic in topics:
-                            dec = decode_with(schema, channel)
-                            yield RawMessage(
-                                channel.topic,
-                                _normalise_type(schema.name),
-                                message.log_time,
-                                message.data,
-                                lambda d, _t, dec=dec: dec(d),
-                            )
+                            yield raw(f, schema, channel, message)
                     continue
-                reader = make_reader(fh)
                 try:
-                    for schema, channel, message in reader.iter_messages(topics=list(topics), log_time_order=True):
-                        dec = decode_with(schema, channel)
-                        yield RawMessage(
-                            channel.topic,
-                            _normalise_type(schema.name),
-                            message.log_time,
-                            message.data,
-                            lambda d, _t, dec=dec: dec(d),
-                        )
+                    for schema, channel, message in make_reader(fh).iter_messages(
+                        topics=list(topics), log_time_order=True
+                    ):
+                        yield raw(f, schema, channel, message)
                 except InputError:
                     raise
                 except Exception as err:
