@@ -71,13 +71,14 @@ class GraphConfig(BaseModel):
         0.005, ge=0, description="Floor added to the tag rotation sigma (3d model), rad."
     )
     tag_scale_sigma: float = Field(
-        0.0,
+        0.005,
         ge=0,
-        description="Relative tolerance of the printed tag size (e.g. 0.005 = 0.5 %): one shared scale "
-        "s ~ N(1, sigma^2) multiplies the range (planar) / translation (3d) of every tag measurement, so a tag "
-        "printed slightly large or small, or any range bias shared by all detections, is estimated against the "
-        "odometry and its uncertainty enters the marginals. 0 (default for now, see docs/graph.md): no scale "
-        "variable, the tag size is taken as exact.",
+        description="Relative tolerance of the printed tag size (0.005 = 0.5 %, an ordinary print): one shared "
+        "scale s ~ N(1, sigma^2) multiplies the range (planar) / translation (3d) of every tag measurement, so a "
+        "tag printed slightly large or small, or any range bias shared by all detections, is estimated against "
+        "the odometry and its uncertainty enters the marginals. 0: no scale variable, the tag size is taken as "
+        "exact (faster native factors, overconfident landmark covariances when the ranges share a bias; see "
+        "docs/graph.md).",
     )
     robust_kernel: Literal["none", "huber", "cauchy"] = Field("none", description="Robust kernel on the tag factors.")
     robust_threshold: float = Field(

@@ -207,6 +207,11 @@ def make_factor(row: FactorRow) -> gtsam.NonlinearFactor:
     raise ValueError(f"unknown factor type {t!r}")
 
 
+def has_python_factors(rows: Iterable[FactorRow]) -> bool:
+    """Whether any row becomes a ``gtsam.CustomFactor`` (the tag rows that carry the shared scale)."""
+    return any(len(r.keys) == 3 and r.type in ("BearingRangeFactor2D", "BetweenFactorPose3") for r in rows)
+
+
 def build_graph(rows: Iterable[FactorRow]) -> gtsam.NonlinearFactorGraph:
     """A ``NonlinearFactorGraph`` with one factor per row, in row order (factor i is row i)."""
     graph = gtsam.NonlinearFactorGraph()

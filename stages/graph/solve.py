@@ -15,8 +15,9 @@ import gtsam
 import numpy as np
 
 from pipeline.errors import StageError
-from stages.graph.factors import build_graph
+from stages.graph.factors import build_graph, has_python_factors
 from stages.graph.problem import VAR_DIMS, GraphProblem
+from stages.graph.python_loop import optimise_in_python
 
 _FIX = (
     "add odometry or enable graph.motion_prior, drop the tag with graph.min_tag_observations, or check its detections"
@@ -138,30 +139,45 @@ def optimise(
     max_iterations: int = 100,
     relative_error_tol: float = 1e-6,
 ) -> Solution:
-    """Optimise the problem with Levenberg-Marquardt (``lm``), Gauss-Newton (``gn``) or Dogleg (``dogleg``)."""
+    """Optimise the problem with Levenberg-Marquardt (``lm``), Gauss-Newton (``gn``) or Dogleg (``dogleg``).
+
+    A graph with Python factors (the shared tag scale) is optimised by the loop in
+    :mod:`stages.graph.python_loop` (GTSAM's optimisers copy every variable for each Python factor call);
+    Dogleg is not in that loop, so such a graph uses Levenberg-Marquardt and :attr:`Solution.optimizer` says so.
+    """
     graph = graph if graph is not None else build_graph(problem.rows)
     start = time.perf_counter()
-    params: gtsam.NonlinearOptimizerParams
-    if optimizer == "lm":
-        params = gtsam.LevenbergMarquardtParams()
-    elif optimizer == "gn":
-        params = gtsam.GaussNewtonParams()
-    elif optimizer == "dogleg":
-        params = gtsam.DoglegParams()
-    else:
+    if optimizer not in ("lm", "gn", "dogleg"):
         raise StageError(f"unknown optimizer {optimizer!r}; use lm, gn or dogleg")
-    params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(relative_error_tol)
-    params.setAbsoluteErrorTol(1e-9)
     initial_error = float(graph.error(problem.initial))
     try:
-        if optimizer == "lm":
-            opt = gtsam.LevenbergMarquardtOptimizer(graph, problem.initial, params)
-        elif optimizer == "gn":
-            opt = gtsam.GaussNewtonOptimizer(graph, problem.initial, params)
+        if has_python_factors(problem.rows):
+            method = "gn" if optimizer == "gn" else "lm"
+            dims = {k: VAR_DIMS[t] for k, t in problem.var_types.items()}
+            loop = optimise_in_python(
+                graph, problem.initial, dims, method, max_iterations, relative_error_tol, absolute_tol=1e-9
+            )
+            values, iterations = loop.values, loop.iterations
+            optimizer = method if method == optimizer else f"{method} (dogleg has no loop for Python factors)"
         else:
-            opt = gtsam.DoglegOptimizer(graph, problem.initial, params)
-        values = opt.optimize()
+            params: gtsam.NonlinearOptimizerParams
+            if optimizer == "lm":
+                params = gtsam.LevenbergMarquardtParams()
+            elif optimizer == "gn":
+                params = gtsam.GaussNewtonParams()
+            else:
+                params = gtsam.DoglegParams()
+            params.setMaxIterations(max_iterations)
+            params.setRelativeErrorTol(relative_error_tol)
+            params.setAbsoluteErrorTol(1e-9)
+            if optimizer == "lm":
+                opt = gtsam.LevenbergMarquardtOptimizer(graph, problem.initial, params)
+            elif optimizer == "gn":
+                opt = gtsam.GaussNewtonOptimizer(graph, problem.initial, params)
+            else:
+                opt = gtsam.DoglegOptimizer(graph, problem.initial, params)
+            values = opt.optimize()
+            iterations = int(opt.iterations())
     except RuntimeError as err:
         if _is_indeterminant(err):
             raise StageError(indeterminant_message(problem, err, "optimising")) from err
@@ -169,7 +185,7 @@ def optimise(
     final_error = float(graph.error(values))
     if not np.isfinite(final_error):
         raise StageError("the optimised graph has a non-finite error; check the inputs for NaNs or zero covariances")
-    return Solution(values, initial_error, final_error, int(opt.iterations()), optimizer, time.perf_counter() - start)
+    return Solution(values, initial_error, final_error, iterations, optimizer, time.perf_counter() - start)
 
 
 def marginal_covariances(

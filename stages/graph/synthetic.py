@@ -21,7 +21,7 @@ import pyarrow as pa
 from gtsam.symbol_shorthand import L, X
 
 from stages.geometry import pose3_from_matrix, relative_position_to_bearing_range_2d
-from stages.graph.factors import FactorRow
+from stages.graph.factors import SCALE_KEY, FactorRow
 from stages.graph.problem import GraphProblem
 
 R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -219,10 +219,17 @@ def synthetic_run(
 
 
 def synthetic_planar_problem(
-    n_poses: int = 7000, n_landmarks: int = 150, n_measurements: int = 10000, seed: int = 0
+    n_poses: int = 7000,
+    n_landmarks: int = 150,
+    n_measurements: int = 10000,
+    seed: int = 0,
+    tag_scale_sigma: float = 0.0,
 ) -> GraphProblem:
     """A planar graph of the given size (Victoria Park's by default): a random-walk path in a square park,
-    odometry between consecutive poses, and bearing-range measurements from poses to nearby landmarks."""
+    odometry between consecutive poses, and bearing-range measurements from poses to nearby landmarks.
+
+    ``tag_scale_sigma > 0`` adds the shared tag scale as the stage builds it (``graph.tag_scale_sigma``): its
+    prior and a third key on every landmark measurement (the measurements themselves are at scale 1)."""
     rng = np.random.default_rng(seed)
     side = 150.0
     lms = rng.uniform(0, side, size=(n_landmarks, 2))
@@ -253,6 +260,13 @@ def synthetic_planar_problem(
         rows.append(FactorRow("odometry", "BetweenFactorPose2", (int(X(i)), int(X(i + 1))), m, np.diag(sig_odo**2)))
         dr = dr.compose(gtsam.Pose2(*m))
         initial.insert(int(X(i + 1)), dr)
+    scale_keys: tuple[int, ...] = ()
+    if tag_scale_sigma > 0:
+        rows.append(
+            FactorRow("scale_prior", "PriorFactorDouble", (SCALE_KEY,), np.ones(1), np.diag([tag_scale_sigma**2]))
+        )
+        scale_keys = (SCALE_KEY,)
+        initial.insert(SCALE_KEY, 1.0)
     P = np.array([[p.x(), p.y()] for p in poses])
     seen: set[int] = set()
     count = 0
@@ -272,7 +286,7 @@ def synthetic_planar_problem(
             FactorRow(
                 "tag",
                 "BearingRangeFactor2D",
-                (int(X(pi)), int(L(lj))),
+                (int(X(pi)), int(L(lj)), *scale_keys),
                 np.array([b, r]),
                 cov,
                 tag_id=lj,
@@ -286,6 +300,8 @@ def synthetic_planar_problem(
         count += 1
     var_types = {int(X(i)): "Pose2" for i in range(n_poses)}
     var_types.update({int(L(j)): "Point2" for j in sorted(seen)})
+    if scale_keys:
+        var_types[SCALE_KEY] = "Scale"
     return GraphProblem(
         model="planar",
         rows=rows,

@@ -114,7 +114,7 @@ def test_structure_counts(sim, model: str) -> None:
     assert all(r.keys[2] == SCALE_KEY for r in p.rows if r.kind == "tag")
     assert SCALE_KEY not in p.pose_keys and SCALE_KEY not in p.landmark_keys.values()
     assert len(p.var_types) == len(p.pose_keys) + len(tags) + 1
-    old = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model))
+    old = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model=model, tag_scale_sigma=0.0))
     assert old.scale_key is None and "scale_prior" not in {r.kind for r in old.rows}
     assert len(old.var_types) == len(p.pose_keys) + len(tags) and all(
         len(r.keys) == 2 for r in old.rows if r.kind == "tag"

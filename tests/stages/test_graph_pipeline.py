@@ -79,7 +79,7 @@ def test_structure_counts(corridor) -> None:
     poses = pq.read_table(out / "poses.parquet")
     lms = pq.read_table(out / "landmarks.parquet").to_pydict()
     assert summary["odometry_noise"] == "messages" and summary["odometry_unobserved_dims"] == []
-    assert kinds == {"prior": 1, "odometry": summary["poses"] - 1, "tag": used}
+    assert kinds == {"prior": 1, "scale_prior": 1, "odometry": summary["poses"] - 1, "tag": used}
     assert summary["tag_measurements"] == used == summary["detections"] - summary["dropped_ambiguous"]
     assert summary["tag_keyframes"] == frames_used
     assert poses.num_rows == summary["poses"] == summary["tag_keyframes"] + summary["odometry_keyframes"]
@@ -87,7 +87,8 @@ def test_structure_counts(corridor) -> None:
     assert summary["landmarks"] == len(lms["tag_id"]) >= 8
     assert factors["index"] == list(range(len(factors["index"])))
     values = np.load(out / "values.npz")
-    assert len(values["keys"]) == summary["poses"] + summary["landmarks"]
+    assert len(values["keys"]) == summary["poses"] + summary["landmarks"] + 1  # + the shared tag scale
+    assert summary["tag_scale"]["prior_sigma"] == 0.005 and abs(summary["tag_scale"]["value"] - 1) < 0.01
     assert summary["final_error"] < summary["initial_error"]
 
 

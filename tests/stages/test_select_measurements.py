@@ -134,6 +134,8 @@ def test_fast_information_equals_reference_on_sample_subgraph(loaded, system) ->
     """Fast greedy == dense reference (same picks, order, gains) on the first 40 keyframes of the sample."""
     n = 40
     poses = {system.index_of_key(k) for k in loaded.pose_keys[:n]}
+    if loaded.scale_key is not None:  # the shared tag scale joins every tag factor; keep its prior with them
+        poses.add(system.index_of_key(loaded.scale_key))
     base_full = [int(i) for i in loaded.fixed_factor_indices if set(system.factors[int(i)].variables) <= poses]
     cand_full = [int(i) for i in loaded.tag_factor_indices if system.factors[int(i)].variables[0] in poses]
     # the sub-graph as its own small system, so the dense reference stays small
