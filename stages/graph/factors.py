@@ -26,6 +26,7 @@ covariance columns keep their meaning, so a reader that ignores the third key ge
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -102,12 +103,19 @@ def scaled_bearing_range_error(
     ``BearingRangeFactor2D`` error at ``s = 1``); Jacobians in the tangent spaces of the Pose2 (x, y, θ),
     the Point2 and the scale: 2x3, 2x2, 2x1.
     """
-    Hb1, Hb2 = np.zeros((1, 3), order="F"), np.zeros((1, 2), order="F")
-    Hr1, Hr2 = np.zeros((1, 3), order="F"), np.zeros((1, 2), order="F")
-    b = pose.bearing(point, Hb1, Hb2)
-    r = pose.range(point, Hr1, Hr2)
-    e = np.array([gtsam.Rot2(bearing).localCoordinates(b)[0], r - s * rng])
-    return e, [np.vstack([Hb1, Hr1]), np.vstack([Hb2, Hr2]), np.array([[0.0], [-rng]])]
+    # Written out in floats (a third of the time of gtsam's bearing/range with Jacobian arrays; this runs once per
+    # tag factor per linearisation). Body-frame point d = Rᵀ(p − t); right perturbation of the pose:
+    # ∂d/∂(v, ω) = [−I | (d_y, −d_x)], ∂d/∂p = Rᵀ; bearing atan2(d_y, d_x), range |d|.
+    c, sn = math.cos(pose.theta()), math.sin(pose.theta())
+    wx, wy = float(point[0]) - pose.x(), float(point[1]) - pose.y()
+    dx, dy = c * wx + sn * wy, -sn * wx + c * wy
+    r2 = dx * dx + dy * dy
+    r = math.sqrt(r2)
+    eb = (math.atan2(dy, dx) - bearing + math.pi) % (2 * math.pi) - math.pi
+    gbx, gby, grx, gry = -dy / r2, dx / r2, dx / r, dy / r
+    H_pose = np.array([[-gbx, -gby, -1.0], [-grx, -gry, 0.0]])
+    H_point = np.array([[gbx * c - gby * sn, gbx * sn + gby * c], [grx * c - gry * sn, grx * sn + gry * c]])
+    return np.array([eb, r - s * rng]), [H_pose, H_point, np.array([[0.0], [-rng]])]
 
 
 def scaled_pose3(measured: gtsam.Pose3, s: float) -> gtsam.Pose3:
