@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow.parquet as pq
+
+from pipeline.errors import StageError
 
 COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("observed_landmarks", "observed", "{:.0f}"),
@@ -54,6 +57,10 @@ def load(path: Path) -> tuple[str, dict[str, dict[str, Any]]]:
     # a copied RUN/evaluate/cases.parquet is named by its folder
     stem = path.parent.name if path.stem == "cases" else path.stem
     name = stem if path.suffix == ".parquet" else path.name
+    if not file.is_file():
+        raise StageError(
+            f"{file} does not exist; pass run folders whose evaluate stage has run, or their cases.parquet"
+        )
     t = pq.read_table(file).to_pylist()
     return name, {r["case"]: r for r in t}
 
@@ -132,13 +139,18 @@ def report(paths: Sequence[Path]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> None:
+def main(argv: Sequence[str] | None = None) -> int:
     """CLI: print the markdown."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("paths", nargs="+", type=Path, help="run folders or cases.parquet files")
     args = ap.parse_args(argv)
-    print(report(args.paths))
+    try:
+        print(report(args.paths))
+    except StageError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -83,3 +83,11 @@ def test_rigid_alignment_recovers_the_motion() -> None:
     np.testing.assert_allclose(fit[0], R0, atol=1e-12)
     np.testing.assert_allclose(est @ fit[0].T + fit[1], truth, atol=1e-12)
     assert rigid_alignment(np.arange(2), est[:2], dict(enumerate(truth))) is None
+
+
+def test_seed_summary_names_a_missing_run_in_one_line(tmp_path, capsys) -> None:
+    from stages.evaluate.seeds import main
+
+    assert main([str(tmp_path / "no_such_run")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no_such_run/evaluate/cases.parquet does not exist" in err
