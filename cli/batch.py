@@ -100,10 +100,10 @@ def batch(
     console = Console(highlight=False, soft_wrap=False, width=None if sys.stdout.isatty() else 200)
     console.print(f"batch: {len(tasks)} recordings, stages {', '.join(stages)}, {where}")
     result = run_batch(tasks, workers=workers, scheduler=scheduler)
-    table = summary_table(result.outcomes, stages)
+    table = summary_table(result.outcomes, stages, REGISTRY)
     path = write_summary(table, out.expanduser().resolve())
     write_errors(result.outcomes, out.expanduser().resolve())
-    print_summary(table, console)
+    print_summary(table, REGISTRY, console)
     console.print(f"summary: {path}")
     if result.interrupted:
         typer.echo("error: interrupted; finished stages are kept, run the same batch again to finish", err=True)

@@ -44,7 +44,7 @@ import pyarrow as pa
 
 from pipeline.config import Settings
 from pipeline.errors import InputError, PipelineError
-from pipeline.registry import Registry
+from pipeline.registry import Headline, Registry
 
 Status = Literal["done", "skipped", "failed"]
 
@@ -54,49 +54,6 @@ LOCK_FILE: Final = ".focusmap.lock"
 LOCK_WAIT_S: Final = 60.0
 
 OutcomeCallback = Callable[["Outcome"], None]
-
-# Headline figures of the summary: column -> (type, candidate (stage, key) places in the stage summaries).
-# The first candidate present wins; if none is, the column's own name is looked up in every stage's
-# summary, latest stage first. A list found for a count column counts its items.
-HEADLINES: Final[dict[str, tuple[pa.DataType, tuple[tuple[str, str], ...]]]] = {
-    "landmarks": (pa.int64(), (("graph", "landmarks"),)),
-    "focused_landmarks": (
-        pa.int64(),
-        (
-            ("select_landmarks", "focused_landmarks"),
-            ("select_landmarks", "selected"),
-            ("select_landmarks", "tag_ids"),
-            ("optimize", "focused_landmarks"),
-        ),
-    ),
-    "measurements_kept": (
-        pa.int64(),
-        (
-            ("select_measurements", "measurements_kept"),
-            ("select_measurements", "selected"),
-            ("select_measurements", "kept"),
-            ("optimize", "measurements_kept"),
-        ),
-    ),
-    "focused_entropy": (
-        pa.float64(),
-        (
-            ("optimize", "focused_entropy"),
-            ("select_measurements", "focused_entropy_after"),
-            ("select_measurements", "entropy_after"),
-            ("evaluate", "headline.focused_entropy"),
-        ),
-    ),
-    "max_collision_probability": (
-        pa.float64(),
-        (
-            ("optimize", "max_collision_probability"),
-            ("select_landmarks", "max_collision_probability"),
-            ("evaluate", "headline.max_collision_probability"),
-        ),
-    ),
-    "collision_rate": (pa.float64(), (("evaluate", "headline.collision_rate"), ("evaluate", "collision_rate"))),
-}
 
 
 @dataclass(frozen=True)
@@ -613,8 +570,8 @@ def run_batch(
 
 
 # --- summary -------------------------------------------------------------------------------------------
-def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, dtype: pa.DataType) -> Any:
-    candidates = HEADLINES[column][1]
+def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, headline: Headline) -> Any:
+    candidates, dtype = headline.places, headline.dtype
     fallback = tuple((stage, column) for stage in reversed(list(stages)))
     for stage, key in (*candidates, *fallback):
         summary = (stages.get(stage) or {}).get("summary") or {}
@@ -634,8 +591,8 @@ def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, dtype: pa.Da
     return None
 
 
-def summary_schema(stages: Sequence[str]) -> pa.Schema:
-    """Columns of ``batch_summary.parquet`` for a batch of ``stages``."""
+def summary_schema(stages: Sequence[str], registry: Registry) -> pa.Schema:
+    """Columns of ``batch_summary.parquet`` for a batch of ``stages`` (headline columns from ``registry``)."""
     return pa.schema(
         [
             ("recording", pa.string()),
@@ -648,19 +605,19 @@ def summary_schema(stages: Sequence[str]) -> pa.Schema:
             ("stages_run", pa.list_(pa.string())),
             ("host", pa.string()),
             *((f"seconds_{s}", pa.float64()) for s in stages),
-            *((name, dtype) for name, (dtype, _) in HEADLINES.items()),
+            *((name, h.dtype) for name, h in registry.headlines.items()),
         ]
     )
 
 
-def summary_table(outcomes: Sequence[Outcome], stages: Sequence[str]) -> pa.Table:
+def summary_table(outcomes: Sequence[Outcome], stages: Sequence[str], registry: Registry) -> pa.Table:
     """One row per recording: status, reason, times and the headline figures (null where absent).
 
     ``seconds`` is the task's wall time in this batch; ``seconds_<stage>`` is the time the stage's
     current result took when it was computed (also for a stage skipped as up to date), null when the
     stage has no current result.
     """
-    schema = summary_schema(stages)
+    schema = summary_schema(stages, registry)
     rows = []
     for o in outcomes:
         row: dict[str, Any] = {
@@ -677,8 +634,8 @@ def summary_table(outcomes: Sequence[Outcome], stages: Sequence[str]) -> pa.Tabl
         for s in stages:
             secs = (o.stages.get(s) or {}).get("seconds")
             row[f"seconds_{s}"] = float(secs) if isinstance(secs, int | float) else None
-        for name, (dtype, _) in HEADLINES.items():
-            row[name] = _headline(o.stages, name, dtype)
+        for name, h in registry.headlines.items():
+            row[name] = _headline(o.stages, name, h)
         rows.append(row)
     return pa.Table.from_pylist(rows, schema=schema)
 
@@ -719,27 +676,10 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
-_SHORT: Final = {
-    "ingest": "ing",
-    "detect": "det",
-    "graph": "gra",
-    "select_landmarks": "s-lm",
-    "select_measurements": "s-ms",
-    "optimize": "opt",
-    "evaluate": "eva",
-    "landmarks": "lms",
-    "focused_landmarks": "foc",
-    "measurements_kept": "kept",
-    "focused_entropy": "H",
-    "max_collision_probability": "maxP",
-    "collision_rate": "rate",
-}
-
-
-def print_summary(table: pa.Table, console: Any = None) -> None:
+def print_summary(table: pa.Table, registry: Registry, console: Any = None) -> None:
     """Print the summary as a rich table: per recording its status, times, headline figures and reason.
 
-    Headline columns that are null for every recording are left out.
+    Headline columns that are null for every recording are left out; labels come from ``registry``.
     """
     from rich.console import Console
     from rich.table import Table
@@ -747,15 +687,16 @@ def print_summary(table: pa.Table, console: Any = None) -> None:
     console = console or Console(highlight=False, width=None if sys.stdout.isatty() else 200)
     data = table.to_pylist()
     stage_cols = [c for c in table.column_names if c.startswith("seconds_")]
-    head_cols = [c for c in HEADLINES if any(r[c] is not None for r in data)]
+    head_cols = [c for c in registry.headlines if c in table.column_names and any(r[c] is not None for r in data)]
+    short = {**registry.short_names, **{c: h.short for c, h in registry.headlines.items() if h.short}}
     view = Table(title=f"batch: {len(data)} recordings", title_justify="left", pad_edge=False, padding=(0, 1))
     view.add_column("run", overflow="fold")
     view.add_column("status")
     view.add_column("s", justify="right")
     for c in stage_cols:
-        view.add_column(_SHORT.get(c.removeprefix("seconds_"), c.removeprefix("seconds_")), justify="right")
+        view.add_column(short.get(c.removeprefix("seconds_"), c.removeprefix("seconds_")), justify="right")
     for c in head_cols:
-        view.add_column(_SHORT.get(c, c.replace("_", " ")), justify="right")
+        view.add_column(short.get(c, c.replace("_", " ")), justify="right")
     colours = {"done": "green", "skipped": "cyan", "failed": "bold red"}
     for r in data:
         status = r["status"] + (f" ({r['failed_stage']})" if r["failed_stage"] else "")
@@ -768,9 +709,9 @@ def print_summary(table: pa.Table, console: Any = None) -> None:
         )
     console.print(view)
     legend = [
-        f"{_SHORT[k]} = {k.replace('_', ' ')}"
-        for k in (*HEADLINES, *(c.removeprefix("seconds_") for c in stage_cols))
-        if k in _SHORT and (k in head_cols or f"seconds_{k}" in stage_cols)
+        f"{short[k]} = {k.replace('_', ' ')}"
+        for k in (*registry.headlines, *(c.removeprefix("seconds_") for c in stage_cols))
+        if k in short and (k in head_cols or f"seconds_{k}" in stage_cols)
     ]
     console.print("[dim]stage columns: seconds the current result took; " + "; ".join(legend) + "[/]")
     for r in data:

@@ -2,23 +2,53 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 
+import pyarrow as pa
 from pydantic import BaseModel
 
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage
 
 
-class Registry:
-    """Stages by name, in pipeline order."""
+@dataclass(frozen=True)
+class Headline:
+    """A figure of a run that batch tables show, read from the stages' ``summary.json``.
 
-    def __init__(self, stages: Iterable[Stage]) -> None:
+    Attributes:
+        dtype: its column type (an integer column counts the items of a list it finds).
+        places: ``(stage, key)`` places to look, first present wins; a dotted key reaches into nested
+            summaries (``"headline.collision_rate"``). If none is present, the column's own name is looked
+            up in every stage's summary, latest stage first.
+        short: its column label in the printed table.
+    """
+
+    dtype: pa.DataType
+    places: tuple[tuple[str, str], ...] = ()
+    short: str = ""
+
+
+class Registry:
+    """Stages by name, in pipeline order, with the headline figures batch tables show and short labels."""
+
+    def __init__(
+        self,
+        stages: Iterable[Stage],
+        headlines: Mapping[str, Headline] | None = None,
+        short_names: Mapping[str, str] | None = None,
+    ) -> None:
         self._stages = {s.name: s for s in stages}
         for s in self._stages.values():
             for dep in (*s.inputs, *s.optional_inputs):
                 if dep not in self._stages:
                     raise ValueError(f"stage {s.name!r} reads unknown stage {dep!r}")
+        self.headlines: dict[str, Headline] = dict(headlines or {})
+        for column, h in self.headlines.items():
+            for stage, _ in h.places:
+                if stage not in self._stages:
+                    raise ValueError(f"headline {column!r} reads unknown stage {stage!r}")
+        self.short_names: dict[str, str] = dict(short_names or {})
 
     def __iter__(self) -> Iterator[Stage]:
         return iter(self._stages.values())

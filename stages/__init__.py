@@ -7,8 +7,40 @@ from __future__ import annotations
 
 from typing import Final
 
-from pipeline.registry import Registry
+import pyarrow as pa
+
+from pipeline.registry import Headline, Registry
 from stages import detect, evaluate, graph, ingest, optimize, select_landmarks, select_measurements
+
+HEADLINES: Final = {
+    "landmarks": Headline(pa.int64(), (("graph", "landmarks"),), "lms"),
+    "focused_landmarks": Headline(
+        pa.int64(), (("select_landmarks", "selected"), ("optimize", "focused_landmarks")), "foc"
+    ),
+    "measurements_kept": Headline(
+        pa.int64(), (("select_measurements", "selected"), ("optimize", "tag_measurements")), "kept"
+    ),
+    "focused_entropy": Headline(
+        pa.float64(),
+        (
+            ("optimize", "focused_entropy"),
+            ("select_measurements", "entropy_after"),
+            ("evaluate", "headline.focused_entropy"),
+        ),
+        "H",
+    ),
+    "max_collision_probability": Headline(
+        pa.float64(),
+        (
+            ("optimize", "max_collision_probability"),
+            ("select_landmarks", "p_collision_max_focused"),
+            ("evaluate", "headline.max_collision_probability"),
+        ),
+        "maxP",
+    ),
+    "collision_rate": Headline(pa.float64(), (("evaluate", "headline.collision_rate"),), "rate"),
+}
+"""The figures ``focusmap batch`` shows per run: column -> where to find it in the stage summaries."""
 
 REGISTRY: Final = Registry(
     [
@@ -19,5 +51,15 @@ REGISTRY: Final = Registry(
         select_measurements.STAGE,
         optimize.STAGE,
         evaluate.STAGE,
-    ]
+    ],
+    HEADLINES,
+    {
+        "ingest": "ing",
+        "detect": "det",
+        "graph": "gra",
+        "select_landmarks": "s-lm",
+        "select_measurements": "s-ms",
+        "optimize": "opt",
+        "evaluate": "eva",
+    },
 )

@@ -23,11 +23,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from pipeline.batch import (
-    HEADLINES,
     LOCK_FILE,
     SUMMARY_FILE,
     Outcome,
@@ -38,6 +38,7 @@ from pipeline.batch import (
 )
 from pipeline.config import load_settings
 from pipeline.errors import InputError
+from pipeline.registry import Headline, Registry
 
 ROOT = Path(__file__).resolve().parents[2]
 UNTIL = "detect"
@@ -97,7 +98,7 @@ tasks = plan_tasks(collect_recordings(bags), Path(out), stages, load_settings(RE
                    preflight="stages.ingest.bags:detect_format")
 with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", processes=True, dashboard_address=None) as c:
     result = run_batch(tasks, scheduler=c.scheduler_address, progress=False)
-write_summary(summary_table(result.outcomes, stages), Path(out))
+write_summary(summary_table(result.outcomes, stages, REGISTRY), Path(out))
 print(json.dumps({"client_pid": os.getpid(), "hosts": [o.host for o in result.outcomes]}))
 """
 
@@ -166,6 +167,7 @@ def test_two_recordings_with_one_name_are_an_error_before_anything_runs(tmp_path
 
 
 def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None:
+    registry = _registry()
     stages = ["graph", "select_landmarks", "evaluate"]
     full = Outcome(
         recording="/r/a.bag",
@@ -175,18 +177,18 @@ def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None
         stages_run=["graph"],
         stages={
             "graph": {"seconds": 1.5, "summary": {"landmarks": 24}},
-            "select_landmarks": {"seconds": 0.5, "summary": {"tag_ids": [1, 2, 3], "max_collision_probability": 0.02}},
-            "evaluate": {"seconds": 2.0, "summary": {"collision_rate": 0.1, "focused_entropy": -3.5}},
+            "select_landmarks": {"seconds": 0.5, "summary": {"selected": 3, "p_collision_max_focused": 0.02}},
+            "evaluate": {"seconds": 2.0, "summary": {"headline": {"collision_rate": 0.1}, "focused_entropy": -3.5}},
         },
     )
     failed = Outcome(
         recording="/r/b.bag", run="b", run_dir="/o/b", status="failed", reason="broken", failed_stage="graph"
     )
-    rows = summary_table([full, failed], stages).to_pylist()
+    rows = summary_table([full, failed], stages, registry).to_pylist()
     assert rows[0]["landmarks"] == 24
-    assert rows[0]["focused_landmarks"] == 3  # a list of tag ids counts
+    assert rows[0]["focused_landmarks"] == 3
     assert rows[0]["max_collision_probability"] == pytest.approx(0.02)
-    assert rows[0]["collision_rate"] == pytest.approx(0.1)
+    assert rows[0]["collision_rate"] == pytest.approx(0.1)  # a dotted place reaches into "headline"
     assert rows[0]["focused_entropy"] == pytest.approx(-3.5)  # found by the column's own name
     assert rows[0]["measurements_kept"] is None
     assert rows[0]["seconds_graph"] == 1.5
@@ -201,8 +203,23 @@ def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None
         "stages_run": [],
         "host": None,
         **{f"seconds_{s}": None for s in stages},
-        **dict.fromkeys(HEADLINES),
+        **dict.fromkeys(registry.headlines),
     }
+
+
+def test_headlines_count_lists_and_skip_non_numbers_without_any_stage_names() -> None:
+    registry = Registry([], {"n": Headline(pa.int64()), "x": Headline(pa.float64(), short="X")})
+    out = Outcome(
+        recording="/r/a.bag",
+        run="a",
+        run_dir="/o/a",
+        status="done",
+        stages={"a": {"summary": {"n": [1, 2, 3], "x": "text"}}, "b": {"summary": {"x": 2}}},
+    )
+    row = summary_table([out], [], registry).to_pylist()[0]
+    assert row["n"] == 3 and row["x"] == 2.0  # a list counts; a string is no figure, the next stage's is
+    with pytest.raises(ValueError, match="headline 'n' reads unknown stage 'graph'"):
+        Registry([], {"n": Headline(pa.int64(), (("graph", "landmarks"),))})
 
 
 # --- end to end ----------------------------------------------------------------------------------------------
