@@ -5,16 +5,13 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from pydantic import BaseModel, ConfigDict
 
 from pipeline.config import load_settings
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
-from pipeline.stage import Stage
 from stages import evaluate as evaluate_stage
 from stages import graph as graph_stage
 from stages import optimize as optimize_stage
@@ -22,22 +19,17 @@ from stages import select_landmarks, select_measurements
 from stages.evaluate.cases import TABLE_I
 from stages.graph.synthetic import synthetic_run
 from tests.stages.test_optimize import synthetic_scans, write_ground_truth
-
-
-class _Dummy(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+from tests.stages.upstream import seed_upstream, stand_in
 
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("eval")
     sim = synthetic_run(seed=7, loops=0.5)
-    ingest = Stage(name="ingest", config_type=_Dummy, run=lambda ctx, cfg: {})
-    detect = Stage(name="detect", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("ingest",))
     reg = Registry(
         [
-            ingest,
-            detect,
+            stand_in("ingest"),
+            stand_in("detect", "ingest"),
             graph_stage.STAGE,
             select_landmarks.STAGE,
             select_measurements.STAGE,
@@ -49,19 +41,7 @@ def evaluated(tmp_path_factory):
     source.write_bytes(b"")
     write_ground_truth(sim, tmp / "run.ground_truth.json")
     run = RunFolder.create(tmp / "run", source)
-    extr = dict(sim.extrinsics)
-    extr["sensors"] = {**extr.get("sensors", {}), "laser": {"frame_id": "laser", "T_base_sensor": np.eye(4).tolist()}}
-    for name, files in (
-        ("ingest", {"odometry.parquet": sim.odometry, "scans.parquet": synthetic_scans(sim)}),
-        ("detect", {"detections.parquet": sim.detections}),
-    ):
-        d = run.stage_dir(name)
-        d.mkdir()
-        for fname, table in files.items():
-            pq.write_table(table, d / fname)
-        if name == "ingest":
-            (d / "extrinsics.json").write_text(json.dumps(extr))
-        run.record(name, {"fingerprint": name, "summary": {}})
+    seed_upstream(run, sim, synthetic_scans(sim))
     settings = load_settings(
         reg.models(),
         overrides=[

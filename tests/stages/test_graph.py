@@ -11,7 +11,6 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from gtsam.symbol_shorthand import L, X
-from pydantic import BaseModel, ConfigDict
 
 from pipeline.artifacts import StageInput
 from pipeline.config import load_settings
@@ -19,7 +18,6 @@ from pipeline.errors import InputError, StageError
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
-from pipeline.stage import Stage
 from stages import graph as graph_stage
 from stages.geometry import (
     bearing_range_to_relative_position_2d,
@@ -34,6 +32,7 @@ from stages.graph.g2o import read_graph_file, write_g2o
 from stages.graph.problem import VAR_DIMS, GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
 from stages.graph.synthetic import synthetic_run
+from tests.stages.upstream import seed_upstream, stand_in
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 GRAPHS = SHARED / "slam-graphs"
@@ -326,26 +325,10 @@ def test_g2o_written_by_the_stage_reads_back(sim) -> None:
 # ------------------------------------------------------------------ the stage in a run folder
 
 
-class _Dummy(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
 def _stage_run(tmp_path: Path, sim, overrides: list[str] = ()) -> RunFolder:
-    ingest = Stage(name="ingest", config_type=_Dummy, run=lambda ctx, cfg: {})
-    detect = Stage(name="detect", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("ingest",))
-    reg = Registry([ingest, detect, graph_stage.STAGE])
+    reg = Registry([stand_in("ingest"), stand_in("detect", "ingest"), graph_stage.STAGE])
     run = RunFolder.create(tmp_path / "run", None)
-    for name, files in (
-        ("ingest", {"odometry.parquet": sim.odometry}),
-        ("detect", {"detections.parquet": sim.detections}),
-    ):
-        d = run.stage_dir(name)
-        d.mkdir()
-        for fname, table in files.items():
-            pq.write_table(table, d / fname)
-        if name == "ingest":
-            (d / "extrinsics.json").write_text(json.dumps(sim.extrinsics))
-        run.record(name, {"fingerprint": name, "summary": {}})
+    seed_upstream(run, sim)
     settings = load_settings(reg.models(), overrides=overrides)
     run_stage(run, reg, "graph", settings)
     return run

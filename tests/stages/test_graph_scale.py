@@ -9,10 +9,8 @@ from pathlib import Path
 import gtsam
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 import pytest
 from gtsam.symbol_shorthand import L, X
-from pydantic import BaseModel, ConfigDict
 
 from pipeline.artifacts import StageInput
 from pipeline.config import load_settings
@@ -20,7 +18,6 @@ from pipeline.errors import StageError
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
-from pipeline.stage import Stage
 from stages import graph as graph_stage
 from stages.estimation.linear_system import LinearSystem
 from stages.geometry import pose3_to_vector
@@ -39,6 +36,7 @@ from stages.graph.factors import (
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
 from stages.graph.synthetic import synthetic_run
+from tests.stages.upstream import seed_upstream, stand_in
 
 H = 1e-6
 
@@ -190,23 +188,11 @@ def test_scale_does_not_join_disconnected_parts() -> None:
         check_problem(p)
 
 
-class _Dummy(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
 def test_stage_artifacts_and_what_later_stages_see(tmp_path: Path) -> None:
     sim = synthetic_run(seed=3, loops=0.5)
-    ingest = Stage(name="ingest", config_type=_Dummy, run=lambda ctx, cfg: {})
-    detect = Stage(name="detect", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("ingest",))
-    reg = Registry([ingest, detect, graph_stage.STAGE])
+    reg = Registry([stand_in("ingest"), stand_in("detect", "ingest"), graph_stage.STAGE])
     run = RunFolder.create(tmp_path / "run", None)
-    for name, fname, table in (("ingest", "odometry.parquet", sim.odometry), ("detect", "detections.parquet", None)):
-        d = run.stage_dir(name)
-        d.mkdir()
-        pq.write_table(table if table is not None else sim.detections, d / fname)
-        if name == "ingest":
-            (d / "extrinsics.json").write_text(json.dumps(sim.extrinsics))
-        run.record(name, {"fingerprint": name, "summary": {}})
+    seed_upstream(run, sim)
     run_stage(run, reg, "graph", load_settings(reg.models(), overrides=["graph.tag_scale_sigma=0.005"]))
     out = run.stage_dir("graph")
     summary = json.loads((out / "summary.json").read_text())

@@ -9,7 +9,6 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from pydantic import BaseModel, ConfigDict
 
 from pipeline.artifacts import StageInput
 from pipeline.config import load_settings
@@ -17,19 +16,15 @@ from pipeline.errors import StageError
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
-from pipeline.stage import Stage
 from stages import graph as graph_stage
 from stages import optimize as optimize_stage
 from stages.graph.load import load_graph
 from stages.graph.synthetic import SyntheticRun, synthetic_run
 from stages.optimize import gaussian_entropy, landmark_heights, solve_reduced
 from stages.risk import LandmarkMap
+from tests.stages.upstream import seed_upstream, stand_in
 
 ROOM = (8.0, 6.0)
-
-
-class _Dummy(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 def room_walls(room: tuple[float, float] = ROOM) -> np.ndarray:
@@ -82,29 +77,22 @@ def write_ground_truth(sim: SyntheticRun, path: Path, room: tuple[float, float] 
 
 def make_graph_run(tmp_path: Path, sim: SyntheticRun, truth: bool = True) -> tuple[RunFolder, Registry]:
     """A run folder with ingest (odometry, scans, extrinsics), detect and a finished graph stage."""
-    ingest = Stage(name="ingest", config_type=_Dummy, run=lambda ctx, cfg: {})
-    detect = Stage(name="detect", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("ingest",))
-    sel_l = Stage(name="select_landmarks", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("graph",))
-    sel_m = Stage(name="select_measurements", config_type=_Dummy, run=lambda ctx, cfg: {}, inputs=("select_landmarks",))
-    reg = Registry([ingest, detect, graph_stage.STAGE, sel_l, sel_m, optimize_stage.STAGE])
+    reg = Registry(
+        [
+            stand_in("ingest"),
+            stand_in("detect", "ingest"),
+            graph_stage.STAGE,
+            stand_in("select_landmarks", "graph"),
+            stand_in("select_measurements", "select_landmarks"),
+            optimize_stage.STAGE,
+        ]
+    )
     source = tmp_path / "run.bag"
     source.write_bytes(b"")
     if truth:
         write_ground_truth(sim, tmp_path / "run.ground_truth.json")
     run = RunFolder.create(tmp_path / "run", source)
-    extr = dict(sim.extrinsics)
-    extr["sensors"] = {**extr.get("sensors", {}), "laser": {"frame_id": "laser", "T_base_sensor": np.eye(4).tolist()}}
-    for name, files in (
-        ("ingest", {"odometry.parquet": sim.odometry, "scans.parquet": synthetic_scans(sim)}),
-        ("detect", {"detections.parquet": sim.detections}),
-    ):
-        d = run.stage_dir(name)
-        d.mkdir()
-        for fname, table in files.items():
-            pq.write_table(table, d / fname)
-        if name == "ingest":
-            (d / "extrinsics.json").write_text(json.dumps(extr))
-        run.record(name, {"fingerprint": name, "summary": {}})
+    seed_upstream(run, sim, synthetic_scans(sim))
     settings = load_settings(reg.models())
     run_stage(run, reg, "graph", settings)
     return run, reg
