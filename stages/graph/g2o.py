@@ -242,6 +242,15 @@ class _Reader:
         )
 
 
+def _pose_prior(initial: gtsam.Values, key: int, planar: bool, sigma_m: float, sigma_rad: float) -> FactorRow:
+    """A prior row holding pose ``key`` at its initial value with the given σ (m, rad)."""
+    if planar:
+        cov = np.diag([sigma_m**2] * 2 + [sigma_rad**2])
+        return FactorRow("prior", "PriorFactorPose2", (key,), value_vector(initial, key, "Pose2")[:3], cov)
+    cov = np.diag([sigma_rad**2] * 3 + [sigma_m**2] * 3)
+    return FactorRow("prior", "PriorFactorPose3", (key,), value_vector(initial, key, "Pose3")[:7], cov)
+
+
 def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: float = 1e-3) -> GraphProblem:
     """Parse a g2o or GTSAM ``.graph`` file into a :class:`GraphProblem` (see the module docstring).
 
@@ -305,54 +314,11 @@ def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: fl
     for i in r.fixed:
         key = int(X(i))
         if key in var_types and var_types[key].startswith("Pose"):
-            if planar:
-                rows.insert(
-                    0,
-                    FactorRow(
-                        "prior",
-                        "PriorFactorPose2",
-                        (key,),
-                        value_vector(initial, key, "Pose2")[:3],
-                        np.diag([1e-12] * 3),
-                    ),
-                )
-            else:
-                rows.insert(
-                    0,
-                    FactorRow(
-                        "prior",
-                        "PriorFactorPose3",
-                        (key,),
-                        value_vector(initial, key, "Pose3")[:7],
-                        np.diag([1e-12] * 6),
-                    ),
-                )
+            rows.insert(0, _pose_prior(initial, key, planar, 1e-6, 1e-6))
             priors.append(rows[0])
     added_prior = False
     if not priors:
-        key = int(X(pose_ids[0]))
-        if planar:
-            rows.insert(
-                0,
-                FactorRow(
-                    "prior",
-                    "PriorFactorPose2",
-                    (key,),
-                    value_vector(initial, key, "Pose2")[:3],
-                    np.diag([prior_sigma_m**2] * 2 + [prior_sigma_rad**2]),
-                ),
-            )
-        else:
-            rows.insert(
-                0,
-                FactorRow(
-                    "prior",
-                    "PriorFactorPose3",
-                    (key,),
-                    value_vector(initial, key, "Pose3")[:7],
-                    np.diag([prior_sigma_rad**2] * 3 + [prior_sigma_m**2] * 3),
-                ),
-            )
+        rows.insert(0, _pose_prior(initial, int(X(pose_ids[0])), planar, prior_sigma_m, prior_sigma_rad))
         added_prior = True
     info = {
         "source_file": path.name,
