@@ -55,13 +55,12 @@ from stages.navigation import (
     visibility_schedule,
 )
 from stages.navigation.truth import MapTruth
-from stages.optimize.core import ReducedMap, landmark_errors, map_size, mean_or_nan, solve_reduced
+from stages.optimize import ReducedMap, landmark_errors, map_size, mean_or_nan, solve_reduced
 from stages.risk import LandmarkMap, PathRisk, RiskParams, path_risk
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
 from stages.select_landmarks import choose as choose_landmarks
-from stages.select_measurements.config import SelectMeasurementsConfig
-from stages.select_measurements.core import MeasurementChoice, linear_system
-from stages.select_measurements.core import choose as choose_measurements
+from stages.select_measurements import MeasurementChoice, SelectMeasurementsConfig, linear_system
+from stages.select_measurements import choose as choose_measurements
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -96,7 +95,7 @@ class Case:
 def cases(cfg: EvaluateConfig) -> list[Case]:
     """The six Table I cases, then ``cfg.extra_pairs`` (named by their pair)."""
     from stages.select_landmarks import STRATEGIES as LM
-    from stages.select_measurements.config import STRATEGIES as MS
+    from stages.select_measurements import STRATEGIES as MS
 
     out = [Case(*c) for c in TABLE_I]
     for pair in cfg.extra_pairs:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from stages.evaluate.analysis import CHI2_2_95
-from stages.evaluate.cases import CaseResult, EvalInputs
+from stages.evaluate.cases import WHY_COLUMNS, CaseResult, EvalInputs
 
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("label", "case", "{}"),
@@ -322,15 +322,7 @@ def why_findings(inputs: EvalInputs, results: Sequence[CaseResult]) -> dict[str,
             k: row.get(k)
             for k in (
                 "focused_error_m",
-                "focused_error_aligned_m",
-                "focused_sigma_m",
-                "focused_nees",
-                "focused_outside_95",
-                "kept_tag_nees",
-                "kept_range_bias_m",
-                "oracle_focused_error_m",
-                "oracle_focused_error_aligned_m",
-                "oracle_focused_nees",
+                *(c for c in WHY_COLUMNS if c != "oracle_error_all_m"),
                 "risk_margin_sigmas",
                 "margin_sigmas",
                 "tight_margin_m",

@@ -15,10 +15,10 @@ from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
 from stages.graph.load import load_graph
 from stages.navigation.truth import load_truth
-from stages.optimize.core import landmark_heights
+from stages.optimize import landmark_heights
 from stages.risk import read_path_inputs
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
-from stages.select_measurements.config import SelectMeasurementsConfig
+from stages.select_measurements import SelectMeasurementsConfig
 
 ENTITY = "/evaluate"
 

@@ -5,8 +5,8 @@ ground truth, the collision risk recomputed with the reduced map, and the size o
 Public API:
     STAGE, OptimizeConfig.
     solve_reduced(loaded, focused_tag_ids, selected_factor_indices, ...) -> ReducedMap (``stages.optimize.core``).
-    landmark_errors(estimate, reference, tag_ids), map_size(loaded, reduced), gaussian_entropy(cov),
-    risk_params(settings_sections), landmark_heights(graph_landmarks_table).
+    landmark_errors(estimate, reference, tag_ids), mean_or_nan(values), map_size(loaded, reduced),
+    gaussian_entropy(cov), risk_params(settings_sections), landmark_heights(graph_landmarks_table).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from stages.optimize.core import (
     landmark_errors,
     landmark_heights,
     map_size,
+    mean_or_nan,
     risk_params,
     solve_reduced,
 )
@@ -64,6 +65,7 @@ __all__ = [
     "landmark_errors",
     "landmark_heights",
     "map_size",
+    "mean_or_nan",
     "risk_params",
     "solve_reduced",
 ]
