@@ -7,6 +7,7 @@ import hashlib
 import importlib
 import json
 import platform
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -24,26 +25,21 @@ from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder, source_identity, write_json_atomic
 from pipeline.stage import Stage
 
-_LIBRARIES = (
-    "rosbags",
-    "mcap",
-    "opencv-python-headless",
-    "pupil-apriltags",
-    "pycolmap",
-    "gtsam",
-    "rerun-sdk",
-    "numpy",
-    "scipy",
-    "pyarrow",
-    "pydantic",
-    "typer",
-)
+
+def _runtime_requirements() -> list[str]:
+    """Names of focusmap's installed runtime dependencies (its package metadata, extras left out)."""
+    try:
+        requires = metadata.requires("focusmap") or []
+    except metadata.PackageNotFoundError:
+        return []
+    names = (re.match(r"[A-Za-z0-9_.\-]+", r) for r in requires if "extra ==" not in r)
+    return sorted({m.group(0).lower() for m in names if m})
 
 
 def library_versions() -> dict[str, str]:
-    """Versions of Python and the libraries whose behaviour shapes the results."""
+    """Versions of Python and of every runtime dependency (the libraries whose behaviour shapes the results)."""
     versions = {"python": platform.python_version(), "focusmap": __version__}
-    for lib in _LIBRARIES:
+    for lib in _runtime_requirements():
         try:
             versions[lib] = metadata.version(lib)
         except metadata.PackageNotFoundError:
