@@ -59,6 +59,8 @@ def optimise_in_python(
     values = gtsam.Values(initial)
     error = float(graph.error(values))
     lam = LAMBDA_INITIAL
+    sizes = set(dims.values())
+    zeros = {d: np.zeros(d) for d in sizes}
     iterations = 0
     while iterations < max_iterations:
         iterations += 1
@@ -66,8 +68,9 @@ def optimise_in_python(
         while True:
             if method == "lm":
                 damped = linear.clone()
+                block = {d: np.sqrt(lam) * np.eye(d) for d in sizes}
                 for key, d in dims.items():
-                    damped.add(key, np.sqrt(lam) * np.eye(d), np.zeros(d))
+                    damped.add(key, block[d], zeros[d])
                 delta = damped.optimize(ordering)
             else:
                 delta = linear.optimize(ordering)
