@@ -46,6 +46,14 @@ class Settings:
         """The shared recording settings."""
         return self.sections["rerun"]  # type: ignore[return-value]
 
+    def only(self, *names: str) -> Settings:
+        """The sections ``names`` and the shared sections, nothing else (what one stage may read)."""
+        keep = {*names, *SHARED_SECTIONS}
+        return Settings(
+            {n: m for n, m in self.sections.items() if n in keep},
+            {k: v for k, v in self.sources.items() if k.split(".")[0] in keep},
+        )
+
     def dump(self) -> dict[str, Any]:
         """Every section as plain JSON-able data."""
         return {name: model.model_dump(mode="json") for name, model in self.sections.items()}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
 
@@ -13,7 +13,7 @@ from pipeline.artifacts import StageInput, StageOutput
 from pipeline.config import Settings
 from pipeline.errors import StageError
 from pipeline.progress import track
-from pipeline.run_folder import RunFolder
+from pipeline.run_folder import RunFolder, outside_identity
 from pipeline.stage import Stage
 
 T = TypeVar("T")
@@ -21,13 +21,29 @@ T = TypeVar("T")
 
 @dataclass
 class StageContext:
-    """Everything a stage's ``run`` function may touch."""
+    """Everything a stage's ``run`` function may touch.
+
+    ``settings`` holds the stage's own section and the shared ``rerun`` section only: what a stage needs from
+    an upstream stage it reads from that stage's artifacts, whose fingerprint its own covers.
+    """
 
     run: RunFolder
     stage: Stage
     settings: Settings
     output: StageOutput
     rec: rr.RecordingStream
+    outside_files: dict[str, str | None] = field(default_factory=dict)
+    """Files outside the run folder the stage read (resolved path to identity; None: looked for, absent)."""
+
+    def outside_file(self, path: Path | str) -> Path | None:
+        """Declare a file outside the run folder that the stage reads (or would read, if it existed).
+
+        Its identity goes into the stage's manifest entry, so the stage re-runs when the file changes, appears
+        or disappears. Returns the path when the file exists, else None.
+        """
+        p = Path(path).resolve()
+        self.outside_files[str(p)] = outside_identity(str(p))
+        return p if p.exists() else None
 
     @property
     def source(self) -> Path:

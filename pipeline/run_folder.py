@@ -55,6 +55,12 @@ def source_identity(path: Path) -> dict[str, Any]:
     return {"path": str(path.resolve()), "bytes": total, "files": len(files), "digest": digest.hexdigest()}
 
 
+def outside_identity(path: str) -> str | None:
+    """The identity of a file outside the run folder that a stage read (None: it is absent)."""
+    p = Path(path)
+    return source_identity(p)["digest"] if p.exists() else None
+
+
 class RunFolder:
     """One recorded run's working folder."""
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import importlib
 import json
 import platform
 import re
@@ -17,12 +16,13 @@ from typing import Any
 
 from pipeline import __version__
 from pipeline.artifacts import StageOutput
+from pipeline.code import code_digest, package_dirs
 from pipeline.config import Settings
 from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import close_recording, log_summary, open_recording, run_blueprint, save_blueprint
 from pipeline.registry import Registry
-from pipeline.run_folder import RunFolder, source_identity, write_json_atomic
+from pipeline.run_folder import RunFolder, outside_identity, source_identity, write_json_atomic
 from pipeline.stage import Stage
 
 
@@ -57,26 +57,41 @@ class StageResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
-@functools.cache
-def _code_digest(package: str) -> str:
-    """Hash of every Python source file of a top-level package: a changed stage re-runs."""
-    module = sys.modules.get(package) or importlib.import_module(package)
-    root = Path(module.__file__ or "").parent
-    digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        digest.update(str(path.relative_to(root)).encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()
-
-
 def code_version(stage: Stage) -> str:
-    """The stage's declared version plus a digest of the code it runs."""
-    package = stage.run.__module__.split(".")[0]
-    return f"{stage.version}:{_code_digest(package)[:16]}"
+    """The stage's declared version plus a digest of the project code it can run.
+
+    The digest covers the stage's own sub-package (the package of its ``run`` function, e.g. ``stages.evaluate``)
+    and every module of that top-level package and of ``pipeline`` that it reaches by imports
+    (:func:`pipeline.code.code_digest`), so an edit re-runs the stages that use the edited module and no other.
+    """
+    return f"{stage.version}:{_stage_code_digest(stage.run.__module__)[:16]}"
+
+
+@functools.cache
+def _stage_code_digest(module: str) -> str:
+    parent = module.rpartition(".")[0]
+    root = parent if "." in parent else module
+    try:
+        packages = package_dirs({root.split(".")[0], __name__.split(".")[0]})
+        return code_digest([root], packages)
+    except (ValueError, ImportError, SyntaxError):  # e.g. a stage defined in a script: hash that file alone
+        path = getattr(sys.modules.get(module), "__file__", None)
+        return hashlib.sha256(Path(path).read_bytes() if path else module.encode()).hexdigest()
+
+
+def _seal(base: str, outside: dict[str, str | None]) -> str:
+    """The recorded fingerprint: the inputs-and-settings fingerprint, plus the outside files the stage read."""
+    if not outside:
+        return base
+    return hashlib.sha256(json.dumps({"base": base, "outside": outside}, sort_keys=True).encode()).hexdigest()
 
 
 def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Settings) -> str:
-    """Hash of the stage, its code version, its settings, its inputs' fingerprints and its source file."""
+    """Hash of the stage, its code version, its settings, its inputs' fingerprints and its source file.
+
+    The files outside the run folder that the stage reports reading (``ctx.outside_file``) are added when it
+    has run (:func:`is_current`), since only the stage knows which they are.
+    """
     stage = registry[name]
     inputs: dict[str, Any] = {}
     for dep in (*stage.inputs, *stage.optional_inputs):
@@ -95,9 +110,16 @@ def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Setting
 
 
 def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings) -> bool:
-    """Whether the stage's finished results match what running it now would produce."""
+    """Whether the stage's finished results match what running it now would produce.
+
+    Besides the fingerprint of settings, code and inputs, every outside file the stage read when it ran must be
+    as it was then (and one that was absent must still be absent).
+    """
     entry = run.stage_entry(name)
-    return entry is not None and entry.get("fingerprint") == fingerprint(run, registry, name, settings)
+    if entry is None:
+        return False
+    outside = {p: outside_identity(p) for p in entry.get("outside_files") or {}}
+    return entry.get("fingerprint") == _seal(fingerprint(run, registry, name, settings), outside)
 
 
 def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False) -> StageResult:
@@ -111,10 +133,10 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
             )
     if stage.needs_source and run.source is not None and not run.source.exists():
         raise StageError(f"source recording {str(run.source)!r} of run {run.path.name!r} no longer exists")
-    fp = fingerprint(run, registry, name, settings)
     entry = run.stage_entry(name)
-    if not force and entry is not None and entry.get("fingerprint") == fp:
+    if not force and entry is not None and is_current(run, registry, name, settings):
         return StageResult(stage.name, "skipped", 0.0, entry.get("summary", {}))
+    fp = fingerprint(run, registry, name, settings)
     scratch, rrd = run.begin(stage.name)
     try:
         blueprint = run_blueprint(
@@ -125,7 +147,9 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
     rec = open_recording(run.run_id, rrd, blueprint)
     start = time.perf_counter()
     try:
-        ctx = StageContext(run=run, stage=stage, settings=settings, output=StageOutput(scratch), rec=rec)
+        ctx = StageContext(
+            run=run, stage=stage, settings=settings.only(stage.name), output=StageOutput(scratch), rec=rec
+        )
         summary = dict(stage.run(ctx, settings[stage.name]) or {})
         seconds = time.perf_counter() - start
         summary.setdefault("seconds", round(seconds, 3))
@@ -139,16 +163,20 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
         finally:
             run.abort(stage.name)
         raise
+    outside = dict(sorted(ctx.outside_files.items()))
     run.record(
         stage.name,
         {
-            "fingerprint": fp,
+            "fingerprint": _seal(fp, outside),
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "code": code_version(stage),
             "seconds": round(seconds, 3),
             "settings": settings[stage.name].model_dump(mode="json"),
-            "inputs": {d: (run.stage_entry(d) or {}).get("fingerprint") for d in stage.inputs},
+            "inputs": {
+                d: (run.stage_entry(d) or {}).get("fingerprint") for d in (*stage.inputs, *stage.optional_inputs)
+            },
             "source": source_identity(run.source) if stage.needs_source and run.source else None,
+            "outside_files": outside,
             "versions": library_versions(),
             "summary": summary,
         },

@@ -59,6 +59,7 @@ from stages.optimize import ReducedMap, landmark_errors, map_size, mean_or_nan, 
 from stages.risk import LandmarkMap, PathRisk, RiskParams, path_risk
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
 from stages.select_landmarks import choose as choose_landmarks
+from stages.select_landmarks.artifacts import FocusedLandmarks
 from stages.select_measurements import MeasurementChoice, SelectMeasurementsConfig, linear_system
 from stages.select_measurements import choose as choose_measurements
 
@@ -125,6 +126,20 @@ class NavigationSetup:
     """(K,) clearance of the nominal path minus the robot radius, per step."""
 
 
+SEEDED = ("random", "leverage")
+"""Strategies whose result depends on the seed (evaluate's ``seed`` against the upstream stage's)."""
+
+
+@dataclass
+class Upstream:
+    """What the selection stages and optimize already computed on the run, for the case they match."""
+
+    landmarks: FocusedLandmarks | None = None
+    measurements: MeasurementChoice | None = None
+    reduced: ReducedMap | None = None
+    """optimize's reduced map (solved as evaluate solves), of ``landmarks.tag_ids`` and ``measurements``."""
+
+
 @dataclass
 class EvalInputs:
     """A run loaded once for every case."""
@@ -138,6 +153,7 @@ class EvalInputs:
     cfg: EvaluateConfig
     scans: pa.Table | None
     T_base_laser: FloatArray | None
+    upstream: Upstream = field(default_factory=Upstream)
     system: Any = None
     navigation: NavigationSetup | None = None
     focus: list[int] = field(default_factory=list)
@@ -165,6 +181,37 @@ class EvalInputs:
     def K(self) -> int:
         """Measurement budget."""
         return self.cfg.measurement_budget if self.cfg.measurement_budget is not None else self.sm_cfg.budget
+
+    def upstream_landmarks(self, strategy: str) -> tuple[list[int], float] | None:
+        """select_landmarks' pick when it is what ``strategy`` at α with evaluate's seed would pick, else None."""
+        up = self.upstream.landmarks
+        if up is None or up.strategy != strategy or up.budget != self.alpha:
+            return None
+        if strategy in SEEDED and up.settings.seed != self.cfg.seed:
+            return None
+        return list(up.tag_ids), up.seconds
+
+    def upstream_measurements(self, cfg: SelectMeasurementsConfig, tags: Sequence[int]) -> MeasurementChoice | None:
+        """select_measurements' choice when it is what ``cfg`` on ``tags`` would choose, else None."""
+        up = self.upstream.measurements
+        if up is None or (up.strategy, up.budget, up.focus) != (cfg.strategy, cfg.budget, cfg.focus):
+            return None
+        if cfg.strategy in SEEDED and self.sm_cfg.seed != cfg.seed:
+            return None
+        want = sorted(self.loaded.landmark_keys) if cfg.focus == "all" else [int(t) for t in tags]
+        return up if list(up.focused_tag_ids) == want else None
+
+    def upstream_reduced(self, tags: Sequence[int], selected: Sequence[int]) -> ReducedMap | None:
+        """optimize's reduced map when it is the solve of these landmarks and measurements, scored on the focus."""
+        red = self.upstream.reduced
+        if red is None or red.focused_tag_ids != sorted({int(t) for t in tags}):
+            return None
+        if red.focused_tag_ids != sorted({int(t) for t in self.focus}):
+            return None
+        rows, tagset = self.loaded.rows, set(red.focused_tag_ids)
+        kept = {int(i) for i in red.full_index if rows[int(i)].kind == "tag"}
+        wanted = {int(i) for i in selected if rows[int(i)].kind == "tag" and rows[int(i)].tag_id in tagset}
+        return red if kept == wanted else None
 
     def reference_positions(self, optimal: ReducedMap | None) -> tuple[dict[int, FloatArray], str]:
         """Where landmarks really are: the ground truth, else case 1's map."""
@@ -266,6 +313,8 @@ class CaseResult:
     navigation: NavigationResult | None
     row: dict[str, Any]
     margin: NavigationMargin | None = None
+    reused: list[str] = field(default_factory=list)
+    """What was taken from the upstream stages' artifacts instead of recomputed (landmarks, measurements, map)."""
 
 
 def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
@@ -273,6 +322,9 @@ def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
         return sorted(inputs.loaded.landmark_keys), 0.0
     if strategy == "collision" and inputs.focus:
         return list(inputs.focus), inputs.focus_seconds
+    reused = inputs.upstream_landmarks(strategy)
+    if reused is not None:
+        return reused
     cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
     choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
     return list(choice.tag_ids), choice.seconds
@@ -285,9 +337,15 @@ def prepare(inputs: EvalInputs) -> None:
     if not inputs.focus:
         has_laser = inputs.landmarks.geometry.has_laser
         strategy = "collision" if has_laser else "mutual-information"
-        cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
-        choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
-        inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
+        reused = inputs.upstream_landmarks(strategy)
+        if reused is not None:
+            inputs.focus, inputs.focus_seconds = reused
+        else:
+            cfg = inputs.sl_cfg.model_copy(
+                update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed}
+            )
+            choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
+            inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
     if inputs.truth is not None and not inputs.consistency and inputs.loaded.model == "planar":
         inputs.consistency = measurement_consistency(inputs.loaded, inputs.truth)
         inputs.by_range = residuals_by_range(inputs.loaded, inputs.truth)
@@ -298,6 +356,9 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
     prepare(inputs)
     loaded = inputs.loaded
     tags, lm_seconds = _landmark_set(inputs, case.landmark_strategy)
+    reused: list[str] = []
+    if case.landmark_strategy != "all" and inputs.upstream_landmarks(case.landmark_strategy) is not None:
+        reused.append("landmarks")
     measurement: MeasurementChoice | None = None
     if case.measurement_strategy == "all":
         selected = [i for i in loaded.tag_factor_indices.tolist() if loaded.rows[i].tag_id in set(tags)]
@@ -307,16 +368,17 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         cfg = inputs.sm_cfg.model_copy(
             update={"strategy": case.measurement_strategy, "budget": inputs.K, "focus": focus, "seed": inputs.cfg.seed}
         )
-        measurement = choose_measurements(loaded, tags, cfg, inputs.system)
+        measurement = inputs.upstream_measurements(cfg, tags)
+        if measurement is not None:
+            reused.append("measurements")
+        else:
+            measurement = choose_measurements(loaded, tags, cfg, inputs.system)
         selected, ms_seconds = measurement.factor_indices, measurement.seconds
-    reduced = solve_reduced(
-        loaded,
-        tags,
-        selected,
-        inputs.heights,
-        "dead_reckoning",
-        entropy_tag_ids=inputs.focus,
-    )
+    reduced = inputs.upstream_reduced(tags, selected)
+    if reduced is not None:
+        reused.append("reduced map")
+    else:
+        reduced = solve_reduced(loaded, tags, selected, inputs.heights, "dead_reckoning", entropy_tag_ids=inputs.focus)
     reference, ref_name = inputs.reference_positions(optimal if optimal is not None else reduced)
     errs = landmark_errors(reduced.landmark_map, reference)
     focus = set(inputs.focus)
@@ -368,7 +430,7 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         )
     )
     row["risk_margin_sigmas"] = _margin_sigmas(risk.max)
-    result = CaseResult(case, tags, measurement, reduced, risk, None, row)
+    result = CaseResult(case, tags, measurement, reduced, risk, None, row, reused=reused)
     navigate(inputs, result)
     return result
 

@@ -10,15 +10,25 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids
-from stages.evaluate.cases import EvalInputs, cases, cases_table, greedy_rows, map_rows, risk_rows, run_all
+from stages.evaluate.cases import (
+    EvalInputs,
+    Upstream,
+    cases,
+    cases_table,
+    greedy_rows,
+    map_rows,
+    risk_rows,
+    run_all,
+)
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
-from stages.graph.load import load_graph
+from stages.graph.load import LoadedGraph, load_graph
 from stages.navigation.truth import load_truth
-from stages.optimize import landmark_heights
+from stages.optimize import OptimizeConfig, ReducedMap, landmark_heights, read_reduced, solve_settings
 from stages.risk import read_path_inputs
-from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
-from stages.select_measurements import SelectMeasurementsConfig
+from stages.select_landmarks import LandmarkInputs
+from stages.select_landmarks.artifacts import read_focused
+from stages.select_measurements.artifacts import read_selection
 
 ENTITY = "/evaluate"
 
@@ -26,8 +36,10 @@ ENTITY = "/evaluate"
 def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
     t0 = time.perf_counter()
-    sl_cfg: SelectLandmarksConfig = ctx.settings.sections.get("select_landmarks") or SelectLandmarksConfig()
-    sm_cfg: SelectMeasurementsConfig = ctx.settings.sections.get("select_measurements") or SelectMeasurementsConfig()
+    # α, K, the strategies and the risk model are what the selection stages used, read from their artifacts
+    focused = read_focused(ctx.input("select_landmarks"))
+    selection = read_selection(ctx.input("select_measurements"))
+    sl_cfg, sm_cfg = focused.settings, selection.settings
     loaded = load_graph(ctx.input("graph"))
     read = read_path_inputs(ctx)  # once, for the landmark inputs and the navigation's occupancy grid
     landmarks = LandmarkInputs.from_pieces(
@@ -44,6 +56,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         cfg=cfg,
         scans=scans,
         T_base_laser=T_base_laser,
+        upstream=Upstream(focused, selection.choice, _optimized(ctx, loaded, focused.tag_ids)),
     )
     todo = cases(cfg)
     results = run_all(inputs, todo, ctx.progress)
@@ -102,8 +115,19 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         "regime": cfg.regime,
         "why": why_findings(inputs, results),
         "report": str(ctx.run.stage_dir("evaluate") / "report.html"),
+        "from_upstream": {r.case.name: r.reused for r in results if r.reused},
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
     }
+
+
+def _optimized(ctx: StageContext, loaded: LoadedGraph, focused_tag_ids: list[int]) -> ReducedMap | None:
+    """optimize's reduced map, when it has run and solved as evaluate does (else None: evaluate solves itself)."""
+    if not ctx.has_input("optimize"):
+        return None
+    inp = ctx.input("optimize")
+    if inp.summary.get("solve") != solve_settings(OptimizeConfig()):
+        return None
+    return read_reduced(inp, loaded, focused_tag_ids)
 
 
 def log_recording(rec: rr.RecordingStream, inputs: EvalInputs, results: list[Any], n_sigma: float) -> None:

@@ -150,9 +150,10 @@ class _TableWriter:
         self.writer.close()
 
 
-def _load_camera_file(path: str) -> dict[str, Any]:
+def _load_camera_file(ctx: StageContext, path: str) -> dict[str, Any]:
     from stages.camera import load_camera_file
 
+    ctx.outside_file(path)  # a changed calibration file re-runs ingest
     return load_camera_file(Path(path))
 
 
@@ -172,7 +173,7 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         use_detections = topics["detections"] is not None and (topics["image"] is None or cfg.detections_topic)
         if use_detections:
             topics["image"] = None if not cfg.image_topic else topics["image"]
-        camera: dict[str, Any] | None = _load_camera_file(cfg.camera_file) if cfg.camera_file else None
+        camera: dict[str, Any] | None = _load_camera_file(ctx, cfg.camera_file) if cfg.camera_file else None
         if camera is None and topics["camera_info"] is None:
             raise InputError(
                 f"{rec.path.name} has no CameraInfo topic; pass the calibration with --camera FILE "

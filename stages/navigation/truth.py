@@ -29,13 +29,18 @@ if TYPE_CHECKING:
 FloatArray = npt.NDArray[np.float64]
 
 
+def ground_truth_path(source: Path) -> Path:
+    """Where the ground-truth file of a recording would be (whether or not it exists)."""
+    source = Path(source)
+    name = source.stem if source.suffix in (".bag", ".mcap", ".db3") else source.name
+    return source.parent / f"{name}.ground_truth.json"
+
+
 def ground_truth_file(source: Path | None) -> Path | None:
     """The ground-truth file beside a run's source recording, or None when there is none."""
     if source is None:
         return None
-    source = Path(source)
-    name = source.stem if source.suffix in (".bag", ".mcap", ".db3") else source.name
-    path = source.parent / f"{name}.ground_truth.json"
+    path = ground_truth_path(source)
     return path if path.is_file() else None
 
 
@@ -125,6 +130,11 @@ class MapTruth:
 
 
 def load_truth(ctx: StageContext, loaded: LoadedGraph) -> MapTruth | None:
-    """The run's ground truth in the map frame, if a ``<name>.ground_truth.json`` sits beside its source."""
-    path = ground_truth_file(ctx.run.source)
+    """The run's ground truth in the map frame, if a ``<name>.ground_truth.json`` sits beside its source.
+
+    The file is declared to the runner (present or not), so the stage re-runs when it appears, changes or goes.
+    """
+    if ctx.run.source is None:
+        return None
+    path = ctx.outside_file(ground_truth_path(ctx.run.source))
     return GroundTruth.load(path).in_map(loaded.pose_stamps_ns[0]) if path is not None else None

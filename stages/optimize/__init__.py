@@ -6,7 +6,8 @@ Public API:
     STAGE, OptimizeConfig.
     solve_reduced(loaded, focused_tag_ids, selected_factor_indices, ...) -> ReducedMap (``stages.optimize.core``).
     landmark_errors(estimate, reference, tag_ids), mean_or_nan(values), map_size(loaded, reduced),
-    gaussian_entropy(cov), risk_params(settings_sections), landmark_heights(graph_landmarks_table).
+    gaussian_entropy(cov), solve_settings(cfg), landmark_heights(graph_landmarks_table).
+    read_reduced(optimize_input, full_graph, focused_tag_ids) -> ReducedMap: optimize's result read back.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 from typing import Any, Final
 
 from pipeline.stage import Stage
+from stages.optimize.artifacts import read_reduced
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
@@ -22,8 +24,8 @@ from stages.optimize.core import (
     landmark_heights,
     map_size,
     mean_or_nan,
-    risk_params,
     solve_reduced,
+    solve_settings,
 )
 from stages.optimize.stage import run
 
@@ -66,6 +68,7 @@ __all__ = [
     "landmark_heights",
     "map_size",
     "mean_or_nan",
-    "risk_params",
+    "read_reduced",
     "solve_reduced",
+    "solve_settings",
 ]

@@ -18,7 +18,6 @@ same over the observed focused landmarks only.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.problem import VAR_DIMS, GraphProblem, insert_value, value_vector
 from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
-from stages.risk import LandmarkMap, RiskParams
+from stages.risk import LandmarkMap
 
 FloatArray = npt.NDArray[np.float64]
 _LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
@@ -248,18 +247,14 @@ def map_size(loaded: LoadedGraph, reduced: ReducedMap) -> dict[str, int | float]
     return out
 
 
-def risk_params(sections: Mapping[str, object]) -> RiskParams:
-    """The risk model's settings, taken from the ``select_landmarks`` section when present.
+def solve_settings(cfg: object) -> dict[str, object]:
+    """How a reduced graph was solved (optimize's settings that change the numbers, as in its summary's ``solve``).
 
-    Optimize and evaluate recompute the collision probability with the same robot radius, windows
-    and noise as the landmark selection, so their numbers are comparable with its ``risk.parquet``.
+    ``solve_settings(OptimizeConfig())`` equals :func:`solve_reduced`'s defaults, the solve evaluate does.
     """
-    names = {f.name for f in dataclasses.fields(RiskParams)}
-    section = sections.get("select_landmarks")
-    if section is None or not hasattr(section, "model_dump"):
-        return RiskParams()
-    values = section.model_dump()
-    return RiskParams(**{k: v for k, v in values.items() if k in names})
+    return {
+        k: getattr(cfg, k) for k in ("initialise_from", "max_iterations", "relative_error_tol", "unobserved_sigma_m")
+    }
 
 
 def landmark_heights(graph_landmarks: object) -> dict[int, tuple[float, float]]:

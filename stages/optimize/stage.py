@@ -21,18 +21,20 @@ from stages.optimize.core import (
     landmark_heights,
     map_size,
     mean_or_nan,
-    risk_params,
     solve_reduced,
+    solve_settings,
 )
-from stages.risk import LandmarkMap, PathGeometry, PathRisk, path_geometry, path_risk, read_path_inputs
+from stages.risk import LandmarkMap, PathGeometry, PathRisk, RiskParams, path_geometry, path_risk, read_path_inputs
+from stages.select_landmarks.artifacts import read_focused
+from stages.select_measurements.artifacts import read_selection
 
 ENTITY = "/optimize"
 
 
-def load_geometry(ctx: StageContext, loaded: LoadedGraph) -> PathGeometry:
+def load_geometry(ctx: StageContext, loaded: LoadedGraph, params: RiskParams) -> PathGeometry:
     """Clearances and visibility of the recorded path (scans from ingest, detections from detect when present)."""
     read = read_path_inputs(ctx)
-    return path_geometry(loaded, read.scans, read.T_base_laser, read.detections, risk_params(ctx.settings.sections))
+    return path_geometry(loaded, read.scans, read.T_base_laser, read.detections, params)
 
 
 def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
@@ -40,12 +42,12 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     graph_in = ctx.input("graph")
     loaded = load_graph(graph_in)
-    focused_doc = ctx.input("select_landmarks").read_json("focused.json")
-    selected = ctx.input("select_measurements").read_table("selected.parquet", columns=["factor_index"])
+    focused = read_focused(ctx.input("select_landmarks"))
+    selection = read_selection(ctx.input("select_measurements"))
     reduced = solve_reduced(
         loaded,
-        focused_doc["tag_ids"],
-        selected.column("factor_index").to_pylist(),
+        focused.tag_ids,
+        selection.choice.factor_indices,
         landmark_heights(graph_in.read_table("landmarks.parquet")),
         cfg.initialise_from,
         cfg.max_iterations,
@@ -62,8 +64,8 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
     lm_table, errors = error_table(reduced, full_map, truth)
     ctx.output.write_table("landmark_errors.parquet", lm_table)
 
-    params = risk_params(ctx.settings.sections)
-    geometry = load_geometry(ctx, loaded)
+    params = focused.risk_params  # the risk model of the landmark selection, so the figures compare
+    geometry = load_geometry(ctx, loaded, params)
     risk_reduced = path_risk(geometry, reduced.landmark_map, reduced.focused_observed, params)
     risk_full = path_risk(geometry, full_map, full_map.tag_ids.tolist(), params)
     ctx.output.write_table("risk.parquet", risk_rows(geometry, risk_reduced, risk_full))
@@ -74,7 +76,10 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
 
     summary.update(
         {
-            "focused_strategy": focused_doc.get("strategy"),
+            "focused_strategy": focused.strategy,
+            "alpha": focused.budget,
+            "measurement_strategy": selection.choice.strategy,
+            "K": selection.choice.budget,
             "focused_landmarks": len(reduced.focused_tag_ids),
             "focused_observed": len(reduced.focused_observed),
             "observed_landmarks": len(reduced.observed_tag_ids),
@@ -92,6 +97,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
             "map_size": size,
             "dropped_unfocused_measurements": reduced.dropped_unfocused,
             "initialise_from": cfg.initialise_from,
+            "solve": solve_settings(cfg),
             "timing_s": {**reduced.timing_s, "total": round(time.perf_counter() - t0, 4)},
         }
     )

@@ -11,6 +11,8 @@ import rerun as rr
 from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import ellipsoids, set_step
+from stages.select_landmarks.artifacts import read_focused
+from stages.select_measurements.artifacts import write_selection
 from stages.select_measurements.config import SelectMeasurementsConfig
 from stages.select_measurements.core import (
     MeasurementChoice,
@@ -36,8 +38,7 @@ def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig) -> list[int]
             f"no focused landmarks: select_landmarks has not run in {str(ctx.run.path)!r}; run "
             f"'focusmap select-landmarks {ctx.run.path}' first (or --set select_measurements.focus=all)"
         )
-    focused = ctx.input("select_landmarks").read_json("focused.json")
-    return [int(t) for t in focused.get("tag_ids", [])]
+    return read_focused(ctx.input("select_landmarks")).tag_ids
 
 
 def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
@@ -61,6 +62,7 @@ def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
             }
         ),
     )
+    write_selection(ctx.output, choice, cfg)
     log_recording(ctx, loaded, system, choice, cfg)
     summary = summary_of(choice)
     summary["factors_kept"] = len(choice.keep_factor_indices(loaded))

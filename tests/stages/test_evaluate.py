@@ -51,7 +51,7 @@ def evaluated(tmp_path_factory):
             "evaluate.extra_pairs=[random+random]",
         ],
     )
-    for name in ("graph", "evaluate"):
+    for name in ("graph", "select_landmarks", "select_measurements", "optimize", "evaluate"):
         run_stage(run, reg, name, settings)
     return run
 

@@ -10,7 +10,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.artifacts import StageInput
+from pipeline.artifacts import StageInput, StageOutput
 from pipeline.config import load_settings
 from pipeline.errors import StageError
 from pipeline.registry import Registry
@@ -99,13 +99,26 @@ def make_graph_run(tmp_path: Path, sim: SyntheticRun, truth: bool = True) -> tup
 
 
 def write_selection(run: RunFolder, tag_ids: list[int], factor_indices: list[int], tag: str = "a") -> None:
-    """Stand-ins for the two selection stages' artifacts (``focused.json``, ``selected.parquet``)."""
+    """Stand-ins for the two selection stages' artifacts (``focused.json``, ``selected.parquet``, ``selection.json``)
+    as their writers lay them out, with default settings."""
+    from stages.select_landmarks import SelectLandmarksConfig
+    from stages.select_measurements import MeasurementChoice, SelectMeasurementsConfig
+    from stages.select_measurements.artifacts import write_selection as write_choice
+
     for name in ("select_landmarks", "select_measurements"):
         d = run.stage_dir(name)
         d.mkdir(exist_ok=True)
-    (run.stage_dir("select_landmarks") / "focused.json").write_text(
-        json.dumps({"strategy": "test", "budget": len(tag_ids), "tag_ids": tag_ids, "scores": [0.0] * len(tag_ids)})
-    )
+    focused = {
+        "strategy": "test",
+        "budget": len(tag_ids),
+        "tag_ids": tag_ids,
+        "scores": [0.0] * len(tag_ids),
+        "status": "ok",
+        "message": "",
+        "n_landmarks": len(tag_ids),
+        "settings": SelectLandmarksConfig().model_dump(mode="json"),
+    }
+    (run.stage_dir("select_landmarks") / "focused.json").write_text(json.dumps(focused))
     pq.write_table(
         pa.table(
             {
@@ -116,6 +129,9 @@ def write_selection(run: RunFolder, tag_ids: list[int], factor_indices: list[int
         ),
         run.stage_dir("select_measurements") / "selected.parquet",
     )
+    n = len(factor_indices)
+    choice = MeasurementChoice("test", n, "selected", tag_ids, factor_indices, [np.nan] * n, "ok", "", n, [], 0, 0, 0)
+    write_choice(StageOutput(run.stage_dir("select_measurements")), choice, SelectMeasurementsConfig())
     run.record("select_landmarks", {"fingerprint": f"sl-{tag}", "summary": {}})
     run.record("select_measurements", {"fingerprint": f"sm-{tag}", "summary": {}})
 
