@@ -24,6 +24,7 @@ from cli.options import (
     ForceOpt,
     NameOpt,
     OutOpt,
+    ResetOpt,
     RunDirArg,
     SalvageOpt,
     SetOpt,
@@ -89,10 +90,26 @@ def _registry() -> Any:
     return REGISTRY
 
 
-def _settings(config: Path | None, sets: list[str] | None, extra: list[str] | None = None) -> Any:
+def _settings(
+    config: Path | None,
+    sets: list[str] | None,
+    extra: list[str] | None = None,
+    run_dir: Path | None = None,
+    reset: bool = False,
+    running: list[str] | None = None,
+) -> Any:
+    """Resolve the settings; on a run folder, on top of the settings it keeps, printing what differs."""
     from pipeline.config import load_settings
 
-    return load_settings(_registry().models(), config, [*(sets or []), *(extra or [])])
+    overrides = [*(sets or []), *(extra or [])]
+    if run_dir is None:
+        return load_settings(_registry().models(), config, overrides)
+    from pipeline.run_settings import resolve_run_settings
+
+    settings, lines = resolve_run_settings(_registry().models(), run_dir, config, overrides, reset, running)
+    for line in lines:
+        typer.echo(line)
+    return settings
 
 
 def _ingest_overrides(
@@ -151,12 +168,13 @@ def _print_result(result: Any) -> None:
 
 
 def _run_stages(run: Any, names: list[str], settings: Any, force: bool) -> list[Any]:
-    from pipeline.runner import run_stage, write_resolved_settings
+    from pipeline.run_settings import store_run_settings
+    from pipeline.runner import run_stage
 
-    write_resolved_settings(run, settings)
     results = []
     for name in names:
         result = run_stage(run, _registry(), name, settings, force=force)
+        store_run_settings(run.path, settings, [name])  # the folder keeps the settings its stages ran with
         _print_result(result)
         results.append(result)
     return results
@@ -191,31 +209,41 @@ def ingest(
     stride: StrideOpt = None,
     camera: CameraOpt = None,
     salvage: SalvageOpt = False,
+    reset: ResetOpt = False,
 ) -> None:
     """Read frames, odometry, laser scans, the camera model and extrinsics into OUT/<name>/ingest/."""
-    settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
+    overrides = _ingest_overrides(start, end, stride, camera, salvage)
+    settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, ["ingest"])
     _run_on_bag(bag, out, name, ["ingest"], settings, force)
 
 
-def _run_on_bag(bag: Path, out: Path, name: str | None, stages: list[str], settings: Any, force: bool) -> Any:
+def _run_on_bag(
+    bag: Path, out: Path, name: str | None, stages: list[str], settings: Any, force: bool
+) -> tuple[Any, list[Any]]:
     """Check the recording, create (or reuse) its run folder and run ``stages`` in it."""
     from pipeline.run_folder import RunFolder
     from stages.ingest.bags import detect_format
 
     detect_format(bag)
     run = RunFolder.create(out / _run_name(bag, name), bag)
-    _run_stages(run, stages, settings, force)
+    results = _run_stages(run, stages, settings, force)
     typer.echo(f"run folder: {run.path}")
-    return run
+    return run, results
 
 
 def _stage_command(stage_name: str, help_text: str) -> None:
     """A command that runs one stage on an existing run folder."""
 
     @handled
-    def command(run_dir: RunDirArg, config: ConfigOpt = None, set_: SetOpt = None, force: ForceOpt = False) -> None:
+    def command(
+        run_dir: RunDirArg,
+        config: ConfigOpt = None,
+        set_: SetOpt = None,
+        force: ForceOpt = False,
+        reset: ResetOpt = False,
+    ) -> None:
         run = _open_run(run_dir)
-        _run_stages(run, [stage_name], _settings(config, set_), force)
+        _run_stages(run, [stage_name], _settings(config, set_, None, run.path, reset, [stage_name]), force)
 
     command.__doc__ = help_text
     app.command(name=stage_name.replace("_", "-"), help=help_text)(command)
@@ -253,12 +281,13 @@ def select_landmarks_command(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force: ForceOpt = False,
+    reset: ResetOpt = False,
 ) -> None:
     """Stage one: keep the --budget (alpha) landmarks that matter most (collision | mutual-information | leverage |
     uniform | random | all)."""
     run = _open_run(run_dir)
     extra = _selection_overrides("select_landmarks", strategy, budget)
-    _run_stages(run, ["select_landmarks"], _settings(config, set_, extra), force)
+    _run_stages(run, ["select_landmarks"], _settings(config, set_, extra, run.path, reset, ["select_landmarks"]), force)
 
 
 @app.command(name="select-measurements")
@@ -274,12 +303,15 @@ def select_measurements_command(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force: ForceOpt = False,
+    reset: ResetOpt = False,
 ) -> None:
     """Stage two: keep the --budget (K) tag measurements that best localise the focused landmarks (information |
     leverage | uniform | random | all)."""
     run = _open_run(run_dir)
     extra = _selection_overrides("select_measurements", strategy, budget, focus)
-    _run_stages(run, ["select_measurements"], _settings(config, set_, extra), force)
+    _run_stages(
+        run, ["select_measurements"], _settings(config, set_, extra, run.path, reset, ["select_measurements"]), force
+    )
 
 
 @app.command(name="import-graph")
@@ -296,15 +328,18 @@ def import_graph_command(
     name: NameOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    force: ForceOpt = False,
+    reset: ResetOpt = False,
 ) -> None:
     """Make a run folder whose graph stage comes from an existing factor graph instead of a bag."""
-    from stages.graph.imports import import_graph
+    from stages.graph.imports import import_run
 
     if not graph_file.is_file():
         raise InputError(f"{str(graph_file)!r} does not exist; pass a .g2o or GTSAM .graph file")
-    settings = _settings(config, set_)
-    run_dir = import_graph(graph_file, out, name, settings["graph"], settings.rerun)
-    typer.echo(f"run folder: {run_dir}")
+    settings = _settings(config, set_, None, out / (name or graph_file.stem), reset, ["graph"])
+    run = import_run(graph_file, out, name)
+    _run_stages(run, ["graph"], settings, force)
+    typer.echo(f"run folder: {run.path}")
     typer.echo("the stages after graph that need no camera or laser run on it, e.g. focusmap select-landmarks")
 
 
@@ -326,12 +361,15 @@ def run_pipeline(
     stride: StrideOpt = None,
     camera: CameraOpt = None,
     salvage: SalvageOpt = False,
+    reset: ResetOpt = False,
 ) -> None:
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
-    settings = _settings(config, set_, _ingest_overrides(start, end, stride, camera, salvage))
-    stages = _registry().between(start_stage, until)
-    run = _run_on_bag(bag, out, name, [s.name for s in stages], settings, force)
-    _print_headline(run)
+    stages = [s.name for s in _registry().between(start_stage, until)]
+    overrides = _ingest_overrides(start, end, stride, camera, salvage)
+    settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, stages)
+    run, results = _run_on_bag(bag, out, name, stages, settings, force)
+    if any(r.stage == "evaluate" for r in results):  # done or current now: not an older evaluate's
+        _print_headline(run)
     typer.echo(f"open it with: focusmap view {run.path}")
 
 

@@ -48,3 +48,10 @@ CameraOpt = Annotated[
 SalvageOpt = Annotated[
     bool, typer.Option("--salvage", help="Read a damaged bag up to the damage and say how much was recovered.")
 ]
+ResetOpt = Annotated[
+    bool,
+    typer.Option(
+        "--reset-settings",
+        help="Start from the default settings instead of those the run folder keeps from earlier commands.",
+    ),
+]

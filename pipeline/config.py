@@ -90,17 +90,24 @@ def _describe(err: ValidationError, section: str, source_of: Mapping[tuple[str, 
     return f"{source}: {section}.{loc}: {first['msg'].rstrip('.')}{shown}"
 
 
+BASE_SOURCE = "run folder"
+"""The source named for values that come from the ``base`` layer (a run folder's stored settings)."""
+
+
 def load_settings(
     models: Mapping[str, type[BaseModel]],
     path: Path | None = None,
     overrides: Iterable[str] = (),
+    base: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Settings:
-    """Resolve the settings of every section.
+    """Resolve the settings of every section: defaults, then ``base``, then the file, then ``overrides``.
 
     Args:
         models: section name to settings model (stages first; ``rerun`` is added).
         path: optional YAML file with one mapping per section.
         overrides: ``SECTION.KEY=VALUE`` strings; values are parsed as YAML (``0.5``, ``[1, 2]``).
+        base: settings stored earlier (a run folder's), section to key to value; keys that are no longer
+            settings are left out.
 
     Raises:
         ConfigError: on a missing or malformed file, an unknown section or key, or a bad value.
@@ -108,6 +115,12 @@ def load_settings(
     models = {**models, **SHARED_SECTIONS}
     raw: dict[str, dict[str, Any]] = {name: {} for name in models}
     source_of: dict[tuple[str, str], str] = {}
+    for section, values in (base or {}).items():
+        if section in models and isinstance(values, Mapping):
+            for k, v in values.items():
+                if k in models[section].model_fields:
+                    raw[section][k] = v
+                    source_of[(section, k)] = BASE_SOURCE
     if path is not None:
         if not path.is_file():
             raise ConfigError(f"settings file {str(path)!r} not found; pass an existing YAML file to --config")

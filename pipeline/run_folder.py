@@ -111,6 +111,11 @@ class RunFolder:
         return Path(src) if src else None
 
     @property
+    def source_kind(self) -> str:
+        """What the source is: ``bag`` (a recording) or ``graph`` (a factor-graph file, from import-graph)."""
+        return str(self.info.get("source_kind") or "bag")
+
+    @property
     def partial_root(self) -> Path:
         """Where unfinished stage outputs live until they are renamed into place."""
         return self.path / PARTIAL_DIR

@@ -93,8 +93,9 @@ def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Setting
     has run (:func:`is_current`), since only the stage knows which they are.
     """
     stage = registry[name]
+    required, optional = stage.inputs_on(run.source_kind)
     inputs: dict[str, Any] = {}
-    for dep in (*stage.inputs, *stage.optional_inputs):
+    for dep in (*required, *optional):
         entry = run.stage_entry(dep)
         inputs[dep] = entry["fingerprint"] if entry else None
     payload = {
@@ -104,9 +105,15 @@ def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Setting
         "settings": settings[stage.name].model_dump(mode="json"),
         "rerun": settings.rerun.model_dump(mode="json"),
         "inputs": inputs,
-        "source": source_identity(run.source) if stage.needs_source and run.source else None,
+        "source": _source(run, stage),
     }
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def _source(run: RunFolder, stage: Stage) -> dict[str, Any] | None:
+    if not stage.reads_source(run.source_kind) or run.source is None or not run.source.exists():
+        return None
+    return {**source_identity(run.source), "kind": run.source_kind}
 
 
 def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings) -> bool:
@@ -125,13 +132,14 @@ def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings
 def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False) -> StageResult:
     """Run one stage unless its results are current; its outputs appear whole or not at all."""
     stage = registry[name]
-    for dep in stage.inputs:
+    required, optional = stage.inputs_on(run.source_kind)
+    for dep in required:
         if run.stage_entry(dep) is None:
             raise StageError(
                 f"stage {stage.command!r} needs {dep!r}, which has not run in {str(run.path)!r}; "
                 f"run 'focusmap {registry[dep].command} {run.path}' first"
             )
-    if stage.needs_source and run.source is not None and not run.source.exists():
+    if stage.reads_source(run.source_kind) and run.source is not None and not run.source.exists():
         raise StageError(f"source recording {str(run.source)!r} of run {run.path.name!r} no longer exists")
     entry = run.stage_entry(name)
     if not force and entry is not None and is_current(run, registry, name, settings):
@@ -172,10 +180,8 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
             "code": code_version(stage),
             "seconds": round(seconds, 3),
             "settings": settings[stage.name].model_dump(mode="json"),
-            "inputs": {
-                d: (run.stage_entry(d) or {}).get("fingerprint") for d in (*stage.inputs, *stage.optional_inputs)
-            },
-            "source": source_identity(run.source) if stage.needs_source and run.source else None,
+            "inputs": {d: (run.stage_entry(d) or {}).get("fingerprint") for d in (*required, *optional)},
+            "source": _source(run, stage),
             "outside_files": outside,
             "versions": library_versions(),
             "summary": summary,

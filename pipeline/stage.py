@@ -30,6 +30,9 @@ class Stage:
         run: ``run(ctx, cfg) -> summary``.
         version: bump when the stage's code changes its outputs, so cached results are recomputed.
         needs_source: the stage reads the run's source file (only ingest does).
+        source_kinds: kinds of run source (``run.json``'s ``source_kind``) that the stage reads directly instead of
+            its inputs: on such a run it has no inputs and its fingerprint covers the source file (the graph
+            stage of a run made by ``import-graph`` reads the graph file).
         blueprint: optional ``() -> rerun.blueprint.Blueprint`` for the stage's recording.
         help: one line for ``--help``.
     """
@@ -43,6 +46,17 @@ class Stage:
     blueprint: Callable[[], Any] | None = None
     help: str = ""
     optional_inputs: tuple[str, ...] = field(default=())
+    source_kinds: tuple[str, ...] = field(default=())
+
+    def reads_source(self, source_kind: str) -> bool:
+        """Whether the stage reads the run's source on a run whose source is of this kind."""
+        return self.needs_source or source_kind in self.source_kinds
+
+    def inputs_on(self, source_kind: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """Required and optional inputs on a run whose source is of this kind."""
+        if source_kind in self.source_kinds:
+            return (), ()
+        return self.inputs, self.optional_inputs
 
     @property
     def command(self) -> str:

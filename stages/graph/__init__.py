@@ -16,7 +16,7 @@ from pipeline.stage import Stage
 from stages.graph.config import GraphConfig
 from stages.graph.imports import import_graph
 from stages.graph.load import LoadedGraph, build_reduced, load_graph
-from stages.graph.stage import run
+from stages.graph.stage import GRAPH_SOURCE, run
 
 
 def blueprint() -> Any:
@@ -38,6 +38,7 @@ STAGE: Final = Stage(
     config_type=GraphConfig,
     run=run,
     inputs=("ingest", "detect"),
+    source_kinds=(GRAPH_SOURCE,),
     version="1",
     blueprint=blueprint,
     help="Build the full factor graph (odometry + every tag), optimise it and compute every marginal.",

@@ -8,18 +8,35 @@ from typing import Any
 from pipeline.context import StageContext
 from stages.graph.build import build_problem
 from stages.graph.config import GraphConfig
+from stages.graph.problem import GraphProblem
 from stages.graph.solve_all import solve_and_write
+
+GRAPH_SOURCE = "graph"
+"""The ``source_kind`` of a run made by ``import-graph``: its source is a g2o or GTSAM graph file."""
 
 
 def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:
-    """Build the graph from ingest's odometry and extrinsics and detect's tags; optimise; write; log."""
+    """Build the graph (from ingest and detect, or from the run's graph file); optimise; write; log."""
     t0 = time.perf_counter()
-    ingest = ctx.input("ingest")
-    odometry = ingest.read_table("odometry.parquet") if ingest.exists("odometry.parquet") else None
-    extrinsics = ingest.read_json("extrinsics.json") if ingest.exists("extrinsics.json") else None
-    detections = ctx.input("detect").read_table("detections.parquet")
-    problem = build_problem(detections, odometry, extrinsics, cfg)
+    if ctx.run.source_kind == GRAPH_SOURCE:
+        problem, cfg = _from_file(ctx, cfg)
+    else:
+        ingest = ctx.input("ingest")
+        odometry = ingest.read_table("odometry.parquet") if ingest.exists("odometry.parquet") else None
+        extrinsics = ingest.read_json("extrinsics.json") if ingest.exists("extrinsics.json") else None
+        detections = ctx.input("detect").read_table("detections.parquet")
+        problem = build_problem(detections, odometry, extrinsics, cfg)
     build_s = time.perf_counter() - t0
     summary = solve_and_write(problem, cfg, ctx.output, ctx.rec, ctx.n_sigma)
     summary["timing_s"]["read_and_build"] = round(build_s, 4)
+    if ctx.run.source_kind == GRAPH_SOURCE:
+        summary["imported_from"] = str(ctx.source)
     return summary
+
+
+def _from_file(ctx: StageContext, cfg: GraphConfig) -> tuple[GraphProblem, GraphConfig]:
+    """The problem of the run's g2o / GTSAM file; the model is the file's."""
+    from stages.graph.g2o import read_graph_file
+
+    problem = read_graph_file(ctx.source, cfg.prior_sigma_m, cfg.prior_sigma_rad)
+    return problem, cfg.model_copy(update={"model": problem.model})

@@ -1,0 +1,205 @@
+"""The cache is honest: a stage re-runs exactly when something it uses changed, and its results are then current.
+
+What a stage uses: its own settings, the code it imports, the artifacts of its inputs (whose fingerprints carry
+the settings of the stages before it) and the files outside the run folder it reads (the ground truth).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.artifacts import StageInput
+from pipeline.code import code_digest, package_dirs
+from pipeline.config import load_settings
+from pipeline.registry import Registry
+from pipeline.run_folder import RunFolder
+from pipeline.runner import run_stage
+from stages import evaluate as evaluate_stage
+from stages import graph as graph_stage
+from stages import optimize as optimize_stage
+from stages import select_landmarks, select_measurements
+from stages.graph.synthetic import SyntheticRun, synthetic_run
+from stages.select_landmarks.artifacts import read_focused
+from tests.stages.test_optimize import synthetic_scans, write_ground_truth
+from tests.stages.upstream import seed_upstream, stand_in
+
+STAGES = ("graph", "select_landmarks", "select_measurements", "optimize", "evaluate")
+BASE = (
+    "select_landmarks.budget=5",
+    "select_measurements.budget=15",
+    "evaluate.trials=0",
+    "evaluate.plots=false",
+    "evaluate.oracle_measurements=false",
+    "evaluate.extra_pairs=[]",
+)
+REG = Registry(
+    [
+        stand_in("ingest"),
+        stand_in("detect", "ingest"),
+        graph_stage.STAGE,
+        select_landmarks.STAGE,
+        select_measurements.STAGE,
+        optimize_stage.STAGE,
+        evaluate_stage.STAGE,
+    ]
+)
+
+
+@pytest.fixture(scope="module")
+def sim() -> SyntheticRun:
+    return synthetic_run(seed=7, loops=0.5)
+
+
+@pytest.fixture
+def make_run(sim: SyntheticRun, tmp_path: Path):
+    """A synthetic run folder (source ``run.bag``, no ground truth yet) with every stage finished on ``BASE``."""
+
+    def make() -> RunFolder:
+        source = tmp_path / "run.bag"
+        source.write_bytes(b"")
+        run = RunFolder.create(tmp_path / "run", source)
+        seed_upstream(run, sim, synthetic_scans(sim))
+        assert run_all(run) == dict.fromkeys(STAGES, "done")
+        return run
+
+    return make
+
+
+def run_all(run: RunFolder, *sets: str) -> dict[str, str]:
+    settings = load_settings(REG.models(), None, [*BASE, *sets])
+    return {name: run_stage(run, REG, name, settings).status for name in STAGES}
+
+
+def summary(run: RunFolder, stage: str) -> dict:
+    return json.loads((run.stage_dir(stage) / "summary.json").read_text())
+
+
+AFTER_SELECT_LANDMARKS = {
+    "graph": "skipped",
+    "select_landmarks": "done",
+    "select_measurements": "done",
+    "optimize": "done",
+    "evaluate": "done",
+}
+
+
+def test_landmark_budget_reruns_the_selection_and_what_follows(make_run) -> None:
+    run = make_run()
+    assert run_all(run) == dict.fromkeys(STAGES, "skipped")
+    assert run_all(run, "select_landmarks.budget=3") == AFTER_SELECT_LANDMARKS
+    assert summary(run, "evaluate")["alpha"] == 3 and summary(run, "optimize")["alpha"] == 3
+    assert len(summary(run, "evaluate")["focused_tag_ids"]) == 3
+    assert run_all(run, "select_landmarks.budget=3") == dict.fromkeys(STAGES, "skipped")
+
+
+def test_measurement_budget_reruns_from_select_measurements(make_run) -> None:
+    run = make_run()
+    statuses = run_all(run, "select_measurements.budget=7")
+    assert statuses == {**AFTER_SELECT_LANDMARKS, "select_landmarks": "skipped"}
+    assert summary(run, "evaluate")["K"] == 7 and summary(run, "optimize")["K"] == 7
+    assert summary(run, "optimize")["tag_measurements"] <= 7
+
+
+def test_robot_radius_reaches_optimize_and_evaluate(make_run) -> None:
+    run = make_run()
+    p_before = summary(run, "optimize")["max_collision_probability"]
+    # a robot almost as wide as the path's clearance: collisions become likely
+    radius = round(summary(run, "select_landmarks")["min_clearance_m"] - 0.05, 3)
+    assert run_all(run, f"select_landmarks.robot_radius_m={radius}") == AFTER_SELECT_LANDMARKS
+    focused = read_focused(StageInput("select_landmarks", run.stage_dir("select_landmarks")))
+    assert focused.risk_params.robot_radius_m == radius
+    # optimize and evaluate recomputed the risk with the new radius, taken from select_landmarks' artifact
+    p_after = summary(run, "optimize")["max_collision_probability"]
+    assert p_after > max(p_before, 1e-6)
+    assert summary(run, "evaluate")["table"]["focus_info"]["max_collision_probability"] == p_after
+
+
+def test_evaluate_reuses_the_upstream_case_and_reports_its_numbers(make_run) -> None:
+    run = make_run()
+    ev, opt = summary(run, "evaluate"), summary(run, "optimize")
+    assert ev["from_upstream"]["focus_info"] == ["landmarks", "measurements", "reduced map"]
+    assert "optimal" not in ev["from_upstream"]
+    assert ev["table"]["focus_info"]["focused_entropy"] == opt["focused_entropy"]
+
+
+def test_the_ground_truth_file_appearing_or_changing_reruns_its_readers(make_run, sim, tmp_path: Path) -> None:
+    run = make_run()
+    assert summary(run, "evaluate")["reference"] == "optimal"
+    truth_key = str((tmp_path / "run.ground_truth.json").resolve())
+    assert run.stage_entry("evaluate")["outside_files"] == {truth_key: None}  # looked for, absent
+    truth = tmp_path / "run.ground_truth.json"
+    readers = {**dict.fromkeys(STAGES, "skipped"), "optimize": "done", "evaluate": "done"}
+    write_ground_truth(sim, truth)
+    assert run_all(run) == readers
+    assert summary(run, "evaluate")["reference"] == "ground_truth"
+    assert summary(run, "optimize")["reference"] == "ground_truth"
+    assert list(run.stage_entry("optimize")["outside_files"]) == [truth_key]
+    assert run.stage_entry("optimize")["outside_files"][truth_key] is not None
+    assert run_all(run) == dict.fromkeys(STAGES, "skipped")
+    doc = json.loads(truth.read_text())
+    doc["tags"] = doc["tags"][1:]  # one tag fewer in the truth
+    truth.write_text(json.dumps(doc))
+    assert run_all(run) == readers
+    truth.unlink()
+    assert run_all(run) == readers
+    assert summary(run, "evaluate")["reference"] == "optimal"
+
+
+def _stage_digests(root: Path) -> dict[str, str]:
+    dirs = {"stages": root / "stages", "pipeline": root / "pipeline"}
+    return {s: code_digest([f"stages.{s}"], dirs) for s in ("ingest", "detect", *STAGES)}
+
+
+def _edited(tree: Path, dest: Path, module: str) -> Path:
+    """A copy of ``tree`` with a comment appended to ``module`` (a fresh folder: digests are cached per folder)."""
+    shutil.copytree(tree, dest)
+    with (dest / module).open("a") as f:
+        f.write("\n# an edit\n")
+    return dest
+
+
+def test_editing_a_module_changes_the_code_of_its_users_only(tmp_path: Path) -> None:
+    """The real digest over copies of the source tree: an edit reaches the stages that import the module."""
+    v0 = tmp_path / "v0"
+    for pkg, src in package_dirs(["stages", "pipeline"]).items():
+        shutil.copytree(src, v0 / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    before = _stage_digests(v0)
+    assert len(set(before.values())) == len(before)
+
+    v1 = _edited(v0, tmp_path / "v1", "stages/evaluate/report.py")
+    after = _stage_digests(v1)
+    assert {s for s in before if before[s] != after[s]} == {"evaluate"}
+
+    v2 = _edited(v1, tmp_path / "v2", "stages/select_landmarks/core.py")
+    again = _stage_digests(v2)
+    changed = {s for s in after if after[s] != again[s]}
+    assert "select_landmarks" in changed and "evaluate" in changed
+    assert not changed & {"ingest", "detect", "graph"}
+
+    # graph imports the g2o reader only inside a function: it counts
+    v3 = _edited(v2, tmp_path / "v3", "stages/graph/g2o.py")
+    assert _stage_digests(v3)["graph"] != again["graph"]
+    # a module nobody imports: no stage changes
+    v4 = _edited(v3, tmp_path / "v4", "stages/estimation/synthetic.py")
+    assert _stage_digests(v4) == _stage_digests(v3)
+
+
+def test_lazy_and_relative_imports_are_followed(tmp_path: Path) -> None:
+    from pipeline.code import reachable_modules
+
+    pkg = tmp_path / "proj"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "sub" / "a.py").write_text("import os\n\ndef f():\n    from . import b\n    return b\n")
+    (pkg / "sub" / "b.py").write_text("try:\n    from ..c import x\nexcept ImportError:\n    pass\n")
+    (pkg / "c.py").write_text("x = 1\n")
+    (pkg / "d.py").write_text("y = 2\n")
+    # 'from . import b' names the package proj.sub too; proj (a parent only) and d (not imported) stay out
+    assert set(reachable_modules(["proj.sub.a"], {"proj": pkg})) == {"proj.sub", "proj.sub.a", "proj.sub.b", "proj.c"}
+    # a package root takes in every module below it
+    assert set(reachable_modules(["proj.sub"], {"proj": pkg})) == {"proj.sub", "proj.sub.a", "proj.sub.b", "proj.c"}
