@@ -7,6 +7,7 @@ entry, fingerprint over the file's identity and the settings, skipped when nothi
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from pipeline.config import RecordingSettings, Settings
@@ -61,4 +62,5 @@ def run_graph(run: RunFolder, settings: Settings, force: bool = False) -> StageR
     """Run the graph stage of an imported run through the runner (the CLI runs it with the whole registry)."""
     from stages.graph import STAGE
 
-    return run_stage(run, Registry([STAGE]), "graph", settings, force=force)
+    alone = dataclasses.replace(STAGE, inputs=(), optional_inputs=())  # what it reads on a graph-file run anyway
+    return run_stage(run, Registry([alone]), "graph", settings, force=force)
