@@ -1,0 +1,127 @@
+"""What ingest writes into ``RUN/ingest/``, declared once: tables, the camera model and the extrinsics.
+
+All stamps are nanoseconds of the bag clock (the message header stamp; the bag's log time where the
+header stamp is zero). Downstream stages read these through the declarations, never by file name.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field
+
+from pipeline.contracts import ArtifactSet, Column, JsonSpec, TableSpec
+from stages.columns import CORNERS, FAMILY, FRAME, FRAME_ID, QUATERNION, STAMP_NS, TAG_ID, TOPIC, X, Y, Z
+
+_F64 = pa.float64()
+
+
+def _f64(name: str, doc: str) -> Column:
+    return Column(name, _F64, doc)
+
+
+# frames.parquet ----------------------------------------------------------------------------------------
+FORMAT = Column(
+    "format",
+    pa.string(),
+    "`jpeg`/`png` for compressed images (kept as their bytes), else the raw encoding (`mono8`, `bgr8`, …)",
+)
+WIDTH = Column("width", pa.int32(), "image width, px (0 for compressed images)")
+HEIGHT = Column("height", pa.int32(), "image height, px (0 for compressed images)")
+STEP = Column("step", pa.int32(), "bytes per raw image row (0 for compressed images)")
+DATA = Column("data", pa.binary(), "the image bytes")
+FRAMES: Final = TableSpec(
+    "frames.parquet",
+    "one row per kept camera image, whatever the stride or time window",
+    [FRAME, STAMP_NS, TOPIC, FORMAT, WIDTH, HEIGHT, STEP, DATA],
+)
+
+# odometry.parquet --------------------------------------------------------------------------------------
+VELOCITY = tuple(
+    _f64(c, f"twist {c} in the child frame ({'m/s' if c[0] == 'v' else 'rad/s'})")
+    for c in ("vx", "vy", "vz", "wx", "wy", "wz")
+)
+POSE_COV = Column("pose_cov", pa.list_(_F64, 36), "6x6 row-major, ROS order x y z roll pitch yaw")
+TWIST_COV = Column("twist_cov", pa.list_(_F64, 36), "6x6 row-major, ROS order vx vy vz wx wy wz")
+CHILD_FRAME_ID = Column("child_frame_id", pa.string(), "the robot's base frame")
+ODOMETRY: Final = TableSpec(
+    "odometry.parquet",
+    "one row per odometry message: the base's pose in the odometry frame, its twist and covariances",
+    [STAMP_NS, X, Y, Z, *QUATERNION, *VELOCITY, POSE_COV, TWIST_COV, FRAME_ID, CHILD_FRAME_ID],
+)
+
+# scans.parquet -----------------------------------------------------------------------------------------
+ANGLE_MIN = _f64("angle_min", "angle of the first range, rad")
+ANGLE_MAX = _f64("angle_max", "angle of the last range, rad")
+ANGLE_INCREMENT = _f64("angle_increment", "angle between ranges, rad")
+RANGE_MIN = _f64("range_min", "shortest valid range, m")
+RANGE_MAX = _f64("range_max", "longest valid range, m")
+RANGES = Column("ranges", pa.list_(pa.float32()), "ranges, m (inf/nan as recorded)")
+SCANS: Final = TableSpec(
+    "scans.parquet",
+    "one row per laser scan",
+    [STAMP_NS, FRAME_ID, ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX, RANGES],
+)
+
+# tag_detections.parquet --------------------------------------------------------------------------------
+TAG_DETECTIONS: Final = TableSpec(
+    "tag_detections.parquet",
+    "one row per AprilTag detection the bag itself holds (apriltag_msgs); corners in the OpenCV order",
+    [FRAME, STAMP_NS, TOPIC, TAG_ID, FAMILY, CORNERS],
+    optional=True,
+)
+
+
+# camera.json -------------------------------------------------------------------------------------------
+class CameraModel(BaseModel):
+    """A calibrated pinhole camera with its lens distortion (ROS and OpenCV pixel convention)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0, description="image width, px")
+    height: int = Field(gt=0, description="image height, px")
+    K: list[float] = Field(min_length=9, max_length=9, description="3x3 intrinsic matrix, row-major")
+    distortion_model: str = Field(description="`plumb_bob`, `rational_polynomial`, `equidistant` or `none`")
+    D: list[float] = Field(default_factory=list, description="distortion coefficients as ROS gives them")
+    frame_id: str = Field("", description="the camera's optical frame")
+    topic: str | None = Field(None, description="the image topic the calibration belongs to")
+    tag_topic: str | None = Field(None, description="the detections topic (from a TagSLAM cameras.yaml)")
+    source: str = Field("", description="`camera_info` or the calibration file it came from")
+
+
+CAMERA: Final = JsonSpec("camera.json", "the camera model the frames were taken with", CameraModel)
+
+
+# extrinsics.json ---------------------------------------------------------------------------------------
+class SensorMount(BaseModel):
+    """Where a sensor sits on the robot."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    frame_id: str = Field(description="the sensor's frame")
+    T_base_sensor: list[list[float]] = Field(description="4x4, maps points in the sensor frame into the base frame")
+    assumed: bool = Field(False, description="true when no transform was recorded and identity was assumed")
+
+
+class Extrinsics(BaseModel):
+    """The robot's frames and its sensors' mounts, from ``/tf_static``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    base_frame: str = Field(description="the odometry's child frame (the robot's base)")
+    odom_frame: str | None = Field(None, description="the odometry's frame")
+    sensors: dict[str, SensorMount] = Field(
+        default_factory=dict, description="by role (`camera`, `laser`): the sensor's frame and mount"
+    )
+
+
+EXTRINSICS: Final = JsonSpec("extrinsics.json", "the robot's frames and where its sensors sit", Extrinsics)
+
+
+# summary.json ------------------------------------------------------------------------------------------
+ARTIFACTS: Final = ArtifactSet(
+    "ingest",
+    "What the recording holds, in tables a stage can read in one go.",
+    [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, EXTRINSICS],
+)
