@@ -105,26 +105,16 @@ class LandmarkMap:
         optimised ``gtsam.Values`` and marginals by key to get the reduced map (landmarks missing from
         ``values`` are left out).
         """
-        from stages.graph.outputs import position_cov_in_map
-
         vals = values if values is not None else loaded.values
         margs = marginals if marginals is not None else loaded.marginals
         tags, pos, covs, zs = [], [], [], []
         for tag, key in sorted(loaded.landmark_keys.items()):
             if not vals.exists(key) or key not in margs:
                 continue
-            t = loaded.var_types[key]
-            if t == "Point2":
-                p = np.asarray(vals.atPoint2(key), dtype=float)
-                xyz = np.array([p[0], p[1], 0.0])
-                value = None
-            elif t == "Point3":
-                xyz = np.asarray(vals.atPoint3(key), dtype=float)
-                value = None
-            else:
-                value = vals.atPose3(key)
-                xyz = np.asarray(value.translation(), dtype=float)
-            pc = position_cov_in_map(t, value, np.asarray(margs[key]))
+            kind = loaded.kind(key)
+            value = kind.read(vals, key)
+            xyz = kind.position(value)
+            pc = kind.position_cov(value, np.asarray(margs[key]))
             tags.append(int(tag))
             pos.append(xyz[:2])
             zs.append(float(xyz[2]))
@@ -198,16 +188,10 @@ class PathRisk:
 
 # ---------------------------------------------------------------------------------------------- geometry
 def _planar_poses(loaded: LoadedGraph) -> FloatArray:
-    vals = loaded.values
+    kind = loaded.graph_model.pose
     out = np.zeros((len(loaded.pose_keys), 3))
     for i, k in enumerate(loaded.pose_keys):
-        if loaded.var_types[k] == "Pose2":
-            p = vals.atPose2(k)
-            out[i] = (p.x(), p.y(), p.theta())
-        else:
-            p = vals.atPose3(k)
-            t = np.asarray(p.translation())
-            out[i] = (t[0], t[1], p.rotation().yaw())
+        out[i] = kind.planar_pose(kind.read(loaded.values, k))
     return out
 
 

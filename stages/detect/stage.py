@@ -8,6 +8,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -15,6 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import rerun as rr
 
+from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
 from pipeline.errors import InputError, StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
@@ -120,26 +122,80 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         raise InputError("ingest wrote no camera.json (no camera_info in the bag); re-run ingest with --camera FILE")
     camera: CameraDict = ingest.read_json("camera.json")
     from_bag = ingest.exists("tag_detections.parquet")
-    stride = ctx.settings.rerun.image_stride
     _log_static(ctx.rec, camera)
+    batches, total, workers = _batches(ingest, cfg, from_bag)
+    found = _detect(ctx, cfg, camera, from_bag, batches, total, workers)
+    sigma, sigma_source = _corner_sigma(found.rows, cfg)
+    table, n_ambiguous, n_dropped_ambiguous = _table(found.rows, sigma, cfg)
+    if table.num_rows == 0:
+        raise StageError(
+            f"no {'/'.join(cfg.families)} tags found in {found.frames} frames ({len(found.corrupt)} corrupt) with "
+            f"backend {cfg.backend}; check the families and the tag sizes, or lower min_decision_margin / min_side_px"
+        )
+    ctx.output.write_table("detections.parquet", table)
+    _log_tags(ctx.rec, table, ctx.n_sigma)
+    seconds = time.perf_counter() - start
+    tags = table.column("tag_id").to_numpy()
+    reproj = table.column("reprojection_px").to_numpy()
+    return {
+        "frames": found.frames,
+        "detections": table.num_rows,
+        "distinct_tags": len(np.unique(tags)),
+        "frames_with_tags": len(
+            set(zip(table.column("camera").to_pylist(), table.column("frame").to_pylist(), strict=True))
+        ),
+        "detector": "bag" if from_bag else cfg.backend,
+        "source": "tag_detections" if from_bag else "images",
+        "families": list(cfg.families),
+        "corrupt_frames": len(found.corrupt),
+        "corrupt_frame_ids": [f for f, _ in found.corrupt][:100],
+        "dropped": {k: int(found.dropped.get(k, 0)) for k in DROP_REASONS} | {"ambiguous": n_dropped_ambiguous},
+        "ambiguous": n_ambiguous,
+        "corner_sigma_px": {
+            f"{lo:g}-{hi:g}": round(v, 4)
+            for lo, hi, v in zip(SIDE_BANDS_PX[:-1], SIDE_BANDS_PX[1:], sigma, strict=True)
+        },
+        "corner_sigma_source": sigma_source,
+        "reprojection_px_median": round(float(np.median(reproj)), 4),
+        "detect_seconds": round(seconds, 3),
+        "frames_per_second": round(found.frames / seconds, 2) if seconds > 0 else None,
+        "workers": workers,
+    }
 
-    rows: list[Row] = []
-    corrupt: list[tuple[int, str]] = []
-    dropped: Counter[str] = Counter()
-    n_frames = 0
+
+def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Iterable[list[FrameJob]], int, int]:
+    """The work in batches (the bag's detections, or the frames), how many batches, and how many workers."""
     if from_bag:
         jobs = bag_detection_jobs(ingest.read_table("tag_detections.parquet"), cfg)
-        batches: Iterable[list[FrameJob]] = [jobs[i : i + 256] for i in range(0, len(jobs), 256)]
-        total = (len(jobs) + 255) // 256
-        workers = 1
-    else:
-        frames_path = ingest.file("frames.parquet")
-        total_frames = pq.ParquetFile(frames_path).metadata.num_rows
-        if total_frames == 0:
-            raise InputError(f"no frames in {frames_path}; check the camera topic given to ingest")
-        batches = _frame_jobs(frames_path, cfg.batch_frames)
-        total = (total_frames + cfg.batch_frames - 1) // cfg.batch_frames
-        workers = cfg.workers
+        return [jobs[i : i + 256] for i in range(0, len(jobs), 256)], (len(jobs) + 255) // 256, 1
+    frames_path = ingest.file("frames.parquet")
+    total_frames = pq.ParquetFile(frames_path).metadata.num_rows
+    if total_frames == 0:
+        raise InputError(f"no frames in {frames_path}; check the camera topic given to ingest")
+    total = (total_frames + cfg.batch_frames - 1) // cfg.batch_frames
+    return _frame_jobs(frames_path, cfg.batch_frames), total, cfg.workers
+
+
+@dataclass
+class _Detected:
+    """What every batch gave: detection rows, corrupt frames, counts of dropped detections by reason."""
+
+    rows: list[Row] = field(default_factory=list)
+    corrupt: list[tuple[int, str]] = field(default_factory=list)
+    dropped: Counter[str] = field(default_factory=Counter)
+    frames: int = 0
+
+
+def _detect(
+    ctx: StageContext,
+    cfg: DetectConfig,
+    camera: CameraDict,
+    from_bag: bool,
+    batches: Iterable[list[FrameJob]],
+    total: int,
+    workers: int,
+) -> _Detected:
+    """Process the batches (in ``workers`` processes when more than one), logging the frames as they come."""
     pool = None
     if workers > 1:
         pool = ProcessPoolExecutor(
@@ -151,56 +207,21 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         fn = process_in_worker
     else:
         fn = FrameProcessor(cfg, camera, with_detector=not from_bag).process
+    found = _Detected()
     try:
         stream = _bounded_map(fn, batches, pool, 2 * workers)
         for jobs_done, result in ctx.progress(stream, "detect", total=total):
-            n_frames += result.frames
-            rows += result.rows
-            corrupt += result.corrupt
-            dropped.update(result.dropped)
-            _log_frames(ctx.rec, jobs_done, result, stride)
+            found.frames += result.frames
+            found.rows += result.rows
+            found.corrupt += result.corrupt
+            found.dropped.update(result.dropped)
+            _log_frames(ctx.rec, jobs_done, result, ctx.settings.rerun.image_stride)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
-    for frame, why in corrupt:
+    for frame, why in found.corrupt:
         log.warning("frame %d skipped: %s", frame, why)
-
-    sigma, sigma_source = _corner_sigma(rows, cfg)
-    table, n_ambiguous, n_dropped_ambiguous = _table(rows, sigma, cfg)
-    if table.num_rows == 0:
-        raise StageError(
-            f"no {'/'.join(cfg.families)} tags found in {n_frames} frames ({len(corrupt)} corrupt) with backend "
-            f"{cfg.backend}; check the families and the tag sizes, or lower min_decision_margin / min_side_px"
-        )
-    ctx.output.write_table("detections.parquet", table)
-    _log_tags(ctx.rec, table, ctx.n_sigma)
-    seconds = time.perf_counter() - start
-    tags = table.column("tag_id").to_numpy()
-    reproj = table.column("reprojection_px").to_numpy()
-    return {
-        "frames": n_frames,
-        "detections": table.num_rows,
-        "distinct_tags": len(np.unique(tags)),
-        "frames_with_tags": len(
-            set(zip(table.column("camera").to_pylist(), table.column("frame").to_pylist(), strict=True))
-        ),
-        "detector": "bag" if from_bag else cfg.backend,
-        "source": "tag_detections" if from_bag else "images",
-        "families": list(cfg.families),
-        "corrupt_frames": len(corrupt),
-        "corrupt_frame_ids": [f for f, _ in corrupt][:100],
-        "dropped": {k: int(dropped.get(k, 0)) for k in DROP_REASONS} | {"ambiguous": n_dropped_ambiguous},
-        "ambiguous": n_ambiguous,
-        "corner_sigma_px": {
-            f"{lo:g}-{hi:g}": round(v, 4)
-            for lo, hi, v in zip(SIDE_BANDS_PX[:-1], SIDE_BANDS_PX[1:], sigma, strict=True)
-        },
-        "corner_sigma_source": sigma_source,
-        "reprojection_px_median": round(float(np.median(reproj)), 4),
-        "detect_seconds": round(seconds, 3),
-        "frames_per_second": round(n_frames / seconds, 2) if seconds > 0 else None,
-        "workers": workers,
-    }
+    return found
 
 
 # Corner noise can be pooled per band of the tag's shortest side in the image (px). Per-band pools

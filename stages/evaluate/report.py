@@ -94,25 +94,57 @@ def markdown_table(results: Sequence[CaseResult]) -> str:
 
 def figures(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_sigma: float) -> list[str]:
     """Draw maps.png, risk.png, entropy.png (and navigation.png) into ``out_dir``; returns their file names."""
+    drawn = [
+        _maps_figure(inputs, results, out_dir, n_sigma),
+        _risk_figure(inputs, results, out_dir),
+        _entropy_figure(results, out_dir),
+        _navigation_figure(inputs, results, out_dir),
+        margin_figure(inputs, results, out_dir),
+    ]
+    return [name for name in drawn if name is not None]
+
+
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _grid(n: int) -> tuple[int, int]:
+    """Rows and columns of a grid of ``n`` panels, at most three across."""
+    cols = min(3, n)
+    return math.ceil(n / cols), cols
+
+
+def _walls(ax: Any, inputs: EvalInputs) -> None:
+    walls = inputs.truth.walls if inputs.truth is not None else None
+    if walls is not None:
+        for w in walls:
+            ax.plot([w[0], w[2]], [w[1], w[3]], color="0.3", lw=1)
+
+
+def _save(fig: Any, out_dir: Path, name: str) -> str:
+    fig.tight_layout()
+    fig.savefig(out_dir / name, dpi=110)
+    _pyplot().close(fig)
+    return name
+
+
+def _maps_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_sigma: float) -> str:
+    """maps.png: each case's landmark map with its ellipses, collision-focused landmarks in red."""
     from matplotlib.patches import Ellipse
 
-    names: list[str] = []
+    plt = _pyplot()
     geo = inputs.landmarks.geometry
-    walls = inputs.truth.walls if inputs.truth is not None else None
-    # maps side by side
     n = len(results)
-    cols = min(3, n)
-    rows_ = math.ceil(n / cols)
+    rows_, cols = _grid(n)
     fig, axes = plt.subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
     focus = set(inputs.focus)
     for ax, r in zip(axes.ravel(), results, strict=False):
-        if walls is not None:
-            for w in walls:
-                ax.plot([w[0], w[2]], [w[1], w[3]], color="0.3", lw=1)
+        _walls(ax, inputs)
         ax.plot(geo.poses[:, 0], geo.poses[:, 1], color="tab:blue", lw=0.6)
         lm = r.reduced.landmark_map
         for t, p, c in zip(lm.tag_ids.tolist(), lm.positions, lm.covariances, strict=True):
@@ -120,17 +152,8 @@ def figures(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_
             vals = np.clip(vals, 0, None)
             ang = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
             col = "tab:red" if t in focus else "tab:green"
-            ax.add_patch(
-                Ellipse(
-                    p,
-                    2 * n_sigma * math.sqrt(vals[1]),
-                    2 * n_sigma * math.sqrt(vals[0]),
-                    angle=ang,
-                    fill=False,
-                    color=col,
-                    lw=0.8,
-                )
-            )
+            width, height = 2 * n_sigma * math.sqrt(vals[1]), 2 * n_sigma * math.sqrt(vals[0])
+            ax.add_patch(Ellipse(p, width, height, angle=ang, fill=False, color=col, lw=0.8))
             ax.plot(p[0], p[1], ".", color=col, ms=2)
         ax.set_title(f"{r.row['label']}: H={r.row['focused_entropy']:.1f}, {r.row['measurements']} meas.", fontsize=9)
         ax.set_aspect("equal")
@@ -138,12 +161,13 @@ def figures(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     fig.suptitle(f"maps ({n_sigma:g}-sigma ellipses; red: collision-focused landmarks)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out_dir / "maps.png", dpi=110)
-    plt.close(fig)
-    names.append("maps.png")
-    # collision probability along the path
-    fig, ax = plt.subplots(figsize=(10, 3.8))
+    return _save(fig, out_dir, "maps.png")
+
+
+def _risk_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path) -> str:
+    """risk.png: the collision probability along the path, one line per case."""
+    geo = inputs.landmarks.geometry
+    fig, ax = _pyplot().subplots(figsize=(10, 3.8))
     t = (geo.stamps_ns - geo.stamps_ns[0]) / 1e9
     for r in results:
         p = np.clip(np.nan_to_num(r.risk.p_collision, nan=0.0), 1e-300, 1.0)
@@ -152,54 +176,46 @@ def figures(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_
     ax.set_ylabel("P(collision), half-plane with Σ*")
     ax.set_ylim(1e-40, 1.0)
     ax.legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    fig.savefig(out_dir / "risk.png", dpi=110)
-    plt.close(fig)
-    names.append("risk.png")
-    # entropy per greedy step
+    return _save(fig, out_dir, "risk.png")
+
+
+def _entropy_figure(results: Sequence[CaseResult], out_dir: Path) -> str | None:
+    """entropy.png: the focused entropy per greedy step of the cases that have one (None: no such case)."""
     greedy = [r for r in results if r.measurement is not None and r.measurement.entropy_per_step() is not None]
-    if greedy:
-        fig, ax = plt.subplots(figsize=(7, 3.8))
-        for r in greedy:
-            assert r.measurement is not None
-            steps = r.measurement.entropy_per_step()
-            assert steps is not None
-            ax.plot(np.arange(len(steps) + 1), [r.measurement.entropy_before, *steps], label=r.row["label"])
-        ax.set_xlabel("greedy step (measurements kept)")
-        ax.set_ylabel("entropy of the selection's focused set (nats)")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out_dir / "entropy.png", dpi=110)
-        plt.close(fig)
-        names.append("entropy.png")
-    # sample navigation trials
-    navs = [r for r in results if r.navigation is not None]
-    if navs and inputs.navigation is not None:
-        fig, axes = plt.subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
-        nom = inputs.navigation.path.poses
-        for ax, r in zip(axes.ravel(), results, strict=False):
-            if walls is not None:
-                for w in walls:
-                    ax.plot([w[0], w[2]], [w[1], w[3]], color="0.3", lw=1)
-            ax.plot(nom[:, 0], nom[:, 1], "--", color="tab:blue", lw=0.8)
-            if r.navigation is not None:
-                for pth in r.navigation.sample_paths:
-                    ax.plot(pth[:, 0], pth[:, 1], lw=0.5, color="tab:orange")
-                ax.set_title(
-                    f"{r.row['label']}: {r.navigation.collisions}/{r.navigation.trials} collisions", fontsize=9
-                )
-            ax.set_aspect("equal")
-            ax.tick_params(labelsize=7)
-        for ax in axes.ravel()[n:]:
-            ax.axis("off")
-        fig.tight_layout()
-        fig.savefig(out_dir / "navigation.png", dpi=110)
-        plt.close(fig)
-        names.append("navigation.png")
-    margin = margin_figure(inputs, results, out_dir)
-    if margin is not None:
-        names.append(margin)
-    return names
+    if not greedy:
+        return None
+    fig, ax = _pyplot().subplots(figsize=(7, 3.8))
+    for r in greedy:
+        assert r.measurement is not None
+        steps = r.measurement.entropy_per_step()
+        assert steps is not None
+        ax.plot(np.arange(len(steps) + 1), [r.measurement.entropy_before, *steps], label=r.row["label"])
+    ax.set_xlabel("greedy step (measurements kept)")
+    ax.set_ylabel("entropy of the selection's focused set (nats)")
+    ax.legend(fontsize=8)
+    return _save(fig, out_dir, "entropy.png")
+
+
+def _navigation_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path) -> str | None:
+    """navigation.png: sample navigation trials of each case (None: navigation did not run)."""
+    if inputs.navigation is None or not any(r.navigation is not None for r in results):
+        return None
+    n = len(results)
+    rows_, cols = _grid(n)
+    fig, axes = _pyplot().subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
+    nom = inputs.navigation.path.poses
+    for ax, r in zip(axes.ravel(), results, strict=False):
+        _walls(ax, inputs)
+        ax.plot(nom[:, 0], nom[:, 1], "--", color="tab:blue", lw=0.8)
+        if r.navigation is not None:
+            for pth in r.navigation.sample_paths:
+                ax.plot(pth[:, 0], pth[:, 1], lw=0.5, color="tab:orange")
+            ax.set_title(f"{r.row['label']}: {r.navigation.collisions}/{r.navigation.trials} collisions", fontsize=9)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    return _save(fig, out_dir, "navigation.png")
 
 
 def markdown_report(

@@ -19,7 +19,7 @@ interpolated on SE(2)/SE(3) to the keyframe stamps. Factors:
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
@@ -28,76 +28,18 @@ import pyarrow as pa
 from gtsam.symbol_shorthand import L, X
 
 from pipeline.errors import InputError, StageError
-from stages.geometry import (
-    interpolate_pose3,
-    pose2_from_pose3,
-    pose2_to_vector,
-    pose3_from_matrix,
-    pose3_from_xyz_quat,
-    pose3_to_vector,
-    relative_position_to_bearing_range_2d,
-    ros_pose_cov_to_gtsam,
-    rotate_covariance,
-)
+from stages.geometry import pose3_from_matrix
 from stages.graph.config import GraphConfig
 from stages.graph.factors import SCALE_KEY, FactorRow
+from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
+from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
+from stages.graph.variables import SCALE
 
-ODOMETRY_MIN_EIG_RATIO = 1e-3
-"""Smallest eigenvalue of an odometry covariance taken from the messages, as a fraction of its largest."""
-MESSAGE_VARIANCE_TINY = 1e-12
-"""Odometry message variances (m², rad²) that differ by no more than this are taken as not growing."""
-MIN_PLANAR_RANGE_M = 0.05
-"""Planar tag measurements closer than this to the base's vertical axis have no usable bearing."""
+__all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic"]
 
-
-@dataclass
-class Odometry:
-    """Odometry poses in the odometry frame, with their covariances in gtsam tangent order (world frame)."""
-
-    stamps_ns: np.ndarray
-    poses: list[gtsam.Pose3]
-    cov: np.ndarray  # N x 6 x 6, (r, t), ROS covariance reordered (parent frame)
-
-    @classmethod
-    def from_table(cls, table: pa.Table | None) -> Odometry | None:
-        """Odometry from ingest's ``odometry.parquet``; None when the run has none."""
-        if table is None or table.num_rows == 0:
-            return None
-        cols = table.to_pydict()
-        order = np.argsort(np.asarray(cols["stamp_ns"], dtype=np.int64), kind="stable")
-        stamps = np.asarray(cols["stamp_ns"], dtype=np.int64)[order]
-        keep = np.concatenate([[True], np.diff(stamps) > 0])
-        order, stamps = order[keep], stamps[keep]
-        poses = [
-            pose3_from_xyz_quat(
-                [cols["x"][i], cols["y"][i], cols["z"][i]], [cols["qx"][i], cols["qy"][i], cols["qz"][i], cols["qw"][i]]
-            )
-            for i in order
-        ]
-        if "pose_cov" in cols:
-            cov = np.array([ros_pose_cov_to_gtsam(cols["pose_cov"][i] or np.zeros(36)) for i in order])
-        else:
-            cov = np.zeros((len(order), 6, 6))
-        return cls(stamps, poses, cov)
-
-    def at(self, stamps_ns: np.ndarray) -> tuple[list[gtsam.Pose3], np.ndarray]:
-        """Poses (SE(3) interpolation) and covariances (linear interpolation) at ``stamps_ns``, clamped to the ends."""
-        t = self.stamps_ns
-        idx = np.searchsorted(t, stamps_ns, side="right")
-        poses, covs = [], []
-        for s, i in zip(np.asarray(stamps_ns, dtype=np.int64), idx, strict=True):
-            if i <= 0:
-                poses.append(self.poses[0])
-                covs.append(self.cov[0])
-            elif i >= len(t):
-                poses.append(self.poses[-1])
-                covs.append(self.cov[-1])
-            else:
-                a = float(s - t[i - 1]) / float(t[i] - t[i - 1])
-                poses.append(interpolate_pose3(self.poses[i - 1], self.poses[i], a))
-                covs.append((1 - a) * self.cov[i - 1] + a * self.cov[i])
-        return poses, np.array(covs).reshape(len(poses), 6, 6)
+DETECTION_COLUMNS = frozenset({"frame", "stamp_ns", "camera", "tag_id", "T_camera_tag", "pose_cov"})
+"""Columns of ``detections.parquet`` the graph needs."""
 
 
 def camera_extrinsic(extrinsics: dict[str, Any] | None, camera: str) -> tuple[gtsam.Pose3, str]:
@@ -113,138 +55,6 @@ def camera_extrinsic(extrinsics: dict[str, Any] | None, camera: str) -> tuple[gt
     return pose3_from_matrix(entry["T_base_sensor"]), "extrinsics.json"
 
 
-def _keyframes(det_stamps: np.ndarray, odom: Odometry | None, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Keyframe stamps (sorted) and whether each is a tag frame."""
-    if odom is None:
-        return det_stamps, np.ones(len(det_stamps), dtype=bool)
-    det_set = set(det_stamps.tolist())
-    stamps: list[int] = []
-    det_i = 0
-    last_pose: gtsam.Pose3 | None = None
-    last_t = 0
-    det_poses, _ = odom.at(det_stamps) if len(det_stamps) else ([], None)
-    for t, pose in zip(odom.stamps_ns, odom.poses, strict=True):
-        while det_i < len(det_stamps) and det_stamps[det_i] <= t:
-            stamps.append(int(det_stamps[det_i]))
-            last_pose, last_t = det_poses[det_i], int(det_stamps[det_i])
-            det_i += 1
-        if last_pose is None:
-            stamps.append(int(t))
-            last_pose, last_t = pose, int(t)
-            continue
-        rel = last_pose.between(pose)
-        moved = float(np.linalg.norm(np.asarray(rel.translation())[:2]))
-        turned = float(np.linalg.norm(gtsam.Rot3.Logmap(rel.rotation())))
-        due = (
-            (t - last_t) / 1e9 > cfg.keyframe_max_gap_s
-            or moved > cfg.keyframe_max_distance_m
-            or turned > cfg.keyframe_max_angle_rad
-        )
-        if due and int(t) not in det_set and int(t) != last_t:
-            stamps.append(int(t))
-            last_pose, last_t = pose, int(t)
-    while det_i < len(det_stamps):
-        stamps.append(int(det_stamps[det_i]))
-        det_i += 1
-    out = np.unique(np.asarray(stamps, dtype=np.int64))
-    return out, np.isin(out, det_stamps)
-
-
-def _settings_cov(cfg: GraphConfig, planar: bool, dist: float, angle: float) -> np.ndarray:
-    st = float(np.hypot(cfg.odometry_sigma_m, cfg.odometry_sigma_per_m * dist))
-    sr = float(
-        np.sqrt(
-            cfg.odometry_sigma_rad**2
-            + (cfg.odometry_sigma_rad_per_rad * angle) ** 2
-            + (cfg.odometry_sigma_rad_per_m * dist) ** 2
-        )
-    )
-    if planar:
-        return np.diag([st**2, st**2, sr**2])
-    return np.diag([sr**2] * 3 + [st**2] * 3)
-
-
-def _unobserved_dims(cov: np.ndarray, planar: bool) -> np.ndarray:
-    """Dimensions (in the factor's tangent order) whose message variance never changes over the run.
-
-    Planar wheel odometry publishes fixed placeholders for z, roll and pitch: they carry no information
-    about the motion and take the settings' value. A dimension that grows anywhere in the run is observed,
-    even where it does not grow between two keyframes (the lateral position of a robot driving straight).
-    """
-    idx = [3, 4, 2] if planar else list(range(6))
-    d = np.diagonal(cov, axis1=1, axis2=2)[:, idx] if len(cov) else np.zeros((0, len(idx)))
-    if len(d) == 0:
-        return np.ones(len(idx), dtype=bool)
-    return np.ptp(d, axis=0) <= MESSAGE_VARIANCE_TINY
-
-
-def _message_cov(
-    planar: bool,
-    pose_i: gtsam.Pose3,
-    pose_j: gtsam.Pose3,
-    cov_i: np.ndarray,
-    cov_j: np.ndarray,
-    fallback: np.ndarray,
-    unobserved: np.ndarray | None = None,
-) -> tuple[np.ndarray, bool]:
-    """Covariance of the motion between two keyframes from the messages' pose covariances.
-
-    ROS gives the pose covariance in the odometry (parent) frame. Dead reckoning propagates it as
-    ``Σ_j = F Σ_i F^T + Q`` with ``F`` the Jacobian of ``T_j = T_i T_ij`` in world coordinates (the
-    lever arm of the displacement), so ``Q = Σ_j - F Σ_i F^T`` is the covariance the motion added;
-    it is rotated into the body frame of ``j`` (the tangent of a between factor's error). Dimensions
-    the messages never inform (``unobserved``: e.g. z, roll and pitch of planar odometry) take the
-    settings' value from ``fallback``, and so does the whole factor when nothing grew at all between
-    the two keyframes. A dimension that merely did not grow here (the lateral position of a robot that
-    drove straight) keeps the messages' near-zero growth, bounded below by the condition-number floor:
-    replacing it with the settings' 1 cm would give the whole map a translation freedom that the
-    odometry does not have (measured: every landmark marginal at least 1 cm, NEES/2 0.03 on detections
-    drawn from their own covariance). Returns the covariance and whether any dimension fell back.
-    """
-    dt = np.asarray(pose_j.translation()) - np.asarray(pose_i.translation())
-    Rj = np.asarray(pose_j.rotation().matrix())
-    if planar:
-        idx = [3, 4, 2]  # x, y, yaw in gtsam's (r, t) order
-        Ci, Cj = cov_i[np.ix_(idx, idx)], cov_j[np.ix_(idx, idx)]
-        F = np.array([[1.0, 0.0, -dt[1]], [0.0, 1.0, dt[0]], [0.0, 0.0, 1.0]])
-        yaw = float(np.arctan2(Rj[1, 0], Rj[0, 0]))
-        c, s = np.cos(yaw), np.sin(yaw)
-        M = np.eye(3)
-        M[:2, :2] = np.array([[c, s], [-s, c]])
-    else:
-        Ci, Cj = cov_i, cov_j
-        F = np.eye(6)
-        F[3:, :3] = -np.array([[0.0, -dt[2], dt[1]], [dt[2], 0.0, -dt[0]], [-dt[1], dt[0], 0.0]])
-        M = np.zeros((6, 6))
-        M[:3, :3] = Rj.T
-        M[3:, 3:] = Rj.T
-    Q = Cj - F @ Ci @ F.T
-    tiny = MESSAGE_VARIANCE_TINY
-    bad = np.zeros(len(Q), dtype=bool) if unobserved is None else np.asarray(unobserved, dtype=bool).copy()
-    # The unobserved dimensions are world z / roll / pitch (planar: none of x, y, yaw); the rotation to
-    # the body frame of a planar motion keeps them among themselves, so the mask holds in both frames.
-    Q[bad, :] = 0.0
-    Q[:, bad] = 0.0
-    Q = rotate_covariance(Q, M)
-    good = ~bad
-    if good.any():
-        Qg = Q[np.ix_(good, good)]
-        w, V = np.linalg.eigh(Qg)
-        if float(w.max()) <= tiny:
-            # nothing grew between the two keyframes (odometry at rest without noise): the settings' value
-            bad[:] = True
-        else:
-            # Two noise sources (speed, yaw rate) make Q nearly rank 2; bound its condition number so the
-            # graph's information matrix stays well conditioned (this only inflates the tightest direction).
-            floor = max(tiny, ODOMETRY_MIN_EIG_RATIO * float(w.max()))
-            Q[np.ix_(good, good)] = (V * np.maximum(w, floor)) @ V.T
-    if bad.any():
-        Q[bad, :] = 0.0
-        Q[:, bad] = 0.0
-        Q[bad, bad] = np.diag(fallback)[bad]
-    return 0.5 * (Q + Q.T), bool(bad.any())
-
-
 def build_problem(
     detections: pa.Table,
     odometry: pa.Table | None,
@@ -257,9 +67,43 @@ def build_problem(
         StageError: when nothing is left to build a graph from.
         InputError: when the detection table lacks a needed column.
     """
-    planar = cfg.model == "planar"
-    needed = {"frame", "stamp_ns", "camera", "tag_id", "T_camera_tag", "pose_cov"}
-    if missing := needed - set(detections.column_names):
+    model = graph_model(cfg.model)
+    det, usable, info = _usable_detections(detections, cfg)
+    stamps = np.asarray(det["stamp_ns"], dtype=np.int64)
+    odom = Odometry.from_table(odometry)
+    path = _keyframe_path(np.unique(stamps[usable]), odom, cfg, info)
+    rows = _prior_rows(model, cfg, path.pose_keys[0])
+    rows += _motion_rows(model, cfg, odom, path, info)
+    order = usable[np.argsort(stamps[usable], kind="stable")]
+    scale_keys = (SCALE_KEY,) if cfg.tag_scale_sigma > 0 else ()
+    sightings = _tag_rows(model, cfg, det, order, path, scale_keys, extrinsics, info)
+    rows += sightings.rows
+    if odom is None:
+        path.poses = model.chain_from_tags(len(path.stamps_ns), sightings.relative)
+    initial, var_types = _initial_values(model, path, sightings, bool(scale_keys))
+    if scale_keys:
+        info["tag_scale_sigma"] = cfg.tag_scale_sigma
+    info["keyframes"] = len(path.stamps_ns)
+    info["tag_keyframes"] = int(path.is_tag.sum())
+    info["odometry_keyframes"] = int(len(path.stamps_ns) - path.is_tag.sum())
+    return GraphProblem(
+        model=model.name,
+        rows=rows,
+        initial=initial,
+        var_types=var_types,
+        pose_keys=path.pose_keys,
+        pose_stamps_ns=[int(s) for s in path.stamps_ns],
+        landmark_keys=dict(sorted(sightings.landmark_keys.items())),
+        landmark_heights=sightings.landmark_heights(),
+        info=info,
+    )
+
+
+def _usable_detections(
+    detections: pa.Table, cfg: GraphConfig
+) -> tuple[dict[str, list[Any]], np.ndarray, dict[str, Any]]:
+    """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
+    if missing := DETECTION_COLUMNS - set(detections.column_names):
         raise InputError(f"detections.parquet lacks columns {sorted(missing)}; re-run 'focusmap detect'")
     det = detections.to_pydict()
     n_det = detections.num_rows
@@ -276,141 +120,77 @@ def build_problem(
         keep &= ~bad
     counts = Counter(int(t) for t, k in zip(det["tag_id"], keep, strict=True) if k)
     rare = sorted(t for t, c in counts.items() if c < cfg.min_tag_observations)
-    seen_once = sorted(t for t, c in counts.items() if c == 1)
     info["tags_dropped_few_observations"] = rare
-    info["tags_seen_once"] = seen_once
+    info["tags_seen_once"] = sorted(t for t, c in counts.items() if c == 1)
     keep &= ~np.isin(np.asarray(det["tag_id"], dtype=np.int64), rare)
     if not keep.any():
         raise StageError(
             f"no usable tag detections among {n_det} (ambiguous, reprojection above {cfg.max_reprojection_px} px, "
             f"or tags seen fewer than {cfg.min_tag_observations} times); relax the graph settings or check detect"
         )
-    rows_idx = np.flatnonzero(keep)
-    stamps_all = np.asarray(det["stamp_ns"], dtype=np.int64)
-    det_stamps = np.unique(stamps_all[rows_idx])
+    return det, np.flatnonzero(keep), info
 
-    odom = Odometry.from_table(odometry)
-    kf_stamps, _is_tag = _keyframes(det_stamps, odom, cfg)
-    n = len(kf_stamps)
+
+@dataclass
+class _KeyframePath:
+    """The keyframes: stamps, keys, dead-reckoned poses in the frame of the first, odometry there."""
+
+    stamps_ns: np.ndarray
+    is_tag: np.ndarray
+    pose_keys: list[int]
+    poses: list[gtsam.Pose3]
+    """Dead reckoning relative to the first keyframe (identity without odometry, until the tags place them)."""
+    odometry_poses: list[gtsam.Pose3]
+    odometry_covs: np.ndarray
+
+    @property
+    def index(self) -> dict[int, int]:
+        return {int(s): i for i, s in enumerate(self.stamps_ns)}
+
+
+def _keyframe_path(
+    det_stamps: np.ndarray, odom: Odometry | None, cfg: GraphConfig, info: dict[str, Any]
+) -> _KeyframePath:
+    """Keyframes at the tag frames (and odometry gaps), with the odometry interpolated to them."""
+    stamps, is_tag = keyframes(det_stamps, odom, cfg)
+    n = len(stamps)
     pose_keys = [int(X(i)) for i in range(n)]
-    kf_index = {int(s): i for i, s in enumerate(kf_stamps)}
-    rows: list[FactorRow] = []
-    initial = gtsam.Values()
-    var_types: dict[int, str] = {}
+    if odom is None:
+        return _KeyframePath(stamps, is_tag, pose_keys, [gtsam.Pose3()] * n, [], np.zeros((0, 6, 6)))
+    odo_poses, odo_covs = odom.at(stamps)
+    info["keyframes_outside_odometry"] = int(((stamps < odom.stamps_ns[0]) | (stamps > odom.stamps_ns[-1])).sum())
+    origin = odo_poses[0].inverse()
+    return _KeyframePath(stamps, is_tag, pose_keys, [origin.compose(p) for p in odo_poses], odo_poses, odo_covs)
 
-    # poses: dead reckoning in the frame of the first keyframe
-    if odom is not None:
-        odo_poses, odo_covs = odom.at(kf_stamps)
-        outside = int(((kf_stamps < odom.stamps_ns[0]) | (kf_stamps > odom.stamps_ns[-1])).sum())
-        info["keyframes_outside_odometry"] = outside
-        origin = odo_poses[0].inverse()
-        rel3 = [origin.compose(p) for p in odo_poses]
-    else:
-        rel3 = [gtsam.Pose3()] * n
-        odo_poses, odo_covs = [], np.zeros((0, 6, 6))
 
-    # prior
-    if planar:
-        rows.append(
-            FactorRow(
-                "prior",
-                "PriorFactorPose2",
-                (pose_keys[0],),
-                np.zeros(3),
-                np.diag([cfg.prior_sigma_m**2] * 2 + [cfg.prior_sigma_rad**2]),
-            )
-        )
-    else:
-        rows.append(
-            FactorRow(
-                "prior",
-                "PriorFactorPose3",
-                (pose_keys[0],),
-                pose3_to_vector(gtsam.Pose3()),
-                np.diag([cfg.prior_sigma_rad**2] * 3 + [cfg.prior_sigma_m**2] * 3),
-            )
-        )
-
-    # the shared tag scale (the tolerance of the printed tag size)
-    use_scale = cfg.tag_scale_sigma > 0
-    if use_scale:
+def _prior_rows(model: GraphModel, cfg: GraphConfig, first_pose: int) -> list[FactorRow]:
+    """The prior on the first keyframe (it defines the map frame) and, when it is estimated, the tag scale's."""
+    rows = [model.prior_row(first_pose, model.identity, cfg.prior_sigma_m, cfg.prior_sigma_rad)]
+    if cfg.tag_scale_sigma > 0:
         rows.append(
             FactorRow(
                 "scale_prior", "PriorFactorDouble", (SCALE_KEY,), np.ones(1), np.array([[cfg.tag_scale_sigma**2]])
             )
         )
-    scale_keys = (SCALE_KEY,) if use_scale else ()
+    return rows
 
-    # odometry or motion prior
-    noise_source = "none"
-    fallbacks = 0
+
+def _motion_rows(
+    model: GraphModel, cfg: GraphConfig, odom: Odometry | None, path: _KeyframePath, info: dict[str, Any]
+) -> list[FactorRow]:
+    """Odometry between consecutive keyframes, or a weak zero-motion prior when the run has none."""
     if odom is not None:
-        has_cov = bool(np.any(odom.cov != 0))
-        use_msgs = cfg.odometry_noise == "messages" or (cfg.odometry_noise == "auto" and has_cov)
-        noise_source = "messages" if use_msgs else "settings"
-        unobserved = _unobserved_dims(odom.cov, planar)
-        if use_msgs:
-            names = ["x", "y", "yaw"] if planar else ["roll", "pitch", "yaw", "x", "y", "z"]
-            info["odometry_unobserved_dims"] = [nm for nm, u in zip(names, unobserved, strict=True) if u]
-        for i in range(n - 1):
-            a, b = odo_poses[i], odo_poses[i + 1]
-            rel = a.between(b)
-            dist = float(np.linalg.norm(np.asarray(rel.translation())))
-            angle = float(np.linalg.norm(gtsam.Rot3.Logmap(rel.rotation())))
-            cov = _settings_cov(cfg, planar, dist, angle)
-            if use_msgs:
-                cov, fell_back = _message_cov(planar, a, b, odo_covs[i], odo_covs[i + 1], cov, unobserved)
-                fallbacks += int(fell_back)
-            if planar:
-                meas = pose2_to_vector(pose2_from_pose3(a).between(pose2_from_pose3(b)))
-                rows.append(
-                    FactorRow(
-                        "odometry",
-                        "BetweenFactorPose2",
-                        (pose_keys[i], pose_keys[i + 1]),
-                        meas,
-                        cov,
-                        stamp_ns=int(kf_stamps[i + 1]),
-                    )
-                )
-            else:
-                rows.append(
-                    FactorRow(
-                        "odometry",
-                        "BetweenFactorPose3",
-                        (pose_keys[i], pose_keys[i + 1]),
-                        pose3_to_vector(rel),
-                        cov,
-                        stamp_ns=int(kf_stamps[i + 1]),
-                    )
-                )
-        info["odometry_messages"] = len(odom.stamps_ns)
+        rows, noise_source, fallbacks = _odometry_rows(model, cfg, odom, path, info)
     elif cfg.motion_prior:
-        noise_source = "motion_prior"
-        sm, sr = cfg.motion_prior_sigma_m, cfg.motion_prior_sigma_rad
-        for i in range(n - 1):
-            if planar:
-                rows.append(
-                    FactorRow(
-                        "motion_prior",
-                        "BetweenFactorPose2",
-                        (pose_keys[i], pose_keys[i + 1]),
-                        np.zeros(3),
-                        np.diag([sm**2, sm**2, sr**2]),
-                        stamp_ns=int(kf_stamps[i + 1]),
-                    )
-                )
-            else:
-                rows.append(
-                    FactorRow(
-                        "motion_prior",
-                        "BetweenFactorPose3",
-                        (pose_keys[i], pose_keys[i + 1]),
-                        pose3_to_vector(gtsam.Pose3()),
-                        np.diag([sr**2] * 3 + [sm**2] * 3),
-                        stamp_ns=int(kf_stamps[i + 1]),
-                    )
-                )
+        cov = model.pose_covariance(cfg.motion_prior_sigma_m, cfg.motion_prior_sigma_rad)
+        keys, stamps = path.pose_keys, path.stamps_ns
+        rows = [
+            model.between_row("motion_prior", (keys[i], keys[i + 1]), model.identity, cov, int(stamps[i + 1]))
+            for i in range(len(keys) - 1)
+        ]
+        noise_source, fallbacks = "motion_prior", 0
+    else:
+        rows, noise_source, fallbacks = [], "none", 0
     info["odometry_noise"] = noise_source
     info["odometry_noise_fallbacks"] = fallbacks
     if odom is None:
@@ -419,134 +199,129 @@ def build_problem(
             if cfg.motion_prior
             else "the run has no odometry and graph.motion_prior is off: poses are tied only by shared tags"
         )
+    return rows
 
-    # tag factors, in time order
-    order = rows_idx[np.argsort(stamps_all[rows_idx], kind="stable")]
+
+def _odometry_rows(
+    model: GraphModel, cfg: GraphConfig, odom: Odometry, path: _KeyframePath, info: dict[str, Any]
+) -> tuple[list[FactorRow], str, int]:
+    """One odometry row per consecutive keyframe pair, its noise from the messages or the settings."""
+    has_cov = bool(np.any(odom.cov != 0))
+    use_msgs = cfg.odometry_noise == "messages" or (cfg.odometry_noise == "auto" and has_cov)
+    unobserved = unobserved_dims(odom.cov, model)
+    if use_msgs:
+        info["odometry_unobserved_dims"] = [nm for nm, u in zip(model.motion_dims, unobserved, strict=True) if u]
+    rows, fallbacks = [], 0
+    poses, covs, keys = path.odometry_poses, path.odometry_covs, path.pose_keys
+    for i in range(len(keys) - 1):
+        a, b = poses[i], poses[i + 1]
+        rel = a.between(b)
+        dist = float(np.linalg.norm(np.asarray(rel.translation())))
+        angle = float(np.linalg.norm(gtsam.Rot3.Logmap(rel.rotation())))
+        cov = settings_cov(cfg, model, dist, angle)
+        if use_msgs:
+            cov, fell_back = message_cov(model, a, b, covs[i], covs[i + 1], cov, unobserved)
+            fallbacks += int(fell_back)
+        rows.append(
+            model.between_row("odometry", (keys[i], keys[i + 1]), model.motion(a, b), cov, int(path.stamps_ns[i + 1]))
+        )
+    info["odometry_messages"] = len(odom.stamps_ns)
+    return rows, "messages" if use_msgs else "settings", fallbacks
+
+
+@dataclass
+class _TagSightings:
+    """The tag rows and what placing and writing the landmarks needs from them."""
+
+    rows: list[FactorRow] = field(default_factory=list)
+    landmark_keys: dict[int, int] = field(default_factory=dict)
+    first_sight: dict[int, tuple[int, Any]] = field(default_factory=dict)
+    """Tag id to (keyframe, landmark relative to it) of its first measurement."""
+    relative: list[tuple[int, int, Any]] = field(default_factory=list)
+    """(keyframe, tag id, landmark relative to the keyframe) of every measurement, in time order."""
+    heights: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+    """Planar: tag id to the (z, var z) of each sighting."""
+
+    def add(self, row: FactorRow, k: int, tag: int, relative: Any, height: tuple[float, float] | None) -> None:
+        self.rows.append(row)
+        if height is not None:
+            self.heights.setdefault(tag, []).append(height)
+        self.relative.append((k, tag, relative))
+        self.landmark_keys.setdefault(tag, int(L(tag)))
+        self.first_sight.setdefault(tag, (k, relative))
+
+    def landmark_heights(self) -> dict[int, tuple[float, float]]:
+        """Tag id to the inverse-variance weighted mean height of its sightings and that mean's variance."""
+        out = {}
+        for tag, hs in self.heights.items():
+            z = np.array([h[0] for h in hs])
+            w = 1.0 / np.array([max(h[1], 1e-12) for h in hs])
+            out[tag] = (float((w * z).sum() / w.sum()), float(1.0 / w.sum()))
+        return out
+
+
+def _tag_rows(
+    model: GraphModel,
+    cfg: GraphConfig,
+    det: dict[str, list[Any]],
+    order: np.ndarray,
+    path: _KeyframePath,
+    scale_keys: tuple[int, ...],
+    extrinsics: dict[str, Any] | None,
+    info: dict[str, Any],
+) -> _TagSightings:
+    """One tag row per usable detection, in ``order`` (time order), from the keyframe of its frame."""
     extrinsic_cache: dict[str, tuple[gtsam.Pose3, str]] = {}
-    landmark_keys: dict[int, int] = {}
-    first_sight: dict[int, tuple[int, gtsam.Pose3 | np.ndarray]] = {}
-    heights: dict[int, list[tuple[float, float]]] = {}
-    scale = cfg.tag_covariance_scale
     floor = np.diag([cfg.tag_sigma_floor_rad**2] * 3 + [cfg.tag_sigma_floor_m**2] * 3)
+    robust_k = cfg.robust_threshold if cfg.robust_kernel != "none" else 0.0
+    kf_index = path.index
+    out = _TagSightings()
     dropped_close = 0
-    tag_meas: list[tuple[int, int, Any]] = []
     for r in order:
         cam = str(det["camera"][r])
         if cam not in extrinsic_cache:
             extrinsic_cache[cam] = camera_extrinsic(extrinsics, cam)
-        T_base_cam, _src = extrinsic_cache[cam]
-        T_cam_tag = pose3_from_matrix(det["T_camera_tag"][r])
-        T_base_tag = T_base_cam.compose(T_cam_tag)
-        cov6 = scale * np.asarray(det["pose_cov"][r], dtype=float).reshape(6, 6) + floor
-        tag = int(det["tag_id"][r])
-        k = kf_index[int(stamps_all[r])]
-        stamp = int(stamps_all[r])
-        frame = int(det["frame"][r])
-        if planar:
-            p = np.asarray(T_base_tag.translation(), dtype=float)
-            Rbt = np.asarray(T_base_tag.rotation().matrix())
-            cov_p = rotate_covariance(cov6[3:, 3:], Rbt)
-            if float(np.hypot(p[0], p[1])) < MIN_PLANAR_RANGE_M:
-                dropped_close += 1
-                continue
-            bearing, rng, cov_br = relative_position_to_bearing_range_2d(p[:2], cov_p[:2, :2])
-            row = FactorRow(
-                "tag",
-                "BearingRangeFactor2D",
-                (pose_keys[k], int(L(tag)), *scale_keys),
-                np.array([bearing, rng]),
-                cov_br,
-                cfg.robust_kernel,
-                cfg.robust_threshold if cfg.robust_kernel != "none" else 0.0,
-                tag_id=tag,
-                frame=frame,
-                stamp_ns=stamp,
-            )
-            heights.setdefault(tag, []).append((float(p[2]), float(cov_p[2, 2])))
-            tag_meas.append((k, tag, p[:2]))
-        else:
-            row = FactorRow(
-                "tag",
-                "BetweenFactorPose3",
-                (pose_keys[k], int(L(tag)), *scale_keys),
-                pose3_to_vector(T_base_tag),
-                cov6,
-                cfg.robust_kernel,
-                cfg.robust_threshold if cfg.robust_kernel != "none" else 0.0,
-                tag_id=tag,
-                frame=frame,
-                stamp_ns=stamp,
-            )
-            tag_meas.append((k, tag, T_base_tag))
-        rows.append(row)
-        landmark_keys.setdefault(tag, int(L(tag)))
-        first_sight.setdefault(tag, (k, tag_meas[-1][2]))
+        T_base_tag = extrinsic_cache[cam][0].compose(pose3_from_matrix(det["T_camera_tag"][r]))
+        cov6 = cfg.tag_covariance_scale * np.asarray(det["pose_cov"][r], dtype=float).reshape(6, 6) + floor
+        meas = model.tag_measurement(T_base_tag, cov6)
+        if meas is None:
+            dropped_close += 1
+            continue
+        tag, stamp = int(det["tag_id"][r]), int(det["stamp_ns"][r])
+        k = kf_index[stamp]
+        keys = (path.pose_keys[k], int(L(tag)), *scale_keys)
+        row = FactorRow(
+            "tag",
+            meas.type,
+            keys,
+            meas.measurement,
+            meas.covariance,
+            cfg.robust_kernel,
+            robust_k,
+            tag_id=tag,
+            frame=int(det["frame"][r]),
+            stamp_ns=stamp,
+        )
+        out.add(row, k, tag, meas.relative, meas.height)
     info["dropped_too_close"] = dropped_close
     info["extrinsics"] = {cam: src for cam, (_, src) in extrinsic_cache.items()}
+    return out
 
-    # initial values
-    if odom is None:
-        rel3 = _chain_from_tags(n, tag_meas, planar)
-    for i, key in enumerate(pose_keys):
-        if planar:
-            initial.insert(key, pose2_from_pose3(rel3[i]))
-            var_types[key] = "Pose2"
-        else:
-            initial.insert(key, rel3[i])
-            var_types[key] = "Pose3"
-    for tag, (k, meas) in first_sight.items():
-        key = landmark_keys[tag]
-        if planar:
-            initial.insert(key, np.asarray(pose2_from_pose3(rel3[k]).transformFrom(np.asarray(meas))))
-            var_types[key] = "Point2"
-        else:
-            initial.insert(key, rel3[k].compose(meas))
-            var_types[key] = "Pose3"
+
+def _initial_values(
+    model: GraphModel, path: _KeyframePath, sightings: _TagSightings, use_scale: bool
+) -> tuple[gtsam.Values, dict[int, str]]:
+    """Keyframes at dead reckoning, each landmark where it was first seen, the tag scale at 1."""
+    initial = gtsam.Values()
+    var_types: dict[int, str] = {}
+    for key, pose in zip(path.pose_keys, path.poses, strict=True):
+        initial.insert(key, model.initial_pose(pose))
+        var_types[key] = model.pose.name
+    for tag, (k, relative) in sightings.first_sight.items():
+        key = sightings.landmark_keys[tag]
+        initial.insert(key, model.initial_landmark(path.poses[k], relative))
+        var_types[key] = model.tag_landmark.name
     if use_scale:
         initial.insert(SCALE_KEY, 1.0)
-        var_types[SCALE_KEY] = "Scale"
-        info["tag_scale_sigma"] = cfg.tag_scale_sigma
-    landmark_heights = {}
-    for tag, hs in heights.items():
-        z = np.array([h[0] for h in hs])
-        v = np.array([max(h[1], 1e-12) for h in hs])
-        w = 1.0 / v
-        landmark_heights[tag] = (float((w * z).sum() / w.sum()), float(1.0 / w.sum()))
-    info["keyframes"] = n
-    info["tag_keyframes"] = int(_is_tag.sum())
-    info["odometry_keyframes"] = int(n - _is_tag.sum())
-    return GraphProblem(
-        model=cfg.model,
-        rows=rows,
-        initial=initial,
-        var_types=var_types,
-        pose_keys=pose_keys,
-        pose_stamps_ns=[int(s) for s in kf_stamps],
-        landmark_keys=dict(sorted(landmark_keys.items())),
-        landmark_heights=landmark_heights,
-        info=info,
-    )
-
-
-def _chain_from_tags(n: int, tag_meas: list[tuple[int, int, Any]], planar: bool) -> list[gtsam.Pose3]:
-    """Initial keyframe poses without odometry: from tags already placed, else the previous pose."""
-    by_kf: dict[int, list[tuple[int, Any]]] = {}
-    for k, tag, meas in tag_meas:
-        by_kf.setdefault(k, []).append((tag, meas))
-    placed: dict[int, Any] = {}
-    poses: list[gtsam.Pose3] = []
-    prev = gtsam.Pose3()
-    for k in range(n):
-        pose = prev if k > 0 else gtsam.Pose3()
-        obs = by_kf.get(k, [])
-        if k > 0:
-            for tag, meas in obs:
-                if tag in placed and not planar:
-                    pose = placed[tag].compose(meas.inverse())
-                    break
-        for tag, meas in obs:
-            if tag not in placed:
-                placed[tag] = pose.compose(meas) if not planar else None
-        poses.append(pose)
-        prev = pose
-    return poses
+        var_types[SCALE_KEY] = SCALE.name
+    return initial, var_types

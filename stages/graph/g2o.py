@@ -20,6 +20,7 @@ stamp is the vertex id in seconds. A prior is added on the first pose when the f
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,9 @@ from stages.geometry import (
     relative_position_to_bearing_range_3d,
 )
 from stages.graph.factors import FactorRow, scaled_measurement
-from stages.graph.problem import GraphProblem, value_vector
+from stages.graph.models import PLANAR, SPATIAL, GraphModel
+from stages.graph.problem import GraphProblem
+from stages.graph.variables import POINT2, POINT3, POSE2, POSE3, VarKind, var_kind
 
 OFFSET_TAG = "# focusmap: landmark_id_offset"
 _PERM_G2O_TO_GTSAM = [3, 4, 5, 0, 1, 2]
@@ -84,8 +87,8 @@ class _Reader:
         self.equiv = 0
         self.offset: int | None = None
         self.dim: int | None = None
-        self.pending_br: list[tuple[int, int, float, float]] = []
-        self.points_rel: dict[int, tuple[int, np.ndarray]] = {}
+        self.unplaced: dict[int, tuple[int, np.ndarray]] = {}
+        """Landmark id without a vertex (yet) to the first pose that measured it and its position there."""
 
     def set_dim(self, d: int, where: str) -> None:
         if self.dim is None:
@@ -121,107 +124,95 @@ class _Reader:
 
     def _line(self, tag: str, a: list[str], where: str) -> None:
         f = [float(x) for x in a]
-        if tag in ("VERTEX_SE2", "VERTEX2"):
-            self.set_dim(2, where)
-            i = int(a[0])
-            if self.is_landmark_id(i):
-                self.points[i] = np.array(f[1:3])
-            else:
-                self.poses[i] = gtsam.Pose2(f[1], f[2], f[3])
-        elif tag == "VERTEX_XY":
-            self.set_dim(2, where)
-            self.points[int(a[0])] = np.array(f[1:3])
-        elif tag == "VERTEX_SE3:QUAT":
-            self.set_dim(3, where)
-            i = int(a[0])
-            p = pose3_from_vector(f[1:8])
-            self.poses[i] = p
-            if self.is_landmark_id(i):
-                self.pose3_landmarks.add(i)
-        elif tag == "VERTEX_TRACKXYZ":
-            self.set_dim(3, where)
-            self.points[int(a[0])] = np.array(f[1:4])
-        elif tag in ("EDGE_SE2", "EDGE2"):
-            self.set_dim(2, where)
-            i, j = int(a[0]), int(a[1])
-            cov = _info_to_cov(_upper(f[5:11], 3), where) if tag == "EDGE_SE2" else _graph_noise(f[5:11], where)
-            if self.is_landmark_id(j):
-                raise InputError(f"{where}: EDGE_SE2 to landmark vertex {j}; use EDGE_SE2_XY")
-            self.rows.append(
-                FactorRow(self._pp_kind(i, j), "BetweenFactorPose2", (int(X(i)), int(X(j))), np.array(f[2:5]), cov)
-            )
-        elif tag in ("EDGE_SE2_XY", "LANDMARK"):
-            self.set_dim(2, where)
-            i, j = int(a[0]), int(a[1])
-            cov = _info_to_cov(_upper(f[4:7], 2), where)
-            b, r, cbr = relative_position_to_bearing_range_2d(f[2:4], cov)
-            self._tag_row("BearingRangeFactor2D", i, j, np.array([b, r]), cbr)
-            if j not in self.points:
-                self.pending_br.append((i, j, b, r))
-        elif tag == "BR":
-            self.set_dim(2, where)
-            i, j = int(a[0]), int(a[1])
-            b, r, sb, sr = f[2], f[3], f[4], f[5]
-            self._tag_row("BearingRangeFactor2D", i, j, np.array([b, r]), np.diag([sb**2, sr**2]))
-            if j not in self.points:
-                self.pending_br.append((i, j, b, r))
-        elif tag == "EDGE_PRIOR_SE2":
-            self.set_dim(2, where)
-            self.rows.append(
-                FactorRow(
-                    "prior",
-                    "PriorFactorPose2",
-                    (int(X(int(a[0]))),),
-                    np.array(f[1:4]),
-                    _info_to_cov(_upper(f[4:10], 3), where),
-                )
-            )
-        elif tag == "EDGE_SE3:QUAT":
-            self.set_dim(3, where)
-            i, j = int(a[0]), int(a[1])
-            info = _upper(f[9:30], 6)[np.ix_(_PERM_G2O_TO_GTSAM, _PERM_G2O_TO_GTSAM)]
-            meas = pose3_to_vector(pose3_from_vector(f[2:9]))
-            if self.is_landmark_id(j):
-                self._tag_row("BetweenFactorPose3", i, j, meas, _info_to_cov(info, where))
-            else:
-                self.rows.append(
-                    FactorRow(
-                        self._pp_kind(i, j),
-                        "BetweenFactorPose3",
-                        (int(X(i)), int(X(j))),
-                        meas,
-                        _info_to_cov(info, where),
-                    )
-                )
-        elif tag == "EDGE_SE3_TRACKXYZ":
-            self.set_dim(3, where)
-            i, j = int(a[0]), int(a[1])
-            cov = _info_to_cov(_upper(f[6:12], 3), where)
-            u, r, cbr = relative_position_to_bearing_range_3d(f[3:6], cov)
-            self._tag_row("BearingRangeFactor3D", i, j, np.concatenate([np.asarray(u.point3()), [r]]), cbr)
-            if j not in self.points:
-                self.pending_br.append((i, j, 0.0, 0.0))
-                self.points_rel.setdefault(j, (i, np.array(f[3:6])))
-        elif tag == "EDGE_SE3_PRIOR":
-            self.set_dim(3, where)
-            info = _upper(f[9:30], 6)[np.ix_(_PERM_G2O_TO_GTSAM, _PERM_G2O_TO_GTSAM)]
-            self.rows.append(
-                FactorRow(
-                    "prior",
-                    "PriorFactorPose3",
-                    (int(X(int(a[0]))),),
-                    pose3_to_vector(pose3_from_vector(f[2:9])),
-                    _info_to_cov(info, where),
-                )
-            )
-        elif tag == "FIX":
-            self.fixed.extend(int(x) for x in a)
-        elif tag == "EQUIV":
-            self.equiv += 1
-        elif tag == "PARAMS_SE3OFFSET":
-            pass
-        else:
+        handler = _HANDLERS.get(tag)
+        if handler is None:
             self.counts["skipped:" + tag] += 1
+            return
+        dim, method = handler
+        if dim is not None:
+            self.set_dim(dim, where)
+        method(self, tag, a, f, where)
+
+    # vertices
+    def _vertex_se2(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        i = int(a[0])
+        if self.is_landmark_id(i):
+            self.points[i] = np.array(f[1:3])
+        else:
+            self.poses[i] = gtsam.Pose2(f[1], f[2], f[3])
+
+    def _vertex_point(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        self.points[int(a[0])] = np.array(f[1 : 1 + (self.dim or 2)])
+
+    def _vertex_se3(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        i = int(a[0])
+        self.poses[i] = pose3_from_vector(f[1:8])
+        if self.is_landmark_id(i):
+            self.pose3_landmarks.add(i)
+
+    # 2D edges
+    def _edge_se2(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        i, j = int(a[0]), int(a[1])
+        cov = _info_to_cov(_upper(f[5:11], 3), where) if tag == "EDGE_SE2" else _graph_noise(f[5:11], where)
+        if self.is_landmark_id(j):
+            raise InputError(f"{where}: EDGE_SE2 to landmark vertex {j}; use EDGE_SE2_XY")
+        self.rows.append(
+            FactorRow(self._pp_kind(i, j), "BetweenFactorPose2", (int(X(i)), int(X(j))), np.array(f[2:5]), cov)
+        )
+
+    def _edge_se2_xy(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        cov = _info_to_cov(_upper(f[4:7], 2), where)
+        b, r, cbr = relative_position_to_bearing_range_2d(f[2:4], cov)
+        self._bearing_range_2d(int(a[0]), int(a[1]), b, r, cbr)
+
+    def _br(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        b, r, sb, sr = f[2], f[3], f[4], f[5]
+        self._bearing_range_2d(int(a[0]), int(a[1]), b, r, np.diag([sb**2, sr**2]))
+
+    def _bearing_range_2d(self, i: int, j: int, b: float, r: float, cov: np.ndarray) -> None:
+        self._tag_row("BearingRangeFactor2D", i, j, np.array([b, r]), cov)
+        if j not in self.points:
+            self.unplaced.setdefault(j, (i, np.array([r * np.cos(b), r * np.sin(b)])))
+
+    def _prior_se2(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        cov = _info_to_cov(_upper(f[4:10], 3), where)
+        self.rows.append(FactorRow("prior", "PriorFactorPose2", (int(X(int(a[0]))),), np.array(f[1:4]), cov))
+
+    # 3D edges
+    def _edge_se3(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        i, j = int(a[0]), int(a[1])
+        info = _upper(f[9:30], 6)[np.ix_(_PERM_G2O_TO_GTSAM, _PERM_G2O_TO_GTSAM)]
+        meas = pose3_to_vector(pose3_from_vector(f[2:9]))
+        if self.is_landmark_id(j):
+            self._tag_row("BetweenFactorPose3", i, j, meas, _info_to_cov(info, where))
+        else:
+            kind = self._pp_kind(i, j)
+            self.rows.append(
+                FactorRow(kind, "BetweenFactorPose3", (int(X(i)), int(X(j))), meas, _info_to_cov(info, where))
+            )
+
+    def _edge_se3_trackxyz(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        i, j = int(a[0]), int(a[1])
+        cov = _info_to_cov(_upper(f[6:12], 3), where)
+        u, r, cbr = relative_position_to_bearing_range_3d(f[3:6], cov)
+        self._tag_row("BearingRangeFactor3D", i, j, np.concatenate([np.asarray(u.point3()), [r]]), cbr)
+        if j not in self.points:
+            self.unplaced.setdefault(j, (i, np.array(f[3:6])))
+
+    def _prior_se3(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        info = _upper(f[9:30], 6)[np.ix_(_PERM_G2O_TO_GTSAM, _PERM_G2O_TO_GTSAM)]
+        meas = pose3_to_vector(pose3_from_vector(f[2:9]))
+        self.rows.append(FactorRow("prior", "PriorFactorPose3", (int(X(int(a[0]))),), meas, _info_to_cov(info, where)))
+
+    # others
+    def _fix(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        self.fixed.extend(int(x) for x in a)
+
+    def _equiv(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        self.equiv += 1
+
+    def _ignore(self, tag: str, a: list[str], f: list[float], where: str) -> None:
+        pass
 
     def _pp_kind(self, i: int, j: int) -> str:
         return "odometry" if abs(i - j) == 1 else "loop"
@@ -242,13 +233,32 @@ class _Reader:
         )
 
 
-def _pose_prior(initial: gtsam.Values, key: int, planar: bool, sigma_m: float, sigma_rad: float) -> FactorRow:
+_Handler = Callable[[_Reader, str, list[str], list[float], str], None]
+_HANDLERS: dict[str, tuple[int | None, _Handler]] = {
+    "VERTEX_SE2": (2, _Reader._vertex_se2),
+    "VERTEX2": (2, _Reader._vertex_se2),
+    "VERTEX_XY": (2, _Reader._vertex_point),
+    "VERTEX_SE3:QUAT": (3, _Reader._vertex_se3),
+    "VERTEX_TRACKXYZ": (3, _Reader._vertex_point),
+    "EDGE_SE2": (2, _Reader._edge_se2),
+    "EDGE2": (2, _Reader._edge_se2),
+    "EDGE_SE2_XY": (2, _Reader._edge_se2_xy),
+    "LANDMARK": (2, _Reader._edge_se2_xy),
+    "BR": (2, _Reader._br),
+    "EDGE_PRIOR_SE2": (2, _Reader._prior_se2),
+    "EDGE_SE3:QUAT": (3, _Reader._edge_se3),
+    "EDGE_SE3_TRACKXYZ": (3, _Reader._edge_se3_trackxyz),
+    "EDGE_SE3_PRIOR": (3, _Reader._prior_se3),
+    "FIX": (None, _Reader._fix),
+    "EQUIV": (None, _Reader._equiv),
+    "PARAMS_SE3OFFSET": (None, _Reader._ignore),
+}
+"""Line tag to (the graph dimension it implies, its reader)."""
+
+
+def _pose_prior(initial: gtsam.Values, key: int, model: GraphModel, sigma_m: float, sigma_rad: float) -> FactorRow:
     """A prior row holding pose ``key`` at its initial value with the given σ (m, rad)."""
-    if planar:
-        cov = np.diag([sigma_m**2] * 2 + [sigma_rad**2])
-        return FactorRow("prior", "PriorFactorPose2", (key,), value_vector(initial, key, "Pose2")[:3], cov)
-    cov = np.diag([sigma_rad**2] * 3 + [sigma_m**2] * 3)
-    return FactorRow("prior", "PriorFactorPose3", (key,), value_vector(initial, key, "Pose3")[:7], cov)
+    return model.prior_row(key, model.pose.vector(initial, key), sigma_m, sigma_rad)
 
 
 def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: float = 1e-3) -> GraphProblem:
@@ -266,42 +276,9 @@ def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: fl
             f"{path.name} holds no pose vertices (VERTEX_SE2, VERTEX_SE3:QUAT or VERTEX2); "
             "pass a g2o or GTSAM .graph file"
         )
-    planar = r.dim == 2
+    model = PLANAR if r.dim == 2 else SPATIAL
     pose_ids = sorted(i for i in r.poses if i not in r.pose3_landmarks)
-    initial = gtsam.Values()
-    var_types: dict[int, str] = {}
-    for i in pose_ids:
-        initial.insert(int(X(i)), r.poses[i])
-        var_types[int(X(i))] = "Pose2" if planar else "Pose3"
-    off = r.offset or 0
-    landmark_keys: dict[int, int] = {}
-    for i in sorted(r.pose3_landmarks):
-        key = int(L(i - off))
-        initial.insert(key, r.poses[i])
-        var_types[key] = "Pose3"
-        landmark_keys[i - off] = key
-    for j, p in sorted(r.points.items()):
-        key = int(L(j - off))
-        initial.insert(key, np.asarray(p, dtype=float))
-        var_types[key] = "Point2" if planar else "Point3"
-        landmark_keys[j - off] = key
-    # landmarks without a vertex: first sighting, as GTSAM's load2D does
-    rel3 = r.points_rel
-    for i, j, b, rng in r.pending_br:
-        key = int(L(j - off))
-        if key in var_types:
-            continue
-        if int(X(i)) not in var_types:
-            raise InputError(f"{path.name}: landmark {j} is measured from pose {i}, which has no vertex")
-        if planar:
-            pt = r.poses[i].transformFrom(np.array([rng * np.cos(b), rng * np.sin(b)]))
-            initial.insert(key, np.asarray(pt))
-            var_types[key] = "Point2"
-        else:
-            pi, rel = rel3[j]
-            initial.insert(key, np.asarray(r.poses[pi].transformFrom(rel)))
-            var_types[key] = "Point3"
-        landmark_keys[j - off] = key
+    initial, var_types, landmark_keys = _vertices(r, model, pose_ids)
     for row in r.rows:
         for k in row.keys:
             if k not in var_types:
@@ -313,13 +290,12 @@ def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: fl
     priors = [row for row in rows if row.kind == "prior"]
     for i in r.fixed:
         key = int(X(i))
-        if key in var_types and var_types[key].startswith("Pose"):
-            rows.insert(0, _pose_prior(initial, key, planar, 1e-6, 1e-6))
+        if key in var_types and var_kind(var_types[key]).is_pose:
+            rows.insert(0, _pose_prior(initial, key, model, 1e-6, 1e-6))
             priors.append(rows[0])
-    added_prior = False
-    if not priors:
-        rows.insert(0, _pose_prior(initial, int(X(pose_ids[0])), planar, prior_sigma_m, prior_sigma_rad))
-        added_prior = True
+    added_prior = not priors
+    if added_prior:
+        rows.insert(0, _pose_prior(initial, int(X(pose_ids[0])), model, prior_sigma_m, prior_sigma_rad))
     info = {
         "source_file": path.name,
         "format": "gtsam-graph" if any(t in r.counts for t in ("VERTEX2", "EDGE2", "BR")) else "g2o",
@@ -328,7 +304,7 @@ def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: fl
         "prior_added_on_first_pose": added_prior,
     }
     return GraphProblem(
-        model="planar" if planar else "3d",
+        model=model.name,
         rows=rows,
         initial=initial,
         var_types=var_types,
@@ -337,6 +313,50 @@ def read_graph_file(path: Path, prior_sigma_m: float = 1e-3, prior_sigma_rad: fl
         landmark_keys=dict(sorted(landmark_keys.items())),
         info=info,
     )
+
+
+def _vertices(
+    r: _Reader, model: GraphModel, pose_ids: list[int]
+) -> tuple[gtsam.Values, dict[int, str], dict[int, int]]:
+    """Initial values, kinds and landmark keys of the vertices; landmarks without a vertex at their first sighting
+    (as GTSAM's ``load2D`` does)."""
+    initial = gtsam.Values()
+    var_types: dict[int, str] = {}
+    landmark_keys: dict[int, int] = {}
+
+    def add(key: int, value: Any, kind: VarKind) -> None:
+        initial.insert(key, value)
+        var_types[key] = kind.name
+
+    for i in pose_ids:
+        add(int(X(i)), r.poses[i], model.pose)
+    off = r.offset or 0
+    for i in sorted(r.pose3_landmarks):
+        add(int(L(i - off)), r.poses[i], POSE3)
+        landmark_keys[i - off] = int(L(i - off))
+    for j, p in sorted(r.points.items()):
+        add(int(L(j - off)), np.asarray(p, dtype=float), model.point)
+        landmark_keys[j - off] = int(L(j - off))
+    for j, (i, rel) in r.unplaced.items():
+        key = int(L(j - off))
+        if key in var_types:
+            continue
+        if int(X(i)) not in var_types:
+            raise InputError(f"{r.path.name}: landmark {j} is measured from pose {i}, which has no vertex")
+        add(key, np.asarray(r.poses[i].transformFrom(rel)), model.point)
+        landmark_keys[j - off] = key
+    return initial, var_types, landmark_keys
+
+
+_G2O_VERTEX = {
+    POSE2.name: "VERTEX_SE2",
+    POSE3.name: "VERTEX_SE3:QUAT",
+    POINT2.name: "VERTEX_XY",
+    POINT3.name: "VERTEX_TRACKXYZ",
+}
+"""The g2o vertex line of each variable kind."""
+_G2O_PREAMBLE = {PLANAR.name: (), SPATIAL.name: ("PARAMS_SE3OFFSET 0 0 0 0 0 0 0 1",)}
+"""Lines after the header, by graph model: the identity sensor offset the 3D landmark edges refer to."""
 
 
 def _g2o_info_3d(cov: np.ndarray) -> list[float]:
@@ -365,26 +385,14 @@ def write_g2o(problem: GraphProblem, values: gtsam.Values) -> str:
     vid = {k: i for i, k in enumerate(problem.pose_keys)}
     for tag, key in problem.landmark_keys.items():
         vid[key] = offset + tag
-    planar = problem.model == "planar"
     out = [
         f"{OFFSET_TAG} {offset}",
         f"# focusmap graph: {n} poses, {len(problem.landmark_keys)} landmarks, max tag id {max_tag}",
+        *_G2O_PREAMBLE[problem.model],
     ]
-    if not planar:
-        out.append("PARAMS_SE3OFFSET 0 0 0 0 0 0 0 1")
-    for k in problem.pose_keys:
-        t = problem.var_types[k]
-        v = value_vector(values, k, t)
-        out.append(f"VERTEX_SE2 {vid[k]} {_fmt(v[:3])}" if t == "Pose2" else f"VERTEX_SE3:QUAT {vid[k]} {_fmt(v[:7])}")
-    for _tag, k in problem.landmark_keys.items():
-        t = problem.var_types[k]
-        v = value_vector(values, k, t)
-        if t == "Point2":
-            out.append(f"VERTEX_XY {vid[k]} {_fmt(v[:2])}")
-        elif t == "Point3":
-            out.append(f"VERTEX_TRACKXYZ {vid[k]} {_fmt(v[:3])}")
-        else:
-            out.append(f"VERTEX_SE3:QUAT {vid[k]} {_fmt(v[:7])}")
+    for k in [*problem.pose_keys, *problem.landmark_keys.values()]:
+        kind = problem.kind(k)
+        out.append(f"{_G2O_VERTEX[kind.name]} {vid[k]} {_fmt(kind.vector(values, k))}")
     scale_key = problem.scale_key
     s = float(values.atDouble(scale_key)) if scale_key is not None and values.exists(scale_key) else 1.0
     if scale_key is not None:

@@ -18,56 +18,31 @@ import pyarrow as pa
 
 from pipeline.artifacts import StageInput
 from pipeline.errors import InputError
-from stages.graph.factors import FactorRow, make_factor, table_to_rows
-from stages.graph.problem import arrays_to_values
+from stages.graph.factors import make_factor, table_to_rows
+from stages.graph.models import model_of_poses
+from stages.graph.problem import GraphProblem, arrays_to_values
+from stages.graph.variables import var_kind
 
 
-@dataclass
-class LoadedGraph:
-    """A finished graph stage in memory.
+@dataclass(kw_only=True)
+class LoadedGraph(GraphProblem):
+    """A finished graph stage in memory: its :class:`GraphProblem` plus what the stage computed.
+
+    ``rows``, ``initial`` (dead reckoning and first sightings), ``var_types``, ``pose_keys``, ``pose_stamps_ns``
+    (imported graphs: vertex id x 1 s), ``landmark_keys`` (sorted by tag id) and ``model`` are the problem's; the
+    shared tag scale is in no ``pose_keys`` / ``landmark_keys`` (see :attr:`scale_key`).
 
     Attributes:
         graph: the full ``NonlinearFactorGraph``; factor ``i`` is row ``index == i`` of ``factors``.
         values: the optimised values of every variable.
-        initial: the initial values (dead reckoning and first sightings).
-        factors: ``factors.parquet`` as a pyarrow table.
-        rows: the same factors as :class:`FactorRow`.
-        pose_keys: pose keys in time order.
-        pose_stamps_ns: their stamps (imported graphs: vertex id x 1 s).
-        landmark_keys: landmark key by tag id (sorted by tag id).
-        var_types: gtsam type of each variable (``Pose2``, ``Pose3``, ``Point2``, ``Point3``, and ``Scale`` for
-            the shared tag scale, a gtsam ``Double``), by key. The scale is neither a pose nor a landmark: it is
-            in no ``pose_keys`` / ``landmark_keys``; see :attr:`scale_key`.
-        model: ``planar`` or ``3d``.
+        factors: ``factors.parquet`` as a pyarrow table (the same factors as ``rows``).
         marginals: marginal covariance of each key (tangent space), from ``marginals.npz``.
     """
 
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
-    initial: gtsam.Values
     factors: pa.Table
-    rows: list[FactorRow]
-    pose_keys: list[int]
-    pose_stamps_ns: list[int]
-    landmark_keys: dict[int, int]
-    var_types: dict[int, str]
-    model: str
     marginals: dict[int, np.ndarray]
-
-    @property
-    def scale_key(self) -> int | None:
-        """Key of the shared tag scale ``s`` (every tag factor's third key), or None when the graph has none."""
-        return next((k for k, t in self.var_types.items() if t == "Scale"), None)
-
-    @property
-    def tag_factor_indices(self) -> np.ndarray:
-        """Indices of the tag-measurement factors (the selection candidates)."""
-        return np.array([i for i, r in enumerate(self.rows) if r.kind == "tag"], dtype=np.int64)
-
-    @property
-    def fixed_factor_indices(self) -> np.ndarray:
-        """Indices of every other factor (priors, the tag-scale prior, odometry, loops, motion priors)."""
-        return np.array([i for i, r in enumerate(self.rows) if r.kind != "tag"], dtype=np.int64)
 
 
 def load_graph(graph_input: StageInput) -> LoadedGraph:
@@ -97,7 +72,7 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
         int(k): np.asarray(c[:d, :d]) for k, d, c in zip(margs["keys"], margs["dims"], margs["covariance"], strict=True)
     }
     pose_keys = [int(k) for k in poses["key"]]
-    model = "planar" if var_types.get(pose_keys[0]) == "Pose2" else "3d"
+    model = model_of_poses(var_types.get(pose_keys[0], ""))
     return LoadedGraph(
         graph=graph,
         values=values,
@@ -108,7 +83,7 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
         pose_stamps_ns=[int(s) for s in poses["stamp_ns"]],
         landmark_keys={int(t): int(k) for t, k in zip(lms["tag_id"], lms["key"], strict=True)},
         var_types=var_types,
-        model=model,
+        model=model.name,
         marginals=marginals,
     )
 
@@ -138,20 +113,7 @@ def build_reduced(
             if row.kind == "scale_prior" and i not in kept:
                 graph.add(make_factor(row))
     values = gtsam.Values()
-    for k in loaded.var_types:
+    for k, t in loaded.var_types.items():
         if k in used:
-            _copy_value(values, loaded.values, k, loaded.var_types[k])
+            var_kind(t).copy(values, loaded.values, k)
     return graph, values
-
-
-def _copy_value(dst: gtsam.Values, src: gtsam.Values, key: int, var_type: str) -> None:
-    if var_type == "Pose2":
-        dst.insert(key, src.atPose2(key))
-    elif var_type == "Pose3":
-        dst.insert(key, src.atPose3(key))
-    elif var_type == "Point2":
-        dst.insert(key, src.atPoint2(key))
-    elif var_type == "Scale":
-        dst.insert(key, src.atDouble(key))
-    else:
-        dst.insert(key, src.atPoint3(key))

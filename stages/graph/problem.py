@@ -8,16 +8,31 @@ from typing import Any, Literal
 import gtsam
 import numpy as np
 
-from stages.geometry import pose2_to_vector, pose3_from_vector, pose3_to_vector
 from stages.graph.factors import FactorRow
+from stages.graph.models import GraphModel, Model, graph_model
+from stages.graph.variables import (
+    SCALE,
+    VALUE_WIDTH,
+    VAR_DIMS,
+    VarKind,
+    insert_value,
+    value_vector,
+    var_kind,
+)
 
-Model = Literal["planar", "3d"]
+__all__ = [
+    "VALUE_WIDTH",
+    "VAR_DIMS",
+    "GraphProblem",
+    "Model",
+    "VarType",
+    "arrays_to_values",
+    "insert_value",
+    "value_vector",
+    "values_to_arrays",
+]
+
 VarType = Literal["Pose2", "Pose3", "Point2", "Point3", "Scale"]
-VAR_DIMS: dict[str, int] = {"Pose2": 3, "Pose3": 6, "Point2": 2, "Point3": 3, "Scale": 1}
-"""Tangent dimension of each variable type."""
-VALUE_WIDTH = 7
-"""Width of stored value vectors: Pose2 x y theta, Pose3 x y z qx qy qz qw, Point2 x y, Point3 x y z,
-Scale s (a gtsam ``Double``: the shared tag scale) (NaN-padded)."""
 
 
 @dataclass
@@ -54,14 +69,74 @@ class GraphProblem:
             return f"pose {i} (t={(self.pose_stamps_ns[i] - t0) / 1e9:.3f} s, stamp_ns {self.pose_stamps_ns[i]})"
         if key in self._landmark_id:
             return f"tag {self._landmark_id[key]}"
-        if self.var_types.get(key) == "Scale":
+        if key == self.scale_key:
             return "the tag scale s"
         return f"variable {key}"
 
     @property
+    def graph_model(self) -> GraphModel:
+        """The planar or 3D model of the graph (:mod:`stages.graph.models`)."""
+        return graph_model(self.model)
+
+    def kind(self, key: int) -> VarKind:
+        """The kind of variable ``key`` (:mod:`stages.graph.variables`)."""
+        return var_kind(self.var_types[key])
+
+    def position(self, values: gtsam.Values, key: int) -> np.ndarray:
+        """x, y, z of variable ``key`` in the map frame at ``values`` (2D kinds: z = 0)."""
+        kind = self.kind(key)
+        return kind.position(kind.read(values, key))
+
+    def pose3s(self, values: gtsam.Values) -> list[gtsam.Pose3]:
+        """The robot poses at ``values`` as Pose3, in time order."""
+        kind = self.graph_model.pose
+        return [kind.pose3(kind.read(values, k)) for k in self.pose_keys]
+
+    @property
     def scale_key(self) -> int | None:
         """Key of the shared tag scale ``s``, or None when the graph has none (``graph.tag_scale_sigma: 0``)."""
-        return next((k for k, t in self.var_types.items() if t == "Scale"), None)
+        return next((k for k, t in self.var_types.items() if t == SCALE.name), None)
+
+    @property
+    def tag_factor_indices(self) -> np.ndarray:
+        """Indices of the tag-measurement factors (the selection candidates)."""
+        return np.array([i for i, r in enumerate(self.rows) if r.kind == "tag"], dtype=np.int64)
+
+    @property
+    def fixed_factor_indices(self) -> np.ndarray:
+        """Indices of every other factor (priors, the tag-scale prior, odometry, loops, motion priors)."""
+        return np.array([i for i, r in enumerate(self.rows) if r.kind != "tag"], dtype=np.int64)
+
+    def restricted(
+        self,
+        rows: list[FactorRow],
+        values: gtsam.Values,
+        landmark_heights: dict[int, tuple[float, float]] | None = None,
+    ) -> GraphProblem:
+        """The problem of ``rows`` only: the variables they touch, initialised from ``values``.
+
+        Every pose stays (a pose no row touches is kept in ``pose_keys``, not in the values); landmarks no row
+        touches are left out, and so are their heights.
+        """
+        used = {k for r in rows for k in r.keys}
+        initial = gtsam.Values()
+        var_types: dict[int, str] = {}
+        for k, t in self.var_types.items():
+            if k in used:
+                insert_value(initial, k, t, value_vector(values, k, t))
+                var_types[k] = t
+        observed = sorted(t for t, k in self.landmark_keys.items() if k in used)
+        heights = self.landmark_heights if landmark_heights is None else landmark_heights
+        return GraphProblem(
+            model=self.model,
+            rows=rows,
+            initial=initial,
+            var_types=var_types,
+            pose_keys=list(self.pose_keys),
+            pose_stamps_ns=list(self.pose_stamps_ns),
+            landmark_keys={t: self.landmark_keys[t] for t in observed},
+            landmark_heights={t: h for t, h in heights.items() if t in set(observed)},
+        )
 
     @property
     def _pose_index(self) -> dict[int, int]:
@@ -70,41 +145,6 @@ class GraphProblem:
     @property
     def _landmark_id(self) -> dict[int, int]:
         return {k: t for t, k in self.landmark_keys.items()}
-
-
-def value_vector(values: gtsam.Values, key: int, var_type: str) -> np.ndarray:
-    """The stored vector of one variable (NaN-padded to :data:`VALUE_WIDTH`)."""
-    out = np.full(VALUE_WIDTH, np.nan)
-    if var_type == "Pose2":
-        out[:3] = pose2_to_vector(values.atPose2(key))
-    elif var_type == "Pose3":
-        out[:7] = pose3_to_vector(values.atPose3(key))
-    elif var_type == "Point2":
-        out[:2] = values.atPoint2(key)
-    elif var_type == "Point3":
-        out[:3] = values.atPoint3(key)
-    elif var_type == "Scale":
-        out[0] = values.atDouble(key)
-    else:
-        raise ValueError(f"unknown variable type {var_type!r}")
-    return out
-
-
-def insert_value(values: gtsam.Values, key: int, var_type: str, vec: np.ndarray) -> None:
-    """Insert one variable from its stored vector."""
-    v = np.asarray(vec, dtype=float)
-    if var_type == "Pose2":
-        values.insert(key, gtsam.Pose2(v[0], v[1], v[2]))
-    elif var_type == "Pose3":
-        values.insert(key, pose3_from_vector(v[:7]))
-    elif var_type == "Point2":
-        values.insert(key, v[:2].copy())
-    elif var_type == "Point3":
-        values.insert(key, v[:3].copy())
-    elif var_type == "Scale":
-        values.insert(key, float(v[0]))
-    else:
-        raise ValueError(f"unknown variable type {var_type!r}")
 
 
 def values_to_arrays(values: gtsam.Values, var_types: dict[int, str], keys: list[int]) -> np.ndarray:

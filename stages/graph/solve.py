@@ -16,8 +16,9 @@ import numpy as np
 
 from pipeline.errors import StageError
 from stages.graph.factors import build_graph, has_python_factors
-from stages.graph.problem import VAR_DIMS, GraphProblem
+from stages.graph.problem import GraphProblem
 from stages.graph.python_loop import optimise_in_python
+from stages.graph.variables import SCALE
 
 _FIX = (
     "add odometry or enable graph.motion_prior, drop the tag with graph.min_tag_observations, or check its detections"
@@ -35,29 +36,58 @@ def check_problem(problem: GraphProblem) -> None:
     """Raise a :class:`StageError` for the first problem that would make the graph meaningless or singular."""
     if not problem.pose_keys:
         raise StageError("the graph has no poses; the run needs detections or odometry")
-    for i, row in enumerate(problem.rows):
-        m = np.asarray(row.measurement, dtype=float)
-        C = np.asarray(row.covariance, dtype=float).reshape(row.dim, row.dim)
-        if not (np.all(np.isfinite(m)) and np.all(np.isfinite(C))):
-            raise StageError(f"{_row_label(problem, i)} has NaN or infinite numbers; check the input tables")
-        try:
-            np.linalg.cholesky(0.5 * (C + C.T))
-        except np.linalg.LinAlgError:
-            raise StageError(
-                f"{_row_label(problem, i)} has a covariance that is not positive definite; "
-                "check the detection/odometry covariances or set a floor in the graph settings"
-            ) from None
-        for k in row.keys:
-            if k not in problem.var_types:
-                raise StageError(f"{_row_label(problem, i)} refers to key {k} that has no initial value")
+    for i in range(len(problem.rows)):
+        _check_row(problem, i)
     keys = list(problem.var_types)
     for k in keys:
         if not problem.initial.exists(k):
             raise StageError(f"{problem.describe(k)} has no initial value")
-    # measurement dimension touching each variable, and connectivity to the prior
-    touched = dict.fromkeys(keys, 0)
-    parent = {k: k for k in keys}
+    touched = dict.fromkeys(keys, 0)  # measurement dimensions touching each variable
+    for row in problem.rows:
+        for k in row.keys:
+            touched[k] += row.dim
+    for k in keys:
+        if touched[k] == 0:
+            raise StageError(f"{problem.describe(k)} is in no factor, so nothing constrains it; {_FIX}")
+        if touched[k] < problem.kind(k).dim:
+            raise StageError(
+                f"{problem.describe(k)} is under-constrained ({touched[k]} measurement dimensions for "
+                f"{problem.kind(k).dim} unknowns); {_FIX}"
+            )
+    loose = _unanchored(problem)
+    if loose:
+        poses = [k for k in loose if k in set(problem.pose_keys)]
+        first = poses[0] if poses else loose[0]
+        raise StageError(
+            f"{len(loose)} variables are not connected to the first pose, starting with "
+            f"{problem.describe(first)}; {_FIX}"
+        )
+
+
+def _check_row(problem: GraphProblem, i: int) -> None:
+    """Finite numbers, a positive definite covariance, and keys that have values."""
+    row = problem.rows[i]
+    m = np.asarray(row.measurement, dtype=float)
+    C = np.asarray(row.covariance, dtype=float).reshape(row.dim, row.dim)
+    if not (np.all(np.isfinite(m)) and np.all(np.isfinite(C))):
+        raise StageError(f"{_row_label(problem, i)} has NaN or infinite numbers; check the input tables")
+    try:
+        np.linalg.cholesky(0.5 * (C + C.T))
+    except np.linalg.LinAlgError:
+        raise StageError(
+            f"{_row_label(problem, i)} has a covariance that is not positive definite; "
+            "check the detection/odometry covariances or set a floor in the graph settings"
+        ) from None
+    for k in row.keys:
+        if k not in problem.var_types:
+            raise StageError(f"{_row_label(problem, i)} refers to key {k} that has no initial value")
+
+
+def _unanchored(problem: GraphProblem) -> list[int]:
+    """Variables no chain of factors connects to a prior (union-find over the factors' keys)."""
+    keys = list(problem.var_types)
     anchor = -1
+    parent = {k: k for k in keys}
     parent[anchor] = anchor
 
     def find(a: int) -> int:
@@ -67,12 +97,10 @@ def check_problem(problem: GraphProblem) -> None:
         return a
 
     # the shared tag scale (its own prior) joins every tag factor: it must not join their poses and landmarks
-    scale = {k for k in keys if problem.var_types[k] == "Scale"}
+    scale = {k for k in keys if problem.kind(k) is SCALE}
     for k in scale:
         parent[k] = anchor
     for row in problem.rows:
-        for k in row.keys:
-            touched[k] += row.dim
         rk = [k for k in row.keys if k not in scale]
         if not rk:
             continue
@@ -80,23 +108,8 @@ def check_problem(problem: GraphProblem) -> None:
         root = find(ks[0])
         for k in ks[1:]:
             parent[find(k)] = root
-    for k in keys:
-        if touched[k] == 0:
-            raise StageError(f"{problem.describe(k)} is in no factor, so nothing constrains it; {_FIX}")
-        if touched[k] < VAR_DIMS[problem.var_types[k]]:
-            raise StageError(
-                f"{problem.describe(k)} is under-constrained ({touched[k]} measurement dimensions for "
-                f"{VAR_DIMS[problem.var_types[k]]} unknowns); {_FIX}"
-            )
     root = find(anchor)
-    loose = [k for k in keys if find(k) != root]
-    if loose:
-        poses = [k for k in loose if k in set(problem.pose_keys)]
-        first = poses[0] if poses else loose[0]
-        raise StageError(
-            f"{len(loose)} variables are not connected to the first pose, starting with "
-            f"{problem.describe(first)}; {_FIX}"
-        )
+    return [k for k in keys if find(k) != root]
 
 
 @dataclass
@@ -153,7 +166,7 @@ def optimise(
     try:
         if has_python_factors(problem.rows):
             method = "gn" if optimizer == "gn" else "lm"
-            dims = {k: VAR_DIMS[t] for k, t in problem.var_types.items()}
+            dims = {k: problem.kind(k).dim for k in problem.var_types}
             loop = optimise_in_python(
                 graph, problem.initial, dims, method, max_iterations, relative_error_tol, absolute_tol=1e-9
             )

@@ -7,6 +7,7 @@ them, AprilTag detections. Writes the artifacts described in ``stages/ingest/ART
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -15,11 +16,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
+from pipeline.artifacts import StageOutput
 from pipeline.context import StageContext
 from pipeline.errors import InputError
 from pipeline.stage import Stage
 from stages.ingest import convert
-from stages.ingest.bags import Recording
+from stages.ingest.bags import RawMessage, Recording
 from stages.ingest.record import log_ingest
 from stages.ingest.topics import ROLES, resolve_topic
 
@@ -150,10 +152,9 @@ class _TableWriter:
         self.writer.close()
 
 
-def _load_camera_file(ctx: StageContext, path: str) -> dict[str, Any]:
+def _load_camera_file(path: str) -> dict[str, Any]:
     from stages.camera import load_camera_file
 
-    ctx.outside_file(path)  # a changed calibration file re-runs ingest
     return load_camera_file(Path(path))
 
 
@@ -161,132 +162,27 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
     """Read the recording into the run folder."""
     started = time.perf_counter()
     with Recording(ctx.source, salvage=cfg.salvage) as rec:
-        if rec.message_count == 0:
-            raise InputError(f"{rec.path.name} holds no messages; record again or pick another bag")
-        topics = {name: resolve_topic(rec, role, getattr(cfg, role.setting)) for name, role in ROLES.items()}
-        if topics["image"] is None and topics["detections"] is None:
-            present = ", ".join(f"{n} ({t.type})" for n, t in sorted(rec.topics.items()))
-            raise InputError(
-                f"{rec.path.name} has no camera image topic (sensor_msgs/Image or CompressedImage) and no AprilTag "
-                f"detections; topics present: {present}"
-            )
-        use_detections = topics["detections"] is not None and (topics["image"] is None or cfg.detections_topic)
-        if use_detections:
-            topics["image"] = None if not cfg.image_topic else topics["image"]
-        camera: dict[str, Any] | None = _load_camera_file(ctx, cfg.camera_file) if cfg.camera_file else None
-        if camera is None and topics["camera_info"] is None:
-            raise InputError(
-                f"{rec.path.name} has no CameraInfo topic; pass the calibration with --camera FILE "
-                "(Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML)"
-            )
-        start_ns = rec.start_ns + int(cfg.start_s * 1e9)
-        end_ns = rec.start_ns + int(cfg.end_s * 1e9) if cfg.end_s is not None else None
-        if end_ns is not None and end_ns <= start_ns:
-            raise InputError(f"--end {cfg.end_s} s is not after --start {cfg.start_s} s")
-
-        out = ctx.output
-        frames = _TableWriter(out.file("frames.parquet"), _frames_schema())
-        odom = _TableWriter(out.file("odometry.parquet"), _odometry_schema(), batch=4096)
-        scans = _TableWriter(out.file("scans.parquet"), _scans_schema(), batch=1024)
-        dets = (
-            _TableWriter(out.file("tag_detections.parquet"), _detections_schema(), batch=4096)
-            if use_detections
-            else None
-        )
-        edges: list[tuple[str, str, np.ndarray]] = []
-        frame_index: dict[str, int] = {}
-        image_frame_id = ""
-        wanted = [t for t in topics.values() if t]
-        total = sum(rec.topics[t].count for t in wanted)
-        base_frame = ""
-        odom_frame = ""
-        for raw in ctx.progress(rec.messages(wanted), "ingest", total=total):
-            topic = raw.topic
-            if topic == topics["tf_static"]:
-                edges.extend(convert.transform_edges(raw.decode()))
-                continue
-            if topic in (topics["image"], topics["detections"]):
-                index = frame_index.get(topic, 0)
-                frame_index[topic] = index + 1
-                if raw.log_time_ns < start_ns or (end_ns is not None and raw.log_time_ns > end_ns):
-                    continue
-                if index % cfg.frame_stride:
-                    continue
-                msg = raw.decode()
-                stamp = convert.stamp_ns(msg, raw.log_time_ns)
-                if topic == topics["image"]:
-                    row = convert.image_row(msg, compressed=raw.type.endswith("CompressedImage"))
-                    image_frame_id = image_frame_id or convert.frame_id(msg)
-                    frames.add({"frame": index, "stamp_ns": stamp, "topic": topic, **row})
-                else:
-                    assert dets is not None
-                    image_frame_id = image_frame_id or convert.frame_id(msg)
-                    for r in _detection_rows(msg, index, stamp, topic):
-                        dets.add(r)
-                continue
-            if raw.log_time_ns < start_ns or (end_ns is not None and raw.log_time_ns > end_ns):
-                continue
-            if topic == topics["camera_info"] and camera is not None:
-                continue  # the first calibration in the window is the one used
-            msg = raw.decode()
-            if topic == topics["camera_info"]:
-                if camera is None:
-                    camera = convert.camera_from_info(msg, topic)
-            elif topic == topics["odometry"]:
-                row = convert.odometry_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
-                base_frame = base_frame or row["child_frame_id"]
-                odom_frame = odom_frame or row["frame_id"]
-                odom.add(row)
-            elif topic == topics["scan"]:
-                scans.add(convert.scan_row(msg, convert.stamp_ns(msg, raw.log_time_ns)))
-        for w in (frames, odom, scans, *([dets] if dets else [])):
-            w.close()
-        salvaged = rec.salvaged
-        reader, fmt, storage = rec.reader, rec.format, rec.storage
-        bag_start, bag_end = rec.start_ns, rec.end_ns
-
-    if frames.count == 0 and (dets is None or frame_index.get(topics["detections"] or "", 0) == 0):
-        window = f" between {cfg.start_s} s and {cfg.end_s} s" if cfg.start_s or cfg.end_s else ""
-        raise InputError(
-            f"no camera frames on {topics['image'] or topics['detections']}{window}; widen the time window"
-        )
-    if camera is None:
-        raise InputError(f"no CameraInfo message on {topics['camera_info']} in the time window; pass --camera FILE")
-
-    camera_frame = camera.get("frame_id") or image_frame_id
-    camera["frame_id"] = camera_frame
-    base = base_frame or camera_frame
-    sensors: dict[str, Any] = {}
-    notes: list[str] = []
-    scan_frame = ""
-    if scans.count:
-        scan_frame = str(pq.read_table(out.file("scans.parquet"), columns=["frame_id"]).column(0)[0])
-    for role, frame in (("camera", camera_frame), ("laser", scan_frame)):
-        if not frame:
-            continue
-        T = convert.chain(edges, base, frame)
-        assumed = T is None
-        if T is None:
-            notes.append(f"no static transform from {base!r} to {role} frame {frame!r}; identity assumed")
-            T = np.eye(4)
-        sensors[role] = {"frame_id": frame, "T_base_sensor": T.tolist(), "assumed": assumed}
-    out.write_json("camera.json", camera)
-    out.write_json("extrinsics.json", {"base_frame": base, "odom_frame": odom_frame, "sensors": sensors})
-    if dets is None:
-        out.file("tag_detections.parquet").unlink(missing_ok=True)
-
-    duration = (bag_end - bag_start) * 1e-9
+        if cfg.camera_file:
+            ctx.outside_file(cfg.camera_file)  # a changed calibration file re-runs ingest
+        plan = _plan(rec, cfg)
+        reading = _Reading(ctx.output, plan, cfg.frame_stride)
+        total = sum(rec.topics[t].count for t in plan.wanted)
+        for raw in ctx.progress(rec.messages(plan.wanted), "ingest", total=total):
+            reading.add(raw)
+        reading.close()
+        bag = {"reader": rec.reader, "format": rec.format, "storage": rec.storage}
+        bag_start, bag_end, salvaged = rec.start_ns, rec.end_ns, rec.salvaged
+    camera = _check_read(plan, reading, cfg)
+    sensors, notes = _write_calibration(ctx.output, reading, camera)
     summary = {
-        "frames": frames.count,
-        "tag_detections": dets.count if dets else 0,
-        "odometry": odom.count,
-        "scans": scans.count,
-        "duration_s": round(duration, 6),
+        "frames": reading.frames.count,
+        "tag_detections": reading.dets.count if reading.dets else 0,
+        "odometry": reading.odom.count,
+        "scans": reading.scans.count,
+        "duration_s": round((bag_end - bag_start) * 1e-9, 6),
         "start_ns": bag_start,
-        "topics": {k: v for k, v in topics.items() if v},
-        "reader": reader,
-        "format": fmt,
-        "storage": storage,
+        "topics": {k: v for k, v in plan.topics.items() if v},
+        **bag,
         "camera": {k: camera[k] for k in ("width", "height", "distortion_model", "frame_id", "source")},
         "notes": notes,
         "read_seconds": round(time.perf_counter() - started, 3),
@@ -295,6 +191,161 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         summary["salvaged"] = salvaged
     log_ingest(ctx, camera, sensors)
     return summary
+
+
+@dataclass
+class _Plan:
+    """What to read: the topic of each role, whether tags come as detections, the calibration file, the window."""
+
+    topics: dict[str, str | None]
+    use_detections: bool
+    camera: dict[str, Any] | None
+    """The calibration from ``camera_file``; None: from the first CameraInfo message in the window."""
+    start_ns: int
+    end_ns: int | None
+
+    @property
+    def wanted(self) -> list[str]:
+        return [t for t in self.topics.values() if t]
+
+    def in_window(self, stamp_ns: int) -> bool:
+        return not (stamp_ns < self.start_ns or (self.end_ns is not None and stamp_ns > self.end_ns))
+
+
+def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
+    """Resolve the topics and the time window; fail early when the recording cannot give frames or a camera."""
+    if rec.message_count == 0:
+        raise InputError(f"{rec.path.name} holds no messages; record again or pick another bag")
+    topics = {name: resolve_topic(rec, role, getattr(cfg, role.setting)) for name, role in ROLES.items()}
+    if topics["image"] is None and topics["detections"] is None:
+        present = ", ".join(f"{n} ({t.type})" for n, t in sorted(rec.topics.items()))
+        raise InputError(
+            f"{rec.path.name} has no camera image topic (sensor_msgs/Image or CompressedImage) and no AprilTag "
+            f"detections; topics present: {present}"
+        )
+    use_detections = bool(topics["detections"] is not None and (topics["image"] is None or cfg.detections_topic))
+    if use_detections:
+        topics["image"] = None if not cfg.image_topic else topics["image"]
+    camera: dict[str, Any] | None = _load_camera_file(cfg.camera_file) if cfg.camera_file else None
+    if camera is None and topics["camera_info"] is None:
+        raise InputError(
+            f"{rec.path.name} has no CameraInfo topic; pass the calibration with --camera FILE "
+            "(Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML)"
+        )
+    start_ns = rec.start_ns + int(cfg.start_s * 1e9)
+    end_ns = rec.start_ns + int(cfg.end_s * 1e9) if cfg.end_s is not None else None
+    if end_ns is not None and end_ns <= start_ns:
+        raise InputError(f"--end {cfg.end_s} s is not after --start {cfg.start_s} s")
+    return _Plan(topics, use_detections, camera, start_ns, end_ns)
+
+
+class _Reading:
+    """The messages as they stream by: table writers, the static transforms, the camera and frame names."""
+
+    def __init__(self, out: StageOutput, plan: _Plan, frame_stride: int = 1) -> None:
+        self.out, self.plan, self.frame_stride = out, plan, frame_stride
+        self.frames = _TableWriter(out.file("frames.parquet"), _frames_schema())
+        self.odom = _TableWriter(out.file("odometry.parquet"), _odometry_schema(), batch=4096)
+        self.scans = _TableWriter(out.file("scans.parquet"), _scans_schema(), batch=1024)
+        self.dets = (
+            _TableWriter(out.file("tag_detections.parquet"), _detections_schema(), batch=4096)
+            if plan.use_detections
+            else None
+        )
+        self.edges: list[tuple[str, str, np.ndarray]] = []
+        self.frame_index: dict[str, int] = {}
+        self.camera = plan.camera
+        self.image_frame_id = ""
+        self.base_frame = ""
+        self.odom_frame = ""
+
+    def add(self, raw: RawMessage) -> None:
+        """Take one message: a static transform, a camera frame (or its detections), or a sensor message."""
+        topics = self.plan.topics
+        if raw.topic == topics["tf_static"]:
+            self.edges.extend(convert.transform_edges(raw.decode()))
+        elif raw.topic in (topics["image"], topics["detections"]):
+            self._frame(raw)
+        elif self.plan.in_window(raw.log_time_ns):
+            self._sensor(raw)
+
+    def _frame(self, raw: RawMessage) -> None:
+        """A camera frame (image or tag detections), counted from the first in the bag for the stride."""
+        index = self.frame_index.get(raw.topic, 0)
+        self.frame_index[raw.topic] = index + 1
+        if not self.plan.in_window(raw.log_time_ns) or index % self.frame_stride:
+            return
+        msg = raw.decode()
+        stamp = convert.stamp_ns(msg, raw.log_time_ns)
+        self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
+        if raw.topic == self.plan.topics["image"]:
+            row = convert.image_row(msg, compressed=raw.type.endswith("CompressedImage"))
+            self.frames.add({"frame": index, "stamp_ns": stamp, "topic": raw.topic, **row})
+        else:
+            assert self.dets is not None
+            for r in _detection_rows(msg, index, stamp, raw.topic):
+                self.dets.add(r)
+
+    def _sensor(self, raw: RawMessage) -> None:
+        """The first CameraInfo in the window, odometry and laser scans."""
+        topics = self.plan.topics
+        if raw.topic == topics["camera_info"] and self.camera is not None:
+            return  # the first calibration in the window is the one used
+        msg = raw.decode()
+        if raw.topic == topics["camera_info"]:
+            self.camera = convert.camera_from_info(msg, raw.topic)
+        elif raw.topic == topics["odometry"]:
+            row = convert.odometry_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
+            self.base_frame = self.base_frame or row["child_frame_id"]
+            self.odom_frame = self.odom_frame or row["frame_id"]
+            self.odom.add(row)
+        elif raw.topic == topics["scan"]:
+            self.scans.add(convert.scan_row(msg, convert.stamp_ns(msg, raw.log_time_ns)))
+
+    def close(self) -> None:
+        for w in (self.frames, self.odom, self.scans, *([self.dets] if self.dets else [])):
+            w.close()
+
+
+def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> dict[str, Any]:
+    """The camera calibration; fail when the window held no camera frame or no calibration."""
+    topics = plan.topics
+    if reading.frames.count == 0 and (
+        reading.dets is None or reading.frame_index.get(topics["detections"] or "", 0) == 0
+    ):
+        window = f" between {cfg.start_s} s and {cfg.end_s} s" if cfg.start_s or cfg.end_s else ""
+        raise InputError(
+            f"no camera frames on {topics['image'] or topics['detections']}{window}; widen the time window"
+        )
+    if reading.camera is None:
+        raise InputError(f"no CameraInfo message on {topics['camera_info']} in the time window; pass --camera FILE")
+    return reading.camera
+
+
+def _write_calibration(out: StageOutput, reading: _Reading, camera: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """``camera.json`` and ``extrinsics.json`` (base to camera and laser from the static transforms)."""
+    camera_frame = camera.get("frame_id") or reading.image_frame_id
+    camera["frame_id"] = camera_frame
+    base = reading.base_frame or camera_frame
+    sensors: dict[str, Any] = {}
+    notes: list[str] = []
+    scan_frame = ""
+    if reading.scans.count:
+        scan_frame = str(pq.read_table(out.file("scans.parquet"), columns=["frame_id"]).column(0)[0])
+    for role, frame in (("camera", camera_frame), ("laser", scan_frame)):
+        if not frame:
+            continue
+        T = convert.chain(reading.edges, base, frame)
+        assumed = T is None
+        if T is None:
+            notes.append(f"no static transform from {base!r} to {role} frame {frame!r}; identity assumed")
+            T = np.eye(4)
+        sensors[role] = {"frame_id": frame, "T_base_sensor": T.tolist(), "assumed": assumed}
+    out.write_json("camera.json", camera)
+    out.write_json("extrinsics.json", {"base_frame": base, "odom_frame": reading.odom_frame, "sensors": sensors})
+    if reading.dets is None:
+        out.file("tag_detections.parquet").unlink(missing_ok=True)
+    return sensors, notes
 
 
 def _blueprint() -> Any:

@@ -249,82 +249,32 @@ def simulate(
     keep = min(params.keep_paths, N)
     paths = np.zeros((keep, K, 2))
     paths[:, 0] = x[:keep, :2]
-    se_track = se_est = sig_sum = 0.0
-    n_active = 0
-    step_dev = np.zeros(K)
-    step_sig = np.zeros(K)
-    step_n = np.zeros(K)
-
-    def per_step(k: int, active: npt.NDArray[np.bool_]) -> None:
-        if not active.any():
-            return
-        step_dev[k] = float(np.square(x[active, :2] - path.poses[k, :2]).sum())
-        Pxy = P[active, :2, :2]
-        tr, det = Pxy[:, 0, 0] + Pxy[:, 1, 1], Pxy[:, 0, 0] * Pxy[:, 1, 1] - Pxy[:, 0, 1] * Pxy[:, 1, 0]
-        lam = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
-        step_sig[k] = float(np.sqrt(np.maximum(lam, 0.0)).sum())
-        step_n[k] = float(active.sum())
-
-    eye3 = np.eye(3)
+    stats = _TrialStats(K)
     if obstacles is not None:
-        d0 = obstacles.distance(x[:, :2])
-        hit = d0 < params.robot_radius_m
+        hit = obstacles.distance(x[:, :2]) < params.robot_radius_m
         collided |= hit
         col_step[hit] = 0
-    per_step(0, ~collided)
+    stats.step(0, ~collided, x, P, path.poses[0])
     for k in range(K - 1):
-        e = xh - path.poses[k]
-        e[:, 2] = wrap(e[:, 2])
-        u = path.controls[k] - e @ gains[k].T
-        u[:, 0] = np.clip(u[:, 0], -params.max_speed_mps, params.max_speed_mps)
-        u[:, 1] = np.clip(u[:, 1], -params.max_yaw_rate_radps, params.max_yaw_rate_radps)
+        u = _control(xh, path, gains, k, params)
         # the world
         noisy = u + rng.standard_normal((N, 2)) * np.sqrt(np.diag(Qu))
-        x_new = _f(x, noisy, dt)
-        x = np.where(collided[:, None], x, x_new)
+        x = np.where(collided[:, None], x, _f(x, noisy, dt))
         # EKF predict
         A, B = _AB(xh, u, dt)
         xh = _f(xh, u, dt)
-        P = A @ P @ A.transpose(0, 2, 1) + B @ Qu @ B.transpose(0, 2, 1) + 1e-12 * eye3
+        P = A @ P @ A.transpose(0, 2, 1) + B @ Qu @ B.transpose(0, 2, 1) + 1e-12 * np.eye(3)
         # EKF update, one landmark of the map at a time (eq. 26 noise)
         for lid in visibility[k + 1]:
             j = index.get(int(lid))
             if j is None or int(lid) not in truth:
                 continue
-            lt, lh, SL = truth[int(lid)], landmark_map.positions[j], landmark_map.covariances[j]
-            dt_true = lt - x[:, :2]
-            z = np.column_stack(
-                [
-                    wrap(np.arctan2(dt_true[:, 1], dt_true[:, 0]) - x[:, 2]),
-                    np.hypot(dt_true[:, 0], dt_true[:, 1]),
-                ]
-            ) + rng.standard_normal((N, 2)) * np.sqrt(np.diag(R))
-            d = lh - xh[:, :2]
-            q = np.maximum((d * d).sum(1), 1e-12)
-            r = np.sqrt(q)
-            zh = np.column_stack([np.arctan2(d[:, 1], d[:, 0]) - xh[:, 2], r])
-            H = np.zeros((N, 2, 3))
-            H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = d[:, 1] / q, -d[:, 0] / q, -1.0
-            H[:, 1, 0], H[:, 1, 1] = -d[:, 0] / r, -d[:, 1] / r
-            M = np.zeros((N, 2, 2))
-            M[:, 0, 0], M[:, 0, 1] = -d[:, 1] / q, d[:, 0] / q
-            M[:, 1, 0], M[:, 1, 1] = d[:, 0] / r, d[:, 1] / r
-            Rbar = R + M @ SL @ M.transpose(0, 2, 1)
-            PHt = P @ H.transpose(0, 2, 1)
-            S = H @ PHt + Rbar
-            Kg = PHt @ np.linalg.inv(S)
-            nu = z - zh
-            nu[:, 0] = wrap(nu[:, 0])
-            xh = xh + np.einsum("nij,nj->ni", Kg, nu)
-            IKH = eye3 - Kg @ H
-            P = IKH @ P @ IKH.transpose(0, 2, 1) + Kg @ Rbar @ Kg.transpose(0, 2, 1)
+            z = _measure(x, truth[int(lid)], R, rng)
+            xh, P = _ekf_update(xh, P, z, landmark_map.positions[j], landmark_map.covariances[j], R)
         active = ~collided
         if active.any():
-            se_track += float((np.square(x[active, :2] - path.poses[k + 1, :2])).sum())
-            se_est += float((np.square(xh[active, :2] - x[active, :2])).sum())
-            sig_sum += float(np.sqrt(np.maximum(P[active, 0, 0] + P[active, 1, 1], 0.0)).sum())
-            n_active += int(active.sum())
-            per_step(k + 1, active)
+            stats.add(active, x, xh, P, path.poses[k + 1])
+            stats.step(k + 1, active, x, P, path.poses[k + 1])
         if obstacles is not None:
             hit = active & (obstacles.distance(x[:, :2]) < params.robot_radius_m)
             collided |= hit
@@ -332,7 +282,7 @@ def simulate(
         paths[:, k + 1] = x[:keep, :2]
     n_col = int(collided.sum())
     lo, hi = wilson_interval(n_col, N)
-    denom = max(n_active, 1)
+    denom = max(stats.n_active, 1)
     return NavigationResult(
         trials=N,
         collisions=n_col,
@@ -340,10 +290,84 @@ def simulate(
         ci_low=lo,
         ci_high=hi,
         collision_steps=col_step,
-        rms_tracking_error_m=float(np.sqrt(se_track / denom)),
-        rms_estimation_error_m=float(np.sqrt(se_est / denom)),
+        rms_tracking_error_m=float(np.sqrt(stats.se_track / denom)),
+        rms_estimation_error_m=float(np.sqrt(stats.se_est / denom)),
         sample_paths=paths,
-        mean_estimate_sigma_m=sig_sum / denom,
-        step_rms_deviation_m=np.where(step_n > 0, np.sqrt(step_dev / np.maximum(step_n, 1)), np.nan),
-        step_ekf_sigma_m=np.where(step_n > 0, step_sig / np.maximum(step_n, 1), np.nan),
+        mean_estimate_sigma_m=stats.sig_sum / denom,
+        step_rms_deviation_m=np.where(stats.step_n > 0, np.sqrt(stats.step_dev / np.maximum(stats.step_n, 1)), np.nan),
+        step_ekf_sigma_m=np.where(stats.step_n > 0, stats.step_sig / np.maximum(stats.step_n, 1), np.nan),
     )
+
+
+class _TrialStats:
+    """Running sums over the trials still moving: tracking and estimation errors, EKF sigma, per step."""
+
+    def __init__(self, K: int) -> None:
+        self.se_track = self.se_est = self.sig_sum = 0.0
+        self.n_active = 0
+        self.step_dev = np.zeros(K)
+        self.step_sig = np.zeros(K)
+        self.step_n = np.zeros(K)
+
+    def add(
+        self, active: npt.NDArray[np.bool_], x: FloatArray, xh: FloatArray, P: FloatArray, nominal: FloatArray
+    ) -> None:
+        """One step's squared errors (true from nominal, estimate from true) and position sigmas."""
+        self.se_track += float((np.square(x[active, :2] - nominal[:2])).sum())
+        self.se_est += float((np.square(xh[active, :2] - x[active, :2])).sum())
+        self.sig_sum += float(np.sqrt(np.maximum(P[active, 0, 0] + P[active, 1, 1], 0.0)).sum())
+        self.n_active += int(active.sum())
+
+    def step(self, k: int, active: npt.NDArray[np.bool_], x: FloatArray, P: FloatArray, nominal: FloatArray) -> None:
+        """Step ``k``'s squared deviation from the nominal path and the sum of the EKF's largest position sigmas."""
+        if not active.any():
+            return
+        self.step_dev[k] = float(np.square(x[active, :2] - nominal[:2]).sum())
+        Pxy = P[active, :2, :2]
+        tr, det = Pxy[:, 0, 0] + Pxy[:, 1, 1], Pxy[:, 0, 0] * Pxy[:, 1, 1] - Pxy[:, 0, 1] * Pxy[:, 1, 0]
+        lam = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+        self.step_sig[k] = float(np.sqrt(np.maximum(lam, 0.0)).sum())
+        self.step_n[k] = float(active.sum())
+
+
+def _control(xh: FloatArray, path: NominalPath, gains: FloatArray, k: int, params: NavigationParams) -> FloatArray:
+    """The LQR control of step ``k`` from the estimates, clipped to the speed and yaw-rate limits."""
+    e = xh - path.poses[k]
+    e[:, 2] = wrap(e[:, 2])
+    u = path.controls[k] - e @ gains[k].T
+    u[:, 0] = np.clip(u[:, 0], -params.max_speed_mps, params.max_speed_mps)
+    u[:, 1] = np.clip(u[:, 1], -params.max_yaw_rate_radps, params.max_yaw_rate_radps)
+    return u
+
+
+def _measure(x: FloatArray, landmark: FloatArray, R: FloatArray, rng: np.random.Generator) -> FloatArray:
+    """Noisy bearing and range of the true ``landmark`` from each true pose."""
+    d = landmark - x[:, :2]
+    z = np.column_stack([wrap(np.arctan2(d[:, 1], d[:, 0]) - x[:, 2]), np.hypot(d[:, 0], d[:, 1])])
+    return z + rng.standard_normal((len(x), 2)) * np.sqrt(np.diag(R))
+
+
+def _ekf_update(
+    xh: FloatArray, P: FloatArray, z: FloatArray, lh: FloatArray, SL: FloatArray, R: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """EKF update of every trial with one bearing-range measurement of a map landmark at ``lh`` with covariance
+    ``SL``: the landmark's uncertainty enters as measurement noise (eq. 26), Joseph form."""
+    N = len(xh)
+    d = lh - xh[:, :2]
+    q = np.maximum((d * d).sum(1), 1e-12)
+    r = np.sqrt(q)
+    zh = np.column_stack([np.arctan2(d[:, 1], d[:, 0]) - xh[:, 2], r])
+    H = np.zeros((N, 2, 3))
+    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = d[:, 1] / q, -d[:, 0] / q, -1.0
+    H[:, 1, 0], H[:, 1, 1] = -d[:, 0] / r, -d[:, 1] / r
+    M = np.zeros((N, 2, 2))
+    M[:, 0, 0], M[:, 0, 1] = -d[:, 1] / q, d[:, 0] / q
+    M[:, 1, 0], M[:, 1, 1] = d[:, 0] / r, d[:, 1] / r
+    Rbar = R + M @ SL @ M.transpose(0, 2, 1)
+    PHt = P @ H.transpose(0, 2, 1)
+    S = H @ PHt + Rbar
+    Kg = PHt @ np.linalg.inv(S)
+    nu = z - zh
+    nu[:, 0] = wrap(nu[:, 0])
+    IKH = np.eye(3) - Kg @ H
+    return xh + np.einsum("nij,nj->ni", Kg, nu), IKH @ P @ IKH.transpose(0, 2, 1) + Kg @ Rbar @ Kg.transpose(0, 2, 1)

@@ -29,8 +29,9 @@ import numpy.typing as npt
 from pipeline.errors import StageError
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
-from stages.graph.problem import VAR_DIMS, GraphProblem, insert_value, value_vector
+from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
+from stages.graph.variables import var_kind
 from stages.risk import LandmarkMap
 
 FloatArray = npt.NDArray[np.float64]
@@ -110,6 +111,48 @@ def solve_reduced(
     """
     t0 = time.perf_counter()
     focused = sorted({int(t) for t in focused_tag_ids})
+    keep, kept_tags, dropped = _reduced_factors(loaded, focused, selected_factor_indices)
+    override = row_override or {}
+    rows = [override.get(int(i), loaded.rows[i]) for i in keep]
+    src = loaded.initial if initialise_from == "dead_reckoning" else loaded.values
+    problem = loaded.restricted(rows, src, dict(landmark_heights or {}))
+    observed = sorted(problem.landmark_keys)
+    check_problem(problem)
+    graph = build_graph(rows)
+    t1 = time.perf_counter()
+    solution = optimise(problem, graph, "lm", max_iterations, relative_error_tol)
+    t2 = time.perf_counter()
+    scored = focused if entropy_tag_ids is None else sorted({int(t) for t in entropy_tag_ids})
+    focused_obs = [t for t in scored if t in set(observed)]
+    marginals, joint = _marginals(problem, graph, solution, focused_obs)
+    t3 = time.perf_counter()
+    h_obs = gaussian_entropy(joint)
+    missing_dim = sum(
+        loaded.kind(loaded.landmark_keys[t]).dim for t in scored if t not in set(observed) and t in loaded.landmark_keys
+    )
+    h_missing = 0.5 * missing_dim * (np.log(unobserved_sigma_m**2) + _LOG_2PI_E)
+    return ReducedMap(
+        problem=problem,
+        solution=solution,
+        marginals=marginals,
+        full_index=keep,
+        focused_tag_ids=focused,
+        observed_tag_ids=observed,
+        landmark_map=LandmarkMap.from_graph(loaded, solution.values, marginals),
+        focused_entropy=float(h_obs + h_missing),
+        focused_entropy_observed=float(h_obs),
+        focused_dim=int(joint.shape[0] + missing_dim),
+        n_measurements=len(kept_tags),
+        dropped_unfocused=int(dropped),
+        timing_s={"build": round(t1 - t0, 4), "optimise": round(t2 - t1, 4), "marginals": round(t3 - t2, 4)},
+    )
+
+
+def _reduced_factors(
+    loaded: LoadedGraph, focused: list[int], selected_factor_indices: Iterable[int]
+) -> tuple[npt.NDArray[np.int64], list[int], int]:
+    """Full-graph indices of the reduced graph's factors (every non-tag factor and the selected tag factors of
+    focused landmarks), the kept tag factors, and how many selected ones measure unfocused landmarks."""
     unknown = [t for t in focused if t not in loaded.landmark_keys]
     if unknown:
         raise StageError(
@@ -127,72 +170,24 @@ def solve_reduced(
     kept_tags = [i for i in selected if loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id in fset]
     dropped = sum(1 for i in selected if loaded.rows[i].kind == "tag" and loaded.rows[i].tag_id not in fset)
     keep = np.array(sorted(set(loaded.fixed_factor_indices.tolist()) | set(kept_tags)), dtype=np.int64)
-    override = row_override or {}
-    rows = [override.get(int(i), loaded.rows[i]) for i in keep]
-    used = {k for r in rows for k in r.keys}
-    src = loaded.initial if initialise_from == "dead_reckoning" else loaded.values
-    initial = gtsam.Values()
-    var_types: dict[int, str] = {}
-    for k, t in loaded.var_types.items():
-        if k in used:
-            insert_value(initial, k, t, value_vector(src, k, t))
-            var_types[k] = t
-    observed = sorted(t for t, k in loaded.landmark_keys.items() if k in used)
-    problem = GraphProblem(
-        model="planar" if loaded.model == "planar" else "3d",
-        rows=rows,
-        initial=initial,
-        var_types=var_types,
-        pose_keys=list(loaded.pose_keys),
-        pose_stamps_ns=list(loaded.pose_stamps_ns),
-        landmark_keys={t: loaded.landmark_keys[t] for t in observed},
-        landmark_heights={t: h for t, h in (landmark_heights or {}).items() if t in set(observed)},
-    )
-    check_problem(problem)
-    graph = build_graph(rows)
-    t1 = time.perf_counter()
-    solution = optimise(problem, graph, "lm", max_iterations, relative_error_tol)
-    t2 = time.perf_counter()
-    scored = focused if entropy_tag_ids is None else sorted({int(t) for t in entropy_tag_ids})
-    focused_obs = [t for t in scored if t in set(observed)]
+    return keep, kept_tags, dropped
+
+
+def _marginals(
+    problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, solution: Solution, focused_observed: list[int]
+) -> tuple[dict[int, FloatArray], FloatArray]:
+    """Every variable's marginal covariance and the joint covariance of the observed focused landmarks."""
     try:
         marg = gtsam.Marginals(graph, solution.values)
-        marginals = {k: np.asarray(marg.marginalCovariance(k), dtype=float) for k in var_types}
-        if focused_obs:
-            kv = gtsam.KeyVector([problem.landmark_keys[t] for t in focused_obs])
+        marginals = {k: np.asarray(marg.marginalCovariance(k), dtype=float) for k in problem.var_types}
+        if focused_observed:
+            kv = gtsam.KeyVector([problem.landmark_keys[t] for t in focused_observed])
             joint = np.asarray(marg.jointMarginalCovariance(kv).fullMatrix(), dtype=float)
         else:
             joint = np.zeros((0, 0))
     except RuntimeError as err:
         raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
-    t3 = time.perf_counter()
-    h_obs = gaussian_entropy(joint)
-    missing_dim = sum(
-        VAR_DIMS[loaded.var_types[loaded.landmark_keys[t]]]
-        for t in scored
-        if t not in set(observed) and t in loaded.landmark_keys
-    )
-    h_missing = 0.5 * missing_dim * (np.log(unobserved_sigma_m**2) + _LOG_2PI_E)
-    lmap = LandmarkMap.from_graph(loaded, solution.values, marginals)
-    return ReducedMap(
-        problem=problem,
-        solution=solution,
-        marginals=marginals,
-        full_index=keep,
-        focused_tag_ids=focused,
-        observed_tag_ids=observed,
-        landmark_map=lmap,
-        focused_entropy=float(h_obs + h_missing),
-        focused_entropy_observed=float(h_obs),
-        focused_dim=int(joint.shape[0] + missing_dim),
-        n_measurements=len(kept_tags),
-        dropped_unfocused=int(dropped),
-        timing_s={
-            "build": round(t1 - t0, 4),
-            "optimise": round(t2 - t1, 4),
-            "marginals": round(t3 - t2, 4),
-        },
-    )
+    return marginals, joint
 
 
 def landmark_errors(
@@ -218,7 +213,8 @@ def mean_or_nan(values: Iterable[float]) -> float:
 
 def map_bytes(var_types: Iterable[str]) -> int:
     """Bytes of a landmark map stored as float64: per landmark an id, its mean and its covariance."""
-    return int(sum(8 * (1 + VAR_DIMS[t] + VAR_DIMS[t] ** 2) for t in var_types))
+    dims = [var_kind(t).dim for t in var_types]
+    return int(sum(8 * (1 + d + d * d) for d in dims))
 
 
 def measurement_bytes(dims: Iterable[int]) -> int:

@@ -73,112 +73,102 @@ def log_recording(
     ctx: StageContext, inputs: LandmarkInputs, choice: LandmarkChoice, cfg: SelectLandmarksConfig, z: float
 ) -> None:
     """``select_landmarks.rrd``: path coloured by risk, obstacles, Σ* ellipses, landmarks, greedy picks replayed."""
-    rec = ctx.rec
-    geo, lm, params = inputs.geometry, inputs.landmarks, inputs.params
     assert choice.risk_focused is not None and choice.risk_all is not None
-    n_sigma = ctx.n_sigma
-    T = len(geo.stamps_ns)
-    path = np.column_stack([geo.poses[:, :2], np.zeros(T)])
-    rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    lm_xyz = np.column_stack([lm.positions, np.full(len(lm.tag_ids), z)])
-    lm_cov3 = np.zeros((len(lm.tag_ids), 3, 3))
-    lm_cov3[:, :2, :2] = lm.covariances
-    labels = [str(t) for t in lm.tag_ids]
-    picked = set(choice.tag_ids)
-    sel_mask = np.array([int(t) in picked for t in lm.tag_ids], dtype=bool)
-
-    def risk_colors(p: np.ndarray) -> np.ndarray:
-        logp = np.log10(np.clip(np.nan_to_num(p, nan=0.0), 1e-300, 1.0))
-        return colormap(np.clip(logp, -12.0, 0.0), -12.0, 0.0)
-
-    def log_path(sub: str, risk: np.ndarray) -> None:
-        if T < 2:
-            return
-        segs = np.stack([path[:-1], path[1:]], axis=1)
-        rec.log(f"{ENTITY}/{sub}", rr.LineStrips3D(segs, colors=risk_colors(np.maximum(risk[:-1], risk[1:]))))
-
-    def log_sigma(sub: str, sigma: np.ndarray, risk: np.ndarray) -> None:
-        idx = np.arange(0, T, cfg.ellipse_stride)
-        if len(idx):
-            rec.log(
-                f"{ENTITY}/{sub}",
-                ellipses_2d(path[idx], [sigma[i, :2, :2] for i in idx], n_sigma, colors=risk_colors(risk[idx])),
-            )
-
+    draw = _Drawing(ctx.rec, inputs, z, ctx.n_sigma, cfg.ellipse_stride)
+    ctx.rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     # static: the final result
-    if geo.has_laser:
+    if inputs.geometry.has_laser:
+        draw.obstacles()
+    ctx.rec.log(f"{ENTITY}/path_all", rr.LineStrips3D([draw.path], colors=[[120, 120, 120]]), static=True)
+    if len(inputs.landmarks.tag_ids):
+        picked = set(choice.tag_ids)
+        selected = np.array([int(t) in picked for t in inputs.landmarks.tag_ids], dtype=bool)
+        draw.landmarks("landmarks/unselected", ~selected, UNSELECTED, static=True)
+    draw.risk_timeline(choice)
+    ctx.rec.reset_time()
+    # the greedy picks, replayed on selection_step (step 0: nothing picked)
+    for k in range(min(len(choice.tag_ids), cfg.max_replay_steps) + 1):
+        set_step(ctx.rec, k)
+        draw.step(choice, k)
+    ctx.rec.reset_time()
+
+
+def _risk_colors(p: np.ndarray) -> np.ndarray:
+    logp = np.log10(np.clip(np.nan_to_num(p, nan=0.0), 1e-300, 1.0))
+    return colormap(np.clip(logp, -12.0, 0.0), -12.0, 0.0)
+
+
+class _Drawing:
+    """The parts of ``select_landmarks.rrd``: the path at map height 0, landmarks at height ``z``."""
+
+    def __init__(self, rec: rr.RecordingStream, inputs: LandmarkInputs, z: float, n_sigma: float, stride: int) -> None:
+        self.rec, self.inputs, self.n_sigma, self.stride = rec, inputs, n_sigma, stride
+        geo, lm = inputs.geometry, inputs.landmarks
+        self.T = len(geo.stamps_ns)
+        self.path = np.column_stack([geo.poses[:, :2], np.zeros(self.T)])
+        self.lm_xyz = np.column_stack([lm.positions, np.full(len(lm.tag_ids), z)])
+        self.lm_cov3 = np.zeros((len(lm.tag_ids), 3, 3))
+        self.lm_cov3[:, :2, :2] = lm.covariances
+        self.labels = [str(t) for t in lm.tag_ids]
+
+    def obstacles(self) -> None:
+        """The nearest laser return of each keyframe, and rays to it (a stride), static."""
+        geo = self.inputs.geometry
         ok = np.isfinite(geo.obstacles[:, 0])
-        rec.log(
-            f"{ENTITY}/obstacles",
-            rr.Points3D(np.column_stack([geo.obstacles[ok], np.zeros(ok.sum())]), colors=[[200, 60, 60]], radii=0.02),
-            static=True,
+        points = np.column_stack([geo.obstacles[ok], np.zeros(ok.sum())])
+        self.rec.log(f"{ENTITY}/obstacles", rr.Points3D(points, colors=[[200, 60, 60]], radii=0.02), static=True)
+        rays = np.stack([self.path[ok], points], axis=1)
+        self.rec.log(
+            f"{ENTITY}/obstacle_rays", rr.LineStrips3D(rays[:: self.stride], colors=[[200, 60, 60, 80]]), static=True
         )
-        rays = np.stack([path[ok], np.column_stack([geo.obstacles[ok], np.zeros(ok.sum())])], axis=1)
-        rec.log(
-            f"{ENTITY}/obstacle_rays",
-            rr.LineStrips3D(rays[:: cfg.ellipse_stride], colors=[[200, 60, 60, 80]]),
-            static=True,
-        )
-    rec.log(f"{ENTITY}/path_all", rr.LineStrips3D([path], colors=[[120, 120, 120]]), static=True)
-    if len(lm.tag_ids):
-        rec.log(
-            f"{ENTITY}/landmarks/unselected",
-            ellipsoids(
-                lm_xyz[~sel_mask],
-                lm_cov3[~sel_mask],
-                n_sigma,
-                colors=[UNSELECTED],
-                labels=[lab for lab, s in zip(labels, sel_mask, strict=True) if not s],
-            ),
-            static=True,
-        )
-    # on the time line: risk along the path
-    for t in range(T):
-        set_stamp(rec, int(geo.stamps_ns[t]))
-        rec.log(f"{ENTITY}/robot", rr.Points3D([path[t]], colors=[PICK], radii=0.05))
-    if geo.has_laser and T:
+
+    def landmarks(self, sub: str, mask: np.ndarray, color: list[int], static: bool = False) -> None:
+        """Ellipsoids of the landmarks in ``mask``."""
+        labels = [lab for lab, s in zip(self.labels, mask, strict=True) if s]
+        ellipses = ellipsoids(self.lm_xyz[mask], self.lm_cov3[mask], self.n_sigma, colors=[color], labels=labels)
+        self.rec.log(f"{ENTITY}/{sub}", ellipses, static=static)
+
+    def risk_timeline(self, choice: LandmarkChoice) -> None:
+        """The robot on the time line; with laser, the collision risk (all and focused) and the clearance."""
+        geo = self.inputs.geometry
+        assert choice.risk_focused is not None and choice.risk_all is not None
+        for t in range(self.T):
+            set_stamp(self.rec, int(geo.stamps_ns[t]))
+            self.rec.log(f"{ENTITY}/robot", rr.Points3D([self.path[t]], colors=[PICK], radii=0.05))
+        if not (geo.has_laser and self.T):
+            return
         times = rr.TimeColumn("time", timestamp=geo.stamps_ns.astype("datetime64[ns]"))
         for name, r in (("all", choice.risk_all), ("focused", choice.risk_focused)):
-            rec.send_columns(
-                f"{ENTITY}/risk/{name}",
-                indexes=[times],
-                columns=rr.Scalars.columns(scalars=np.log10(np.clip(r.p_collision, 1e-300, 1.0))),
-            )
-        rec.send_columns(
-            f"{ENTITY}/clearance_m",
-            indexes=[times],
-            columns=rr.Scalars.columns(scalars=np.nan_to_num(geo.clearance_m, posinf=-1.0)),
-        )
-    rec.reset_time()
-    # the greedy picks, replayed on selection_step (step 0: nothing picked)
-    n_replay = min(len(choice.tag_ids), cfg.max_replay_steps)
-    for k in range(n_replay + 1):
+            log_p = np.log10(np.clip(r.p_collision, 1e-300, 1.0))
+            self.rec.send_columns(f"{ENTITY}/risk/{name}", indexes=[times], columns=rr.Scalars.columns(scalars=log_p))
+        clearance = np.nan_to_num(geo.clearance_m, posinf=-1.0)
+        self.rec.send_columns(f"{ENTITY}/clearance_m", indexes=[times], columns=rr.Scalars.columns(scalars=clearance))
+
+    def step(self, choice: LandmarkChoice, k: int) -> None:
+        """Greedy step ``k``: the path coloured by risk and the Σ* ellipses with the first ``k`` picks, the pick."""
+        inputs, lm, T = self.inputs, self.inputs.landmarks, self.T
         tags = choice.tag_ids[:k]
-        set_step(rec, k)
-        risk = path_risk(geo, lm, tags, params, inputs.sigma_cache)
-        p = risk.p_collision if geo.has_laser else np.zeros(T)
-        log_path("path", p)
-        log_sigma("sigma_star", risk.sigma, p)
+        risk = path_risk(inputs.geometry, lm, tags, inputs.params, inputs.sigma_cache)
+        p = risk.p_collision if inputs.geometry.has_laser else np.zeros(T)
+        if T >= 2:
+            segs = np.stack([self.path[:-1], self.path[1:]], axis=1)
+            self.rec.log(f"{ENTITY}/path", rr.LineStrips3D(segs, colors=_risk_colors(np.maximum(p[:-1], p[1:]))))
+        idx = np.arange(0, T, self.stride)
+        if len(idx):
+            sigmas = [risk.sigma[i, :2, :2] for i in idx]
+            ellipses = ellipses_2d(self.path[idx], sigmas, self.n_sigma, colors=_risk_colors(p[idx]))
+            self.rec.log(f"{ENTITY}/sigma_star", ellipses)
         mask = np.isin(lm.tag_ids, np.array(tags, dtype=np.int64))
         if mask.any():
-            rec.log(
-                f"{ENTITY}/landmarks/selected",
-                ellipsoids(
-                    lm_xyz[mask],
-                    lm_cov3[mask],
-                    n_sigma,
-                    colors=[SELECTED],
-                    labels=[lab for lab, s in zip(labels, mask, strict=True) if s],
-                ),
-            )
+            self.landmarks("landmarks/selected", mask, SELECTED)
         else:
-            rec.log(f"{ENTITY}/landmarks/selected", rr.Clear(recursive=False))
+            self.rec.log(f"{ENTITY}/landmarks/selected", rr.Clear(recursive=False))
         if k:
             i = int(np.flatnonzero(lm.tag_ids == tags[-1])[0])
-            rec.log(f"{ENTITY}/pick", rr.Points3D([lm_xyz[i]], colors=[PICK], radii=0.12, labels=[labels[i]]))
+            pick = rr.Points3D([self.lm_xyz[i]], colors=[PICK], radii=0.12, labels=[self.labels[i]])
+            self.rec.log(f"{ENTITY}/pick", pick)
             score = choice.scores[k - 1]
             if np.isfinite(score):
-                rec.log(f"{ENTITY}/score", rr.Scalars(score))
-        if geo.has_laser:
-            rec.log(f"{ENTITY}/max_collision_log10", rr.Scalars(np.log10(max(risk.max, 1e-300))))
-    rec.reset_time()
+                self.rec.log(f"{ENTITY}/score", rr.Scalars(score))
+        if inputs.geometry.has_laser:
+            self.rec.log(f"{ENTITY}/max_collision_log10", rr.Scalars(np.log10(max(risk.max, 1e-300))))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -22,6 +22,9 @@ from stages.select_measurements.core import (
     linear_system,
     summary_of,
 )
+
+if TYPE_CHECKING:
+    from stages.graph.load import LoadedGraph
 
 ENTITY = "/select_measurements"
 FOCUSED = [40, 200, 80]
@@ -72,29 +75,32 @@ def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
     return summary
 
 
-def _xyz(loaded: Any, key: int) -> np.ndarray:
-    t = loaded.var_types[key]
-    v = loaded.values
-    if t == "Pose2":
-        p = v.atPose2(key)
-        return np.array([p.x(), p.y(), 0.0])
-    if t == "Pose3":
-        return np.asarray(v.atPose3(key).translation(), dtype=float)
-    if t == "Point2":
-        p = np.asarray(v.atPoint2(key), dtype=float)
-        return np.array([p[0], p[1], 0.0])
-    return np.asarray(v.atPoint3(key), dtype=float)
-
-
 def log_recording(
-    ctx: StageContext, loaded: Any, system: Any, choice: MeasurementChoice, cfg: SelectMeasurementsConfig
+    ctx: StageContext, loaded: LoadedGraph, system: Any, choice: MeasurementChoice, cfg: SelectMeasurementsConfig
 ) -> None:
     """``select_measurements.rrd``: picks on ``selection_step`` (edge highlighted, focused ellipsoids, entropy)."""
-    from stages.graph.outputs import position_cov_in_map
-
     rec = ctx.rec
-    n_sigma = ctx.n_sigma
     rec.log(ENTITY, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    _log_map(rec, loaded, choice)
+    ent = _log_entropy(rec, choice)
+    for k, i in enumerate(choice.factor_indices, start=1):
+        set_step(rec, k)
+        rec.log(f"{ENTITY}/pick", rr.LineStrips3D([_edge(loaded, i)], colors=[PICK], radii=0.02))
+    _log_replay(rec, loaded, system, choice, cfg, ctx.n_sigma, log_entropy=ent is None)
+    rec.reset_time()
+
+
+def _xyz(loaded: LoadedGraph, key: int) -> np.ndarray:
+    return loaded.position(loaded.values, key)
+
+
+def _edge(loaded: LoadedGraph, i: int) -> list[np.ndarray]:
+    keys = loaded.rows[i].keys
+    return [_xyz(loaded, keys[0]), _xyz(loaded, keys[1])]
+
+
+def _log_map(rec: rr.RecordingStream, loaded: LoadedGraph, choice: MeasurementChoice) -> None:
+    """The path, the landmarks outside the focused set and every candidate measurement, static."""
     path = np.array([_xyz(loaded, k) for k in loaded.pose_keys]).reshape(-1, 3)
     rec.log(f"{ENTITY}/path", rr.LineStrips3D([path], colors=[[120, 120, 120]]), static=True)
     focused_set = set(choice.focused_tag_ids)
@@ -110,21 +116,17 @@ def log_recording(
             ),
             static=True,
         )
-    f_keys = [loaded.landmark_keys[t] for t in choice.focused_tag_ids]
-    f_xyz = np.array([_xyz(loaded, k) for k in f_keys]).reshape(-1, 3)
-    f_labels = [str(t) for t in choice.focused_tag_ids]
-
-    def edge(i: int) -> list[np.ndarray]:
-        keys = loaded.rows[i].keys
-        return [_xyz(loaded, keys[0]), _xyz(loaded, keys[1])]
-
     if choice.candidates:
         rec.log(
             f"{ENTITY}/candidates",
-            rr.LineStrips3D([edge(i) for i in choice.candidates], colors=[[200, 200, 60, 60]], radii=0.002),
+            rr.LineStrips3D([_edge(loaded, i) for i in choice.candidates], colors=[[200, 200, 60, 60]], radii=0.002),
             static=True,
         )
-    # the focused entropy per step: every step for information (from the gains), else at the replayed steps
+
+
+def _log_entropy(rec: rr.RecordingStream, choice: MeasurementChoice) -> np.ndarray | None:
+    """The focused entropy per step (every step for information, from the gains) and the gains; None when the
+    strategy gives no per-step entropy (then the replay logs it at its steps)."""
     ent = choice.entropy_per_step()
     set_step(rec, 0)
     rec.log(f"{ENTITY}/entropy", rr.Scalars(choice.entropy_before))
@@ -134,11 +136,22 @@ def log_recording(
         rec.send_columns(
             f"{ENTITY}/gain", indexes=[steps], columns=rr.Scalars.columns(scalars=np.asarray(choice.gains))
         )
-    # each pick's edge
-    for k, i in enumerate(choice.factor_indices, start=1):
-        set_step(rec, k)
-        rec.log(f"{ENTITY}/pick", rr.LineStrips3D([edge(i)], colors=[PICK], radii=0.02))
-    # the focused ellipsoids and the kept edges at evenly spaced steps (one sparse factorisation each)
+    return ent
+
+
+def _log_replay(
+    rec: rr.RecordingStream,
+    loaded: LoadedGraph,
+    system: Any,
+    choice: MeasurementChoice,
+    cfg: SelectMeasurementsConfig,
+    n_sigma: float,
+    log_entropy: bool,
+) -> None:
+    """The focused ellipsoids and the kept edges at evenly spaced steps (one sparse factorisation each)."""
+    f_keys = [loaded.landmark_keys[t] for t in choice.focused_tag_ids]
+    f_xyz = np.array([_xyz(loaded, k) for k in f_keys]).reshape(-1, 3)
+    f_labels = [str(t) for t in choice.focused_tag_ids]
     K = len(choice.factor_indices)
     n_replay = min(K, cfg.max_replay_steps)
     replay = sorted({0, K, *np.round(np.linspace(0, K, n_replay + 1)).astype(int).tolist()}) if n_replay else [0]
@@ -150,39 +163,49 @@ def log_recording(
         blocks, entropy = focused_covariances(system, base, picks, focused_vars, cfg.landmark_prior_sigma_m)
         covs = []
         for key, block in zip(f_keys, blocks, strict=True):
-            t = loaded.var_types[key]
-            value = loaded.values.atPose3(key) if t == "Pose3" else None
-            covs.append(position_cov_in_map(t, value, block))
+            kind = loaded.kind(key)
+            covs.append(kind.position_cov(kind.read(loaded.values, key), block))
         seen = {loaded.rows[i].tag_id for i in picks}
         observed = np.array([tag in seen for tag in choice.focused_tag_ids], dtype=bool)
-        # a landmark no kept measurement sees has only the weak prior (σ = landmark_prior_sigma_m): a point
-        if observed.any():
-            rec.log(
-                f"{ENTITY}/landmarks/focused",
-                ellipsoids(
-                    f_xyz[observed],
-                    [c for c, o in zip(covs, observed, strict=True) if o],
-                    n_sigma,
-                    colors=[FOCUSED],
-                    labels=[lab for lab, o in zip(f_labels, observed, strict=True) if o],
-                ),
-            )
-        else:
-            rec.log(f"{ENTITY}/landmarks/focused", rr.Clear(recursive=False))
-        if (~observed).any():
-            rec.log(
-                f"{ENTITY}/landmarks/unobserved",
-                rr.Points3D(
-                    f_xyz[~observed],
-                    colors=[FOCUSED],
-                    radii=0.06,
-                    labels=[lab for lab, o in zip(f_labels, observed, strict=True) if not o],
-                ),
-            )
-        else:
-            rec.log(f"{ENTITY}/landmarks/unobserved", rr.Clear(recursive=False))
+        _log_focused(rec, f_xyz, covs, f_labels, observed, n_sigma)
         if picks:
-            rec.log(f"{ENTITY}/kept", rr.LineStrips3D([edge(i) for i in picks], colors=[KEPT], radii=0.006))
-        if ent is None:
+            kept = rr.LineStrips3D([_edge(loaded, i) for i in picks], colors=[KEPT], radii=0.006)
+            rec.log(f"{ENTITY}/kept", kept)
+        if log_entropy:
             rec.log(f"{ENTITY}/entropy", rr.Scalars(entropy))
-    rec.reset_time()
+
+
+def _log_focused(
+    rec: rr.RecordingStream,
+    xyz: np.ndarray,
+    covs: list[np.ndarray],
+    labels: list[str],
+    observed: np.ndarray,
+    n_sigma: float,
+) -> None:
+    """Focused landmarks: ellipsoids where a kept measurement sees them, points where only the weak prior does."""
+    if observed.any():
+        rec.log(
+            f"{ENTITY}/landmarks/focused",
+            ellipsoids(
+                xyz[observed],
+                [c for c, o in zip(covs, observed, strict=True) if o],
+                n_sigma,
+                colors=[FOCUSED],
+                labels=[lab for lab, o in zip(labels, observed, strict=True) if o],
+            ),
+        )
+    else:
+        rec.log(f"{ENTITY}/landmarks/focused", rr.Clear(recursive=False))
+    if (~observed).any():
+        rec.log(
+            f"{ENTITY}/landmarks/unobserved",
+            rr.Points3D(
+                xyz[~observed],
+                colors=[FOCUSED],
+                radii=0.06,
+                labels=[lab for lab, o in zip(labels, observed, strict=True) if not o],
+            ),
+        )
+    else:
+        rec.log(f"{ENTITY}/landmarks/unobserved", rr.Clear(recursive=False))

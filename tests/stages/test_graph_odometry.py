@@ -5,8 +5,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from stages.graph.build import _message_cov, _settings_cov, _unobserved_dims
 from stages.graph.config import GraphConfig
+from stages.graph.models import PLANAR, SPATIAL
+from stages.graph.odometry import message_cov, settings_cov, unobserved_dims
 
 
 def _planar_run(n: int = 20, dt: float = 0.05, v: float = 0.4, sv: float = 0.002, sw: float = 0.0015):
@@ -31,11 +32,11 @@ def _planar_run(n: int = 20, dt: float = 0.05, v: float = 0.4, sv: float = 0.002
 def test_lateral_that_does_not_grow_keeps_the_messages_value_not_the_settings_centimetre() -> None:
     poses, covs = _planar_run()
     cfg = GraphConfig()
-    unobserved = _unobserved_dims(covs, planar=True)
+    unobserved = unobserved_dims(covs, PLANAR)
     assert not unobserved.any()  # x, y and yaw all grow somewhere in the run
-    fallback = _settings_cov(cfg, True, 0.02, 0.0)
+    fallback = settings_cov(cfg, PLANAR, 0.02, 0.0)
     # the first step: the lateral variance has not grown yet (straight drive from rest)
-    Q, fell_back = _message_cov(True, poses[0], poses[1], covs[0], covs[1], fallback, unobserved)
+    Q, fell_back = message_cov(PLANAR, poses[0], poses[1], covs[0], covs[1], fallback, unobserved)
     assert not fell_back
     assert np.isclose(Q[0, 0], covs[1][3, 3])
     assert np.sqrt(Q[1, 1]) < 0.05 * np.sqrt(Q[0, 0])  # bounded by the condition-number floor, not 1 cm
@@ -46,10 +47,10 @@ def test_lateral_that_does_not_grow_keeps_the_messages_value_not_the_settings_ce
 def test_unobserved_dimensions_take_the_settings_in_3d() -> None:
     poses, covs = _planar_run()
     cfg = GraphConfig(model="3d")
-    unobserved = _unobserved_dims(covs, planar=False)
+    unobserved = unobserved_dims(covs, SPATIAL)
     assert unobserved.tolist() == [True, True, False, False, False, True]  # roll, pitch, z
-    fallback = _settings_cov(cfg, False, 0.02, 0.0)
-    Q, fell_back = _message_cov(False, poses[3], poses[4], covs[3], covs[4], fallback, unobserved)
+    fallback = settings_cov(cfg, SPATIAL, 0.02, 0.0)
+    Q, fell_back = message_cov(SPATIAL, poses[3], poses[4], covs[3], covs[4], fallback, unobserved)
     assert fell_back
     for d in (0, 1, 5):
         assert np.isclose(Q[d, d], fallback[d, d])
@@ -60,7 +61,7 @@ def test_unobserved_dimensions_take_the_settings_in_3d() -> None:
 def test_nothing_grew_falls_back_to_the_settings() -> None:
     poses, covs = _planar_run()
     cfg = GraphConfig()
-    fallback = _settings_cov(cfg, True, 0.0, 0.0)
-    Q, fell_back = _message_cov(True, poses[5], poses[5], covs[5], covs[5], fallback, np.zeros(3, dtype=bool))
+    fallback = settings_cov(cfg, PLANAR, 0.0, 0.0)
+    Q, fell_back = message_cov(PLANAR, poses[5], poses[5], covs[5], covs[5], fallback, np.zeros(3, dtype=bool))
     assert fell_back
     assert np.allclose(Q, fallback)
