@@ -28,6 +28,7 @@ class StageContext:
     settings: Settings
     output: StageOutput
     rec: rr.RecordingStream
+    show_progress: bool = False
 
     @property
     def source(self) -> Path:
@@ -46,8 +47,8 @@ class StageContext:
         return self.run.stage_entry(stage) is not None
 
     def progress(self, items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
-        """Iterate with a progress bar."""
-        return track(items, description, total)
+        """Iterate, with a progress bar when the run was asked to show them."""
+        return track(items, description, total, show=self.show_progress)
 
     @property
     def n_sigma(self) -> float:

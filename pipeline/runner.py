@@ -100,8 +100,13 @@ def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings
     return entry is not None and entry.get("fingerprint") == fingerprint(run, registry, name, settings)
 
 
-def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False) -> StageResult:
-    """Run one stage unless its results are current; its outputs appear whole or not at all."""
+def run_stage(
+    run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False, progress: bool = False
+) -> StageResult:
+    """Run one stage unless its results are current; its outputs appear whole or not at all.
+
+    ``progress``: draw the stage's progress bars (on stderr).
+    """
     stage = registry[name]
     for dep in stage.inputs:
         if run.stage_entry(dep) is None:
@@ -125,7 +130,9 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
     rec = open_recording(run.run_id, rrd, blueprint)
     start = time.perf_counter()
     try:
-        ctx = StageContext(run=run, stage=stage, settings=settings, output=StageOutput(scratch), rec=rec)
+        ctx = StageContext(
+            run=run, stage=stage, settings=settings, output=StageOutput(scratch), rec=rec, show_progress=progress
+        )
         summary = dict(stage.run(ctx, settings[stage.name]) or {})
         seconds = time.perf_counter() - start
         summary.setdefault("seconds", round(seconds, 3))
