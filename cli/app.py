@@ -2,36 +2,35 @@
 
 Every failure the user can fix is one line on stderr starting with ``error:`` and exit code 1
 (``--debug`` shows the traceback instead).
+
+The stage commands are built from the stage registry: a stage brings its help line, its options
+(each sets one of its settings) and how its result is printed. Importing this module imports no
+numerics: a stage's code is imported when it runs.
 """
 
 from __future__ import annotations
 
 import functools
+import inspect
 import json
 import os
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
+import click
 import typer
 
-from cli.options import (
-    BagArg,
-    CameraOpt,
-    ConfigOpt,
-    EndOpt,
-    ForceOpt,
-    NameOpt,
-    OutOpt,
-    ResetOpt,
-    RunDirArg,
-    SalvageOpt,
-    SetOpt,
-    StartOpt,
-    StrideOpt,
-)
+from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, RunDirArg, SalvageOpt, SetOpt
 from pipeline.errors import InputError, PipelineError
+
+if TYPE_CHECKING:
+    from pipeline.registry import Registry
+    from pipeline.run_folder import RunFolder
+    from pipeline.runner import StageResult
+    from pipeline.stage import Option, Stage
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -40,9 +39,25 @@ app = typer.Typer(
     help="Turn recorded robot runs into small, task-focused AprilTag maps, logged to Rerun.",
 )
 
-_DEBUG = {"on": os.environ.get("FOCUSMAP_DEBUG", "") not in ("", "0")}
-
 F = TypeVar("F", bound=Callable[..., Any])
+
+
+@dataclass(frozen=True)
+class CliState:
+    """What the root options decided, for every command of one invocation (typer's context object).
+
+    Attributes:
+        debug: show tracebacks instead of one-line errors (``--debug``, or ``FOCUSMAP_DEBUG=1``).
+    """
+
+    debug: bool = False
+
+
+def _state() -> CliState:
+    """The state of the running invocation (defaults outside one)."""
+    ctx = click.get_current_context(silent=True)
+    state = ctx.find_object(CliState) if ctx is not None else None
+    return state if state is not None else CliState()
 
 
 def handled(func: F) -> F:
@@ -53,7 +68,7 @@ def handled(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except PipelineError as err:
-            if _DEBUG["on"]:
+            if _state().debug:
                 raise
             typer.echo(f"error: {err}", err=True)
             raise typer.Exit(1) from None
@@ -63,7 +78,7 @@ def handled(func: F) -> F:
         except (typer.Exit, typer.Abort, SystemExit):
             raise
         except Exception as err:
-            if _DEBUG["on"]:
+            if _state().debug:
                 raise
             typer.echo(
                 f"error: internal error {type(err).__name__}: {err} (re-run with --debug for the traceback "
@@ -77,14 +92,14 @@ def handled(func: F) -> F:
 
 @app.callback()
 def _root(
+    ctx: typer.Context,
     debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")] = False,
 ) -> None:
-    if debug:
-        _DEBUG["on"] = True
+    ctx.obj = CliState(debug=debug or os.environ.get("FOCUSMAP_DEBUG", "") not in ("", "0"))
 
 
 # --- helpers ---------------------------------------------------------------------------------------
-def _registry() -> Any:
+def _registry() -> Registry:
     from stages import REGISTRY
 
     return REGISTRY
@@ -112,25 +127,6 @@ def _settings(
     return settings
 
 
-def _ingest_overrides(
-    start: float | None, end: float | None, stride: int | None, camera: Path | None, salvage: bool
-) -> list[str]:
-    out = []
-    if start is not None:
-        out.append(f"ingest.start_s={start}")
-    if end is not None:
-        out.append(f"ingest.end_s={end}")
-    if stride is not None:
-        out.append(f"ingest.frame_stride={stride}")
-    if camera is not None:
-        if not camera.is_file():
-            raise InputError(f"camera file {str(camera)!r} not found; pass an existing calibration YAML to --camera")
-        out.append(f"ingest.camera_file={json.dumps(str(camera.resolve()))}")
-    if salvage:
-        out.append("ingest.salvage=true")
-    return out
-
-
 def _run_name(bag: Path, name: str | None) -> str:
     if name:
         return name
@@ -138,7 +134,7 @@ def _run_name(bag: Path, name: str | None) -> str:
     return base.name if base.is_dir() else base.stem
 
 
-def _open_run(run_dir: Path) -> Any:
+def _open_run(run_dir: Path) -> RunFolder:
     from pipeline.run_folder import RunFolder
 
     if not run_dir.exists():
@@ -146,38 +142,135 @@ def _open_run(run_dir: Path) -> Any:
     return RunFolder(run_dir)
 
 
-def _print_result(result: Any) -> None:
+def _print_result(stage: Stage, result: StageResult) -> None:
+    """The stage's line (name, status, its figures) and, when it ran, its remarks (notes, ...)."""
     from rich.console import Console
 
     console = Console(stderr=False, highlight=False, soft_wrap=True)
-    keys = [
-        k
-        for k, v in result.summary.items()
-        if k not in ("seconds", "topics", "camera", "notes", "read_seconds") and v is not None
-    ][:6]
-    figures = "  ".join(
-        f"{k}={result.summary[k]}" for k in keys if not isinstance(result.summary[k], dict | list | None)
-    )
     status = "up to date" if result.status == "skipped" else f"done in {result.seconds:.1f} s"
-    console.print(f"[bold]{result.stage:<20}[/bold] {status:<16} {figures}")
-    for note in result.summary.get("notes", []) if result.status == "done" else []:
-        console.print(f"  [yellow]note:[/yellow] {note}")
-    salvaged = result.summary.get("salvaged")
-    if salvaged and result.status == "done":
-        console.print(f"  [yellow]salvaged:[/yellow] {salvaged}")
+    console.print(f"[bold]{result.stage:<20}[/bold] {status:<16} {stage.summary_line(result.summary)}")
+    for label, text in stage.remarks(result.summary) if result.status == "done" else []:
+        console.print(f"  [yellow]{label}:[/yellow] {text}")
 
 
-def _run_stages(run: Any, names: list[str], settings: Any, force: bool) -> list[Any]:
+def _run_stages(run: RunFolder, names: list[str], settings: Any, force: bool) -> list[StageResult]:
+    from pipeline.progress import terminal
     from pipeline.run_settings import store_run_settings
     from pipeline.runner import run_stage
 
+    registry = _registry()
     results = []
     for name in names:
-        result = run_stage(run, _registry(), name, settings, force=force)
+        result = run_stage(run, registry, name, settings, force=force, progress=terminal())
         store_run_settings(run.path, settings, [name])  # the folder keeps the settings its stages ran with
-        _print_result(result)
+        _print_result(registry[name], result)
         results.append(result)
     return results
+
+
+def _run_on_bag(
+    bag: Path, out: Path, name: str | None, stages: list[str], settings: Any, force: bool
+) -> tuple[RunFolder, list[StageResult]]:
+    """Check the recording, create (or reuse) its run folder and run ``stages`` in it."""
+    from pipeline.run_folder import RunFolder
+    from stages.ingest.bags import detect_format
+
+    detect_format(bag)
+    run = RunFolder.create(out / _run_name(bag, name), bag)
+    results = _run_stages(run, stages, settings, force)
+    typer.echo(f"run folder: {run.path}")
+    return run, results
+
+
+def _param_name(option: Option) -> str:
+    return option.flag.lstrip("-").replace("-", "_")
+
+
+def _overrides(stages: Iterable[Stage], given: Mapping[str, Any]) -> list[str]:
+    """The ``--set`` overrides of the stage options given on the command line."""
+    out = []
+    for stage in stages:
+        for option in stage.options:
+            override = option.override(stage.name, given.get(_param_name(option)))
+            if override is not None:
+                out.append(override)
+    return out
+
+
+def _option_parameter(option: Option) -> inspect.Parameter:
+    """A stage option as a typer parameter: a flag for a yes/no option, else a value that defaults to unset."""
+    keyword = inspect.Parameter.KEYWORD_ONLY
+    if option.kind is bool:
+        flag = Annotated[bool, typer.Option(option.flag, help=option.help)]
+        return inspect.Parameter(_param_name(option), keyword, default=False, annotation=flag)
+    value = Annotated[option.kind | None, typer.Option(option.flag, help=option.help, min=option.min)]
+    return inspect.Parameter(_param_name(option), keyword, default=None, annotation=value)
+
+
+def _with_options(func: Callable[..., Any], stages: Iterable[Stage], after: str | None = None) -> Callable[..., Any]:
+    """``func`` with its ``**options`` replaced by the options of ``stages``, as typer parameters.
+
+    The options go right after the parameter ``after`` (at the end when None); ``func`` gets them in
+    ``**options``, by parameter name.
+    """
+    fixed = [
+        p.replace(kind=inspect.Parameter.KEYWORD_ONLY)
+        for p in inspect.signature(func, eval_str=True).parameters.values()
+        if p.kind is not inspect.Parameter.VAR_KEYWORD
+    ]
+    extra = [_option_parameter(o) for s in stages for o in s.options]
+    clash = {p.name for p in fixed} & {p.name for p in extra}
+    if clash:
+        raise ValueError(f"stage options {sorted(clash)} clash with the parameters of {func.__name__}")
+    at = len(fixed) if after is None else [p.name for p in fixed].index(after) + 1
+    params = [*fixed[:at], *extra, *fixed[at:]]
+
+    @functools.wraps(func)
+    def command(**kwargs: Any) -> Any:
+        return func(**kwargs)
+
+    command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+    command.__annotations__ = {p.name: p.annotation for p in params}
+    return command
+
+
+def _stage_command(stage: Stage) -> None:
+    """The command of one stage: on a recording for a stage that reads it (ingest), else on a run folder."""
+    if stage.needs_source:
+
+        def on_source(
+            bag: BagArg,
+            out: OutOpt = Path("runs"),
+            name: NameOpt = None,
+            config: ConfigOpt = None,
+            set_: SetOpt = None,
+            force: ForceOpt = False,
+            reset: ResetOpt = False,
+            **options: Any,
+        ) -> None:
+            overrides = _overrides([stage], options)
+            settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, [stage.name])
+            _run_on_bag(bag, out, name, [stage.name], settings, force)
+
+        command = _with_options(handled(on_source), [stage])
+    else:
+
+        def on_run_folder(
+            run_dir: RunDirArg,
+            config: ConfigOpt = None,
+            set_: SetOpt = None,
+            force: ForceOpt = False,
+            reset: ResetOpt = False,
+            **options: Any,
+        ) -> None:
+            run = _open_run(run_dir)
+            overrides = _overrides([stage], options)
+            _run_stages(run, [stage.name], _settings(config, set_, overrides, run.path, reset, [stage.name]), force)
+
+        command = _with_options(handled(on_run_folder), [stage], after="run_dir")
+    help_text = stage.help or f"Run the {stage.command} stage on a run folder."
+    command.__doc__ = help_text
+    app.command(name=stage.command, help=help_text)(command)
 
 
 # --- commands --------------------------------------------------------------------------------------
@@ -195,123 +288,8 @@ def info(
     typer.echo(json.dumps(data, indent=2) if as_json else format_info(data))
 
 
-@app.command()
-@handled
-def ingest(
-    bag: BagArg,
-    out: OutOpt = Path("runs"),
-    name: NameOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    force: ForceOpt = False,
-    start: StartOpt = None,
-    end: EndOpt = None,
-    stride: StrideOpt = None,
-    camera: CameraOpt = None,
-    salvage: SalvageOpt = False,
-    reset: ResetOpt = False,
-) -> None:
-    """Read frames, odometry, laser scans, the camera model and extrinsics into OUT/<name>/ingest/."""
-    overrides = _ingest_overrides(start, end, stride, camera, salvage)
-    settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, ["ingest"])
-    _run_on_bag(bag, out, name, ["ingest"], settings, force)
-
-
-def _run_on_bag(
-    bag: Path, out: Path, name: str | None, stages: list[str], settings: Any, force: bool
-) -> tuple[Any, list[Any]]:
-    """Check the recording, create (or reuse) its run folder and run ``stages`` in it."""
-    from pipeline.run_folder import RunFolder
-    from stages.ingest.bags import detect_format
-
-    detect_format(bag)
-    run = RunFolder.create(out / _run_name(bag, name), bag)
-    results = _run_stages(run, stages, settings, force)
-    typer.echo(f"run folder: {run.path}")
-    return run, results
-
-
-def _stage_command(stage_name: str, help_text: str) -> None:
-    """A command that runs one stage on an existing run folder."""
-
-    @handled
-    def command(
-        run_dir: RunDirArg,
-        config: ConfigOpt = None,
-        set_: SetOpt = None,
-        force: ForceOpt = False,
-        reset: ResetOpt = False,
-    ) -> None:
-        run = _open_run(run_dir)
-        _run_stages(run, [stage_name], _settings(config, set_, None, run.path, reset, [stage_name]), force)
-
-    command.__doc__ = help_text
-    app.command(name=stage_name.replace("_", "-"), help=help_text)(command)
-
-
-_SELECTION_STAGES = ("select_landmarks", "select_measurements")
-for _stage in list(_registry())[1:]:
-    if _stage.name not in _SELECTION_STAGES:
-        _stage_command(_stage.name, _stage.help or f"Run the {_stage.command} stage on a run folder.")
-
-
-def _selection_overrides(stage: str, strategy: str | None, budget: int | None, focus: str | None = None) -> list[str]:
-    out = []
-    if strategy is not None:
-        out.append(f"{stage}.strategy={strategy}")
-    if budget is not None:
-        out.append(f"{stage}.budget={budget}")
-    if focus is not None:
-        out.append(f"{stage}.focus={focus}")
-    return out
-
-
-StrategyOpt = Annotated[
-    str | None, typer.Option("--strategy", help="Selection strategy (see configs/default.yaml for the choices).")
-]
-BudgetOpt = Annotated[int | None, typer.Option("--budget", help="How many to keep.", min=0)]
-
-
-@app.command(name="select-landmarks")
-@handled
-def select_landmarks_command(
-    run_dir: RunDirArg,
-    strategy: StrategyOpt = None,
-    budget: BudgetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    force: ForceOpt = False,
-    reset: ResetOpt = False,
-) -> None:
-    """Stage one: keep the --budget (alpha) landmarks that matter most (collision | mutual-information | leverage |
-    uniform | random | all)."""
-    run = _open_run(run_dir)
-    extra = _selection_overrides("select_landmarks", strategy, budget)
-    _run_stages(run, ["select_landmarks"], _settings(config, set_, extra, run.path, reset, ["select_landmarks"]), force)
-
-
-@app.command(name="select-measurements")
-@handled
-def select_measurements_command(
-    run_dir: RunDirArg,
-    strategy: StrategyOpt = None,
-    budget: BudgetOpt = None,
-    focus: Annotated[
-        str | None,
-        typer.Option("--focus", help="'selected': the focused landmarks of stage one; 'all': every landmark."),
-    ] = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    force: ForceOpt = False,
-    reset: ResetOpt = False,
-) -> None:
-    """Stage two: keep the --budget (K) tag measurements that best localise the focused landmarks (information |
-    leverage | uniform | random | all)."""
-    run = _open_run(run_dir)
-    extra = _selection_overrides("select_measurements", strategy, budget, focus)
-    _run_stages(
-        run, ["select_measurements"], _settings(config, set_, extra, run.path, reset, ["select_measurements"]), force
-    )
+for _stage in _registry():
+    _stage_command(_stage)
 
 
 @app.command(name="import-graph")
@@ -343,8 +321,6 @@ def import_graph_command(
     typer.echo("the stages after graph that need no camera or laser run on it, e.g. focusmap select-landmarks")
 
 
-@app.command(name="run")
-@handled
 def run_pipeline(
     bag: BagArg,
     out: OutOpt = Path("runs"),
@@ -356,40 +332,39 @@ def run_pipeline(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force: ForceOpt = False,
-    start: StartOpt = None,
-    end: EndOpt = None,
-    stride: StrideOpt = None,
-    camera: CameraOpt = None,
-    salvage: SalvageOpt = False,
     reset: ResetOpt = False,
+    **options: Any,
 ) -> None:
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
-    stages = [s.name for s in _registry().between(start_stage, until)]
-    overrides = _ingest_overrides(start, end, stride, camera, salvage)
+    registry = _registry()
+    stages = [s.name for s in registry.between(start_stage, until)]
+    overrides = _overrides(_source_stages(registry), options)
     settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, stages)
     run, results = _run_on_bag(bag, out, name, stages, settings, force)
-    if any(r.stage == "evaluate" for r in results):  # done or current now: not an older evaluate's
-        _print_headline(run)
+    _print_headline(results)
     typer.echo(f"open it with: focusmap view {run.path}")
 
 
-def _print_headline(run: Any) -> None:
-    """The evaluation report's path and its headline row (focus, info), when evaluate has run."""
-    entry = run.stage_entry("evaluate")
-    if not entry:
-        return
-    summary = entry.get("summary", {})
-    head = summary.get("headline") or {}
-    if summary.get("report"):
-        typer.echo(f"report: {summary['report']}")
-    if head:
-        typer.echo(
-            f"headline ({head.get('case')}): focused entropy {head.get('focused_entropy', float('nan')):.1f} nats, "
-            f"focused error {100 * head.get('focused_error_m', float('nan')):.1f} cm, "
-            f"max P(collision) {head.get('max_collision_probability', float('nan')):.2g}, "
-            f"collision rate {head.get('collision_rate', float('nan')):.3f} "
-            f"[{head.get('collision_ci_low', float('nan')):.3f}, {head.get('collision_ci_high', float('nan')):.3f}]"
-        )
+def _source_stages(registry: Registry) -> list[Stage]:
+    """The stages that read the recording: ``focusmap run`` takes their options."""
+    return [s for s in registry if s.needs_source]
+
+
+app.command(name="run")(_with_options(handled(run_pipeline), _source_stages(_registry())))
+
+
+def _print_headline(results: list[StageResult]) -> None:
+    """What the stages with a report print at the end of a run (evaluate: its report's path and headline row).
+
+    Only for stages this command ran or found current, never an older result left in the folder.
+    """
+    registry = _registry()
+    for result in results:
+        stage = registry[result.stage]
+        if stage.report_lines is None:
+            continue
+        for line in stage.report_lines(result.summary):
+            typer.echo(line)
 
 
 @app.command()

@@ -81,6 +81,7 @@ def batch(
         write_summary,
     )
     from pipeline.config import load_settings
+    from pipeline.progress import terminal
     from stages import REGISTRY
 
     settings = load_settings(REGISTRY.models(), config, set_ or [])
@@ -99,7 +100,7 @@ def batch(
     )
     console = Console(highlight=False, soft_wrap=False, width=None if sys.stdout.isatty() else 200)
     console.print(f"batch: {len(tasks)} recordings, stages {', '.join(stages)}, {where}")
-    result = run_batch(tasks, workers=workers, scheduler=scheduler)
+    result = run_batch(tasks, workers=workers, scheduler=scheduler, progress=terminal())
     table = summary_table(result.outcomes, stages, REGISTRY)
     path = write_summary(table, out.expanduser().resolve())
     write_errors(result.outcomes, out.expanduser().resolve())

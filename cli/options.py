@@ -34,19 +34,15 @@ SetOpt = Annotated[
     ),
 ]
 ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Re-run even if the results are up to date.")]
-StartOpt = Annotated[
-    float | None, typer.Option("--start", help="Skip messages before this time (seconds from the bag start).")
-]
-EndOpt = Annotated[
-    float | None, typer.Option("--end", help="Skip messages after this time (seconds from the bag start).")
-]
-StrideOpt = Annotated[int | None, typer.Option("--stride", help="Keep every n-th camera frame.", min=1)]
-CameraOpt = Annotated[
-    Path | None,
-    typer.Option("--camera", help="Camera calibration (Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML)."),
-]
 SalvageOpt = Annotated[
     bool, typer.Option("--salvage", help="Read a damaged bag up to the damage and say how much was recovered.")
+]
+ResetOpt = Annotated[
+    bool,
+    typer.Option(
+        "--reset-settings",
+        help="Start from the default settings instead of those the run folder keeps from earlier commands.",
+    ),
 ]
 ResetOpt = Annotated[
     bool,

@@ -10,7 +10,7 @@ Two back-ends run the same :func:`run_task`:
 
 - :func:`run_local`: at most ``workers`` child processes at a time, one process per recording, so a
   crash (a segfault in a native library, the OOM killer) fails that recording only. Children die
-  with the batch process (Linux), draw no progress bars (``FOCUSMAP_PROGRESS=0``), and take an
+  with the batch process (Linux), draw no progress bars (only the batch's own bar is drawn), and take an
   exclusive lock on their run folder, so two processes never work on one run folder.
 - :func:`run_dask`: the tasks on an existing ``dask.distributed`` cluster. The run folders are
   written by the workers, so ``OUT`` must be storage every worker sees at the same path.
@@ -310,7 +310,7 @@ def run_task(task: BatchTask) -> Outcome:
             write_resolved_settings(run, task.settings)
             for name in task.stages:
                 current = name
-                result = run_stage(run, registry, name, task.settings, force=task.force)
+                result = run_stage(run, registry, name, task.settings, force=task.force, progress=False)
                 if result.status == "done":
                     outcome.stages_run.append(name)
             current = None
@@ -349,7 +349,6 @@ def _child_main(task: BatchTask, conn: multiprocessing.connection.Connection) ->
     _die_with_parent()
     if os.getppid() != parent:  # the parent died before the request above took effect
         os._exit(1)
-    os.environ["FOCUSMAP_PROGRESS"] = "0"
     try:
         outcome = run_task(task)
     except KeyboardInterrupt:
@@ -446,8 +445,7 @@ def _allow_child_processes() -> None:
 
 
 def _dask_entry(task: BatchTask) -> Outcome:
-    """What a Dask worker runs: no progress bars, child processes allowed, then :func:`run_task`."""
-    os.environ["FOCUSMAP_PROGRESS"] = "0"
+    """What a Dask worker runs: child processes allowed, then :func:`run_task` (which draws no progress bars)."""
     _allow_child_processes()
     return run_task(task)
 
@@ -528,22 +526,20 @@ def run_batch(
     *,
     workers: int | None = None,
     scheduler: str | None = None,
-    progress: bool = True,
+    progress: bool = False,
 ) -> BatchResult:
     """Run every task, locally (``workers`` processes, default the number of cores) or on a Dask cluster.
 
-    Draws one overall progress bar (when ``progress`` and bars are enabled, see
-    :mod:`pipeline.progress`). On KeyboardInterrupt the recordings without an outcome are listed as
-    failed ("interrupted") and ``interrupted`` is set; finished stages are kept in every case.
+    Draws one overall progress bar when ``progress`` (the workers draw none). On KeyboardInterrupt the
+    recordings without an outcome are listed as failed ("interrupted") and ``interrupted`` is set; finished
+    stages are kept in every case.
     """
     from pipeline.progress import new_progress
 
     results: dict[int, Outcome] = {}
     index = {(t.recording, t.run_dir): i for i, t in enumerate(tasks)}
     interrupted = False
-    bar = new_progress()
-    if not progress:
-        bar.disable = True
+    bar = new_progress(progress)
     with bar:
         bar_task = bar.add_task(f"batch of {len(tasks)}", total=len(tasks))
 
@@ -571,7 +567,7 @@ def run_batch(
 
 # --- summary -------------------------------------------------------------------------------------------
 def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, headline: Headline) -> Any:
-    candidates, dtype = headline.places, headline.dtype
+    candidates, dtype = headline.places, pa.type_for_alias(headline.dtype)
     fallback = tuple((stage, column) for stage in reversed(list(stages)))
     for stage, key in (*candidates, *fallback):
         summary = (stages.get(stage) or {}).get("summary") or {}
@@ -605,7 +601,7 @@ def summary_schema(stages: Sequence[str], registry: Registry) -> pa.Schema:
             ("stages_run", pa.list_(pa.string())),
             ("host", pa.string()),
             *((f"seconds_{s}", pa.float64()) for s in stages),
-            *((name, h.dtype) for name, h in registry.headlines.items()),
+            *((name, pa.type_for_alias(h.dtype)) for name, h in registry.headlines.items()),
         ]
     )
 

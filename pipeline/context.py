@@ -34,6 +34,7 @@ class StageContext:
     rec: rr.RecordingStream
     outside_files: dict[str, str | None] = field(default_factory=dict)
     """Files outside the run folder the stage read (resolved path to identity; None: looked for, absent)."""
+    show_progress: bool = False
 
     def outside_file(self, path: Path | str) -> Path | None:
         """Declare a file outside the run folder that the stage reads (or would read, if it existed).
@@ -62,8 +63,8 @@ class StageContext:
         return self.run.stage_entry(stage) is not None
 
     def progress(self, items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
-        """Iterate with a progress bar."""
-        return track(items, description, total)
+        """Iterate, with a progress bar when the run was asked to show them."""
+        return track(items, description, total, show=self.show_progress)
 
     @property
     def n_sigma(self) -> float:

@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 
-import pyarrow as pa
 from pydantic import BaseModel
 
 from pipeline.errors import ConfigError
@@ -17,14 +16,15 @@ class Headline:
     """A figure of a run that batch tables show, read from the stages' ``summary.json``.
 
     Attributes:
-        dtype: its column type (an integer column counts the items of a list it finds).
+        dtype: its column type, a pyarrow type name (``"int64"``, ``"float64"``; an integer column counts the
+            items of a list it finds).
         places: ``(stage, key)`` places to look, first present wins; a dotted key reaches into nested
             summaries (``"headline.collision_rate"``). If none is present, the column's own name is looked
             up in every stage's summary, latest stage first.
         short: its column label in the printed table.
     """
 
-    dtype: pa.DataType
+    dtype: str
     places: tuple[tuple[str, str], ...] = ()
     short: str = ""
 

@@ -129,8 +129,13 @@ def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings
     return entry.get("fingerprint") == _seal(fingerprint(run, registry, name, settings), outside)
 
 
-def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False) -> StageResult:
-    """Run one stage unless its results are current; its outputs appear whole or not at all."""
+def run_stage(
+    run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False, progress: bool = False
+) -> StageResult:
+    """Run one stage unless its results are current; its outputs appear whole or not at all.
+
+    ``progress``: draw the stage's progress bars (on stderr).
+    """
     stage = registry[name]
     required, optional = stage.inputs_on(run.source_kind)
     for dep in required:
@@ -156,7 +161,12 @@ def run_stage(run: RunFolder, registry: Registry, name: str, settings: Settings,
     start = time.perf_counter()
     try:
         ctx = StageContext(
-            run=run, stage=stage, settings=settings.only(stage.name), output=StageOutput(scratch), rec=rec
+            run=run,
+            stage=stage,
+            settings=settings.only(stage.name),
+            output=StageOutput(scratch),
+            rec=rec,
+            show_progress=progress,
         )
         summary = dict(stage.run(ctx, settings[stage.name]) or {})
         seconds = time.perf_counter() - start

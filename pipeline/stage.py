@@ -3,20 +3,70 @@
 A stage's ``run(ctx, cfg)`` reads the artifacts of its input stages through ``ctx.input(name)``,
 writes its own through ``ctx.output``, logs to ``ctx.rec`` and returns a small JSON-able summary
 (counts, timings, headline metrics) that goes into ``summary.json`` and the run's manifest.
+
+A stage value is cheap to build: its run function (and anything else that needs the heavy libraries)
+can be named by an import path with :func:`~pipeline.lazy.lazy`, imported on first call, so listing the
+stages (``focusmap --help``) imports no numerics. A stage also says how the command line shows it:
+its command's options, the line printed after it ran and, for a report, what ``focusmap run`` prints last.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
+from pipeline.lazy import lazy
+
 if TYPE_CHECKING:
     from pipeline.context import StageContext
 
 Summary = dict[str, Any]
+
+__all__ = ["Option", "Stage", "Summary", "lazy", "summary_figures", "summary_notes"]
+
+
+@dataclass(frozen=True)
+class Option:
+    """A command-line option of a stage's command that sets one key of the stage's settings section.
+
+    Attributes:
+        flag: the option as typed, e.g. ``"--budget"``.
+        key: the settings key it sets (in the stage's section), e.g. ``"budget"``.
+        help: one line for ``--help``.
+        kind: type of the value (``str``, ``int``, ``float``, ``pathlib.Path``); ``bool`` makes a flag that,
+            when given, sets the key to true.
+        min: smallest accepted value (numbers).
+        value: turns the given value into the YAML text of the setting (default ``str(value)``); may raise
+            :class:`~pipeline.errors.InputError` for a value the user can fix.
+    """
+
+    flag: str
+    key: str
+    help: str
+    kind: type = str
+    min: float | None = None
+    value: Callable[[Any], str] | None = None
+
+    def override(self, section: str, given: Any) -> str | None:
+        """The ``SECTION.KEY=VALUE`` override for a given value, None when the option was not given."""
+        if given is None or given is False:
+            return None
+        text = self.value(given) if self.value is not None else ("true" if given is True else str(given))
+        return f"{section}.{self.key}={text}"
+
+
+def summary_figures(summary: Summary, hidden: Sequence[str] = ("seconds", "notes"), limit: int = 6) -> str:
+    """``key=value`` of the first ``limit`` figures of a summary (leaving out ``hidden`` keys, nulls and nesting)."""
+    keys = [k for k, v in summary.items() if k not in hidden and v is not None][:limit]
+    return "  ".join(f"{k}={summary[k]}" for k in keys if not isinstance(summary[k], dict | list))
+
+
+def summary_notes(summary: Summary) -> list[tuple[str, str]]:
+    """The summary's notes, as ``("note", text)`` remarks."""
+    return [("note", str(note)) for note in summary.get("notes", [])]
 
 
 @dataclass(frozen=True)
@@ -27,7 +77,7 @@ class Stage:
         name: snake_case name; also the artifact folder and the ``<name>.rrd`` file.
         config_type: pydantic settings model (``extra="forbid"``); its YAML section is ``name``.
         inputs: stages whose artifacts this one reads (all must have run first).
-        run: ``run(ctx, cfg) -> summary``.
+        run: ``run(ctx, cfg) -> summary`` (usually ``lazy("stages.<name>.stage:run")``).
         version: bump when the stage's code changes its outputs, so cached results are recomputed.
         needs_source: the stage reads the run's source file (only ingest does).
         source_kinds: kinds of run source (``run.json``'s ``source_kind``) that the stage reads directly instead of
@@ -35,6 +85,10 @@ class Stage:
             stage of a run made by ``import-graph`` reads the graph file).
         blueprint: optional ``() -> rerun.blueprint.Blueprint`` for the stage's recording.
         help: one line for ``--help``.
+        options: the options of the stage's command, each setting one key of its settings.
+        summary_line: ``summary -> str``: the figures printed on the stage's line after it ran.
+        remarks: ``summary -> [(label, text)]``: lines printed under it after it ran (notes, ...).
+        report_lines: ``summary -> [str]``: what ``focusmap run`` prints at its end when this stage has run.
     """
 
     name: str
@@ -46,6 +100,10 @@ class Stage:
     blueprint: Callable[[], Any] | None = None
     help: str = ""
     optional_inputs: tuple[str, ...] = field(default=())
+    options: tuple[Option, ...] = ()
+    summary_line: Callable[[Summary], str] = summary_figures
+    remarks: Callable[[Summary], list[tuple[str, str]]] = summary_notes
+    report_lines: Callable[[Summary], list[str]] | None = None
     source_kinds: tuple[str, ...] = field(default=())
 
     def reads_source(self, source_kind: str) -> bool:

@@ -1,27 +1,27 @@
 """The stages of focusmap, in pipeline order, and the estimation maths they share.
 
-Each stage module exposes ``STAGE: Final[Stage]``; :data:`REGISTRY` lists them in order.
+Each stage package exposes ``STAGE: Final[Stage]``; :data:`REGISTRY` lists them in order. Importing this
+package imports only the stages' settings models and descriptions: a stage's code, and the numerics it
+uses, are imported when it runs (or when a public name of its package is first used).
 """
 
 from __future__ import annotations
 
 from typing import Final
 
-import pyarrow as pa
-
 from pipeline.registry import Headline, Registry
 from stages import detect, evaluate, graph, ingest, optimize, select_landmarks, select_measurements
 
 HEADLINES: Final = {
-    "landmarks": Headline(pa.int64(), (("graph", "landmarks"),), "lms"),
+    "landmarks": Headline("int64", (("graph", "landmarks"),), "lms"),
     "focused_landmarks": Headline(
-        pa.int64(), (("select_landmarks", "selected"), ("optimize", "focused_landmarks")), "foc"
+        "int64", (("select_landmarks", "selected"), ("optimize", "focused_landmarks")), "foc"
     ),
     "measurements_kept": Headline(
-        pa.int64(), (("select_measurements", "selected"), ("optimize", "tag_measurements")), "kept"
+        "int64", (("select_measurements", "selected"), ("optimize", "tag_measurements")), "kept"
     ),
     "focused_entropy": Headline(
-        pa.float64(),
+        "float64",
         (
             ("optimize", "focused_entropy"),
             ("select_measurements", "entropy_after"),
@@ -30,7 +30,7 @@ HEADLINES: Final = {
         "H",
     ),
     "max_collision_probability": Headline(
-        pa.float64(),
+        "float64",
         (
             ("optimize", "max_collision_probability"),
             ("select_landmarks", "p_collision_max_focused"),
@@ -38,7 +38,7 @@ HEADLINES: Final = {
         ),
         "maxP",
     ),
-    "collision_rate": Headline(pa.float64(), (("evaluate", "headline.collision_rate"),), "rate"),
+    "collision_rate": Headline("float64", (("evaluate", "headline.collision_rate"),), "rate"),
 }
 """The figures ``focusmap batch`` shows per run: column -> where to find it in the stage summaries."""
 

@@ -7,20 +7,37 @@ Public pieces: :class:`~stages.detect.config.DetectConfig`, :func:`~stages.detec
 
 from __future__ import annotations
 
-from typing import Final
+from typing import Any, Final
 
-from pipeline.stage import Stage
+from pipeline.stage import Stage, lazy
 from stages.detect.config import DetectConfig
-from stages.detect.stage import blueprint, run
+
+
+def blueprint() -> Any:
+    """Camera image with outlines, the tags in 3D, the series and the summary."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="/detect/camera/image", name="camera"),
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="/detect/camera", name="tags in the camera"),
+                rrb.TimeSeriesView(origin="/detect/stats", name="detections and reprojection error"),
+                rrb.TextDocumentView(origin="/detect/summary", name="summary"),
+            ),
+        ),
+        rrb.TimePanel(play_state="paused", timeline="time"),
+    )
+
 
 STAGE: Final = Stage(
     name="detect",
     config_type=DetectConfig,
-    run=run,
+    run=lazy("stages.detect.stage:run"),
     inputs=("ingest",),
     version="1",
     blueprint=blueprint,
     help="Detect AprilTags in the ingested frames; each tag's pose in the camera with its 6x6 covariance.",
 )
 
-__all__ = ["STAGE", "DetectConfig"]
+__all__ = ["STAGE", "DetectConfig", "blueprint"]

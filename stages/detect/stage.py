@@ -391,20 +391,3 @@ def _log_tags(rec: rr.RecordingStream, table: pa.Table, n_sigma: float) -> None:
             labels.append(f"{d['tag_id'][i]}{' (ambiguous)' if d['ambiguous'][i] else ''}")
         rec.log("/detect/camera/tags/axes", rr.Arrows3D(origins=origins, vectors=vectors, colors=colors))
         rec.log("/detect/camera/tags/position_cov", ellipsoids(np.array(centers), covs, n_sigma, labels=labels))
-
-
-def blueprint() -> Any:
-    """Camera image with outlines, the tags in 3D, the series and the summary."""
-    import rerun.blueprint as rrb
-
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial2DView(origin="/detect/camera/image", name="camera"),
-            rrb.Vertical(
-                rrb.Spatial3DView(origin="/detect/camera", name="tags in the camera"),
-                rrb.TimeSeriesView(origin="/detect/stats", name="detections and reprojection error"),
-                rrb.TextDocumentView(origin="/detect/summary", name="summary"),
-            ),
-        ),
-        rrb.TimePanel(play_state="paused", timeline="time"),
-    )

@@ -3,18 +3,26 @@ navigation with each case's map, and a report (``report.md``/``report.html`` wit
 
 Public API:
     STAGE, EvaluateConfig.
-    cases(cfg) -> list[Case]; EvalInputs; run_case(inputs, case, optimal) -> CaseResult; run_all(inputs, cases).
+    EvalInputs; run_case(inputs, case, optimal) -> CaseResult; run_all(inputs, cases).
     cases_table(results) -> pyarrow.Table (``cases.parquet``).
+    ``stages.evaluate.cases.cases(cfg) -> list[Case]`` (not re-exported here: its name is its module's).
+    report_lines(summary): the report path and headline ``focusmap run`` prints at its end.
 """
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
-from pipeline.stage import Stage
-from stages.evaluate.cases import TABLE_I, Case, CaseResult, EvalInputs, cases, cases_table, run_all, run_case
+from pipeline.lazy import lazy_exports
+from pipeline.stage import Stage, Summary, lazy
 from stages.evaluate.config import EvaluateConfig
-from stages.evaluate.stage import run
+
+if TYPE_CHECKING:
+    from stages.evaluate.cases import TABLE_I, Case, CaseResult, EvalInputs, cases_table, run_all, run_case
+
+__getattr__ = lazy_exports(
+    __name__, {"cases": ("TABLE_I", "Case", "CaseResult", "EvalInputs", "cases_table", "run_all", "run_case")}
+)
 
 
 def blueprint() -> Any:
@@ -30,15 +38,34 @@ def blueprint() -> Any:
     )
 
 
+def report_lines(summary: Summary) -> list[str]:
+    """The evaluation report's path and its headline row (focus, info), from evaluate's summary."""
+    lines = []
+    head = summary.get("headline") or {}
+    if summary.get("report"):
+        lines.append(f"report: {summary['report']}")
+    if head:
+        nan = float("nan")
+        lines.append(
+            f"headline ({head.get('case')}): focused entropy {head.get('focused_entropy', nan):.1f} nats, "
+            f"focused error {100 * head.get('focused_error_m', nan):.1f} cm, "
+            f"max P(collision) {head.get('max_collision_probability', nan):.2g}, "
+            f"collision rate {head.get('collision_rate', nan):.3f} "
+            f"[{head.get('collision_ci_low', nan):.3f}, {head.get('collision_ci_high', nan):.3f}]"
+        )
+    return lines
+
+
 STAGE: Final = Stage(
     name="evaluate",
     config_type=EvaluateConfig,
-    run=run,
+    run=lazy("stages.evaluate.stage:run"),
     inputs=("graph", "select_landmarks", "select_measurements"),
     optional_inputs=("ingest", "detect", "optimize"),
     version="1",
     blueprint=blueprint,
     help="Compare the six cases of Mu et al. Table I (and other strategy pairs), navigate on each map, report.",
+    report_lines=report_lines,
 )
 
 __all__ = [
@@ -49,8 +76,8 @@ __all__ = [
     "EvalInputs",
     "EvaluateConfig",
     "blueprint",
-    "cases",
     "cases_table",
+    "report_lines",
     "run_all",
     "run_case",
 ]

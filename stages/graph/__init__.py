@@ -10,13 +10,19 @@ Public API:
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
-from pipeline.stage import Stage
-from stages.graph.config import GraphConfig
-from stages.graph.imports import import_graph
-from stages.graph.load import LoadedGraph, build_reduced, load_graph
-from stages.graph.stage import GRAPH_SOURCE, run
+from pipeline.lazy import lazy_exports
+from pipeline.stage import Stage, lazy
+from stages.graph.config import GRAPH_SOURCE, GraphConfig
+
+if TYPE_CHECKING:
+    from stages.graph.imports import import_graph
+    from stages.graph.load import LoadedGraph, build_reduced, load_graph
+
+__getattr__ = lazy_exports(
+    __name__, {"imports": ("import_graph",), "load": ("LoadedGraph", "build_reduced", "load_graph")}
+)
 
 
 def blueprint() -> Any:
@@ -36,7 +42,7 @@ def blueprint() -> Any:
 STAGE: Final = Stage(
     name="graph",
     config_type=GraphConfig,
-    run=run,
+    run=lazy("stages.graph.stage:run"),
     inputs=("ingest", "detect"),
     source_kinds=(GRAPH_SOURCE,),
     version="1",

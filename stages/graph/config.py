@@ -6,6 +6,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+GRAPH_SOURCE = "graph"
+"""``source_kind`` of a run made by ``import-graph``: its graph stage reads the graph file, not ingest and detect."""
+
 
 class GraphConfig(BaseModel):
     """The full factor graph: model, keyframes, noise, robust kernel and optimiser."""

@@ -15,8 +15,7 @@ from pipeline.errors import InputError
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import StageResult, run_stage
-from stages.graph.config import GraphConfig
-from stages.graph.stage import GRAPH_SOURCE
+from stages.graph.config import GRAPH_SOURCE, GraphConfig
 
 
 def import_run(path: Path, out_dir: Path, name: str | None = None) -> RunFolder:

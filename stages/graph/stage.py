@@ -7,12 +7,9 @@ from typing import Any
 
 from pipeline.context import StageContext
 from stages.graph.build import build_problem
-from stages.graph.config import GraphConfig
+from stages.graph.config import GRAPH_SOURCE, GraphConfig
 from stages.graph.problem import GraphProblem
 from stages.graph.solve_all import solve_and_write
-
-GRAPH_SOURCE = "graph"
-"""The ``source_kind`` of a run made by ``import-graph``: its source is a g2o or GTSAM graph file."""
 
 
 def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:

@@ -14,40 +14,15 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.artifacts import StageOutput
 from pipeline.context import StageContext
 from pipeline.errors import InputError
-from pipeline.stage import Stage
 from stages.ingest import convert
 from stages.ingest.bags import RawMessage, Recording
+from stages.ingest.config import IngestConfig
 from stages.ingest.record import log_ingest
 from stages.ingest.topics import ROLES, resolve_topic
-
-
-class IngestConfig(BaseModel):
-    """What to read from the recording."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    image_topic: str = Field("", description="Camera image topic (Image or CompressedImage); empty = the only one.")
-    camera_info_topic: str = Field("", description="CameraInfo topic; empty = the only one.")
-    odometry_topic: str = Field("", description="nav_msgs/Odometry topic; empty = the only one.")
-    scan_topic: str = Field("", description="LaserScan topic; empty = the only one.")
-    tf_static_topic: str = Field("", description="Static transforms topic; empty = the one named */tf_static.")
-    detections_topic: str = Field(
-        "", description="AprilTag detections topic (apriltag_msgs), used instead of images; empty = the only one."
-    )
-    camera_file: str = Field(
-        "",
-        description="Calibration file (Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML) used instead of "
-        "CameraInfo messages; empty = read CameraInfo from the bag.",
-    )
-    start_s: float = Field(0.0, ge=0, description="Skip messages before this time, seconds from the bag start.")
-    end_s: float | None = Field(None, gt=0, description="Skip messages after this time, seconds from the bag start.")
-    frame_stride: int = Field(1, ge=1, description="Keep every n-th camera frame (counted from the first in the bag).")
-    salvage: bool = Field(False, description="Read a damaged bag up to the damage instead of failing.")
 
 
 def _frames_schema() -> pa.Schema:
@@ -346,39 +321,3 @@ def _write_calibration(out: StageOutput, reading: _Reading, camera: dict[str, An
     if reading.dets is None:
         out.file("tag_detections.parquet").unlink(missing_ok=True)
     return sensors, notes
-
-
-def _blueprint() -> Any:
-    import rerun.blueprint as rrb
-
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(
-                name="map",
-                origin="/ingest/world",
-                time_ranges=[
-                    rrb.VisibleTimeRange(
-                        "time", start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
-                    )
-                ],
-            ),
-            rrb.Vertical(
-                rrb.Spatial2DView(name="camera", origin="/ingest/camera"),
-                rrb.TextDocumentView(name="summary", origin="/ingest/summary"),
-            ),
-        ),
-        rrb.TimePanel(play_state="paused", timeline="time"),
-        collapse_panels=True,
-    )
-
-
-STAGE = Stage(
-    name="ingest",
-    config_type=IngestConfig,
-    run=run,
-    inputs=(),
-    version="1",
-    needs_source=True,
-    blueprint=_blueprint,
-    help="Read frames, odometry, laser scans, camera model and extrinsics from a recording.",
-)

@@ -12,22 +12,41 @@ Public API:
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
-from pipeline.stage import Stage
-from stages.optimize.artifacts import read_reduced
+from pipeline.lazy import lazy_exports
+from pipeline.stage import Stage, lazy
 from stages.optimize.config import OptimizeConfig
-from stages.optimize.core import (
-    ReducedMap,
-    gaussian_entropy,
-    landmark_errors,
-    landmark_heights,
-    map_size,
-    mean_or_nan,
-    solve_reduced,
-    solve_settings,
+
+if TYPE_CHECKING:
+    from stages.optimize.artifacts import read_reduced
+    from stages.optimize.core import (
+        ReducedMap,
+        gaussian_entropy,
+        landmark_errors,
+        landmark_heights,
+        map_size,
+        mean_or_nan,
+        solve_reduced,
+        solve_settings,
+    )
+
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "artifacts": ("read_reduced",),
+        "core": (
+            "ReducedMap",
+            "gaussian_entropy",
+            "landmark_errors",
+            "landmark_heights",
+            "map_size",
+            "mean_or_nan",
+            "solve_settings",
+            "solve_reduced",
+        ),
+    },
 )
-from stages.optimize.stage import run
 
 
 def blueprint() -> Any:
@@ -50,7 +69,7 @@ def blueprint() -> Any:
 STAGE: Final = Stage(
     name="optimize",
     config_type=OptimizeConfig,
-    run=run,
+    run=lazy("stages.optimize.stage:run"),
     inputs=("graph", "select_landmarks", "select_measurements"),
     optional_inputs=("ingest", "detect"),
     version="1",

@@ -11,12 +11,16 @@ Public API (no run folder needed):
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
-from pipeline.stage import Stage
+from pipeline.lazy import lazy_exports
+from pipeline.stage import Option, Stage, lazy
 from stages.select_landmarks.config import STRATEGIES, SelectLandmarksConfig
-from stages.select_landmarks.core import LandmarkChoice, LandmarkInputs, choose
-from stages.select_landmarks.stage import run
+
+if TYPE_CHECKING:
+    from stages.select_landmarks.core import LandmarkChoice, LandmarkInputs, choose
+
+__getattr__ = lazy_exports(__name__, {"core": ("LandmarkChoice", "LandmarkInputs", "choose")})
 
 
 def blueprint() -> Any:
@@ -40,12 +44,17 @@ def blueprint() -> Any:
 STAGE: Final = Stage(
     name="select_landmarks",
     config_type=SelectLandmarksConfig,
-    run=run,
+    run=lazy("stages.select_landmarks.stage:run"),
     inputs=("graph",),
     optional_inputs=("ingest", "detect"),
     version="1",
     blueprint=blueprint,
-    help="Select the focused landmarks (collision risk, mutual information, leverage, uniform, random or all).",
+    help="Stage one: keep the --budget (alpha) landmarks that matter most (collision | mutual-information | "
+    "leverage | uniform | random | all).",
+    options=(
+        Option("--strategy", "strategy", "Selection strategy (see configs/default.yaml for the choices)."),
+        Option("--budget", "budget", "How many to keep.", int, min=0),
+    ),
 )
 
 __all__ = ["STAGE", "STRATEGIES", "LandmarkChoice", "LandmarkInputs", "SelectLandmarksConfig", "blueprint", "choose"]

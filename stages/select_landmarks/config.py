@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from stages.risk import RiskParams
+if TYPE_CHECKING:  # stages.risk imports the estimation maths; settings must load without it
+    from stages.risk import RiskParams
 
 LandmarkStrategy = Literal["collision", "mutual-information", "leverage", "uniform", "random", "all"]
 STRATEGIES: tuple[str, ...] = ("collision", "mutual-information", "leverage", "uniform", "random", "all")
@@ -75,6 +76,8 @@ class SelectLandmarksConfig(BaseModel):
 
     def risk_params(self) -> RiskParams:
         """The risk model of these settings (for :func:`stages.risk.path_risk`)."""
+        from stages.risk import RiskParams
+
         return RiskParams(
             robot_radius_m=self.robot_radius_m,
             visibility_window_s=self.visibility_window_s,

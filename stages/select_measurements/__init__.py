@@ -13,19 +13,35 @@ Public API (no run folder needed):
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
-from pipeline.stage import Stage
+from pipeline.lazy import lazy_exports
+from pipeline.stage import Option, Stage, lazy
 from stages.select_measurements.config import STRATEGIES, SelectMeasurementsConfig
-from stages.select_measurements.core import (
-    MeasurementChoice,
-    candidate_factors,
-    choose,
-    focused_covariances,
-    focused_variables,
-    linear_system,
+
+if TYPE_CHECKING:
+    from stages.select_measurements.core import (
+        MeasurementChoice,
+        candidate_factors,
+        choose,
+        focused_covariances,
+        focused_variables,
+        linear_system,
+    )
+
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "core": (
+            "MeasurementChoice",
+            "candidate_factors",
+            "choose",
+            "focused_covariances",
+            "focused_variables",
+            "linear_system",
+        )
+    },
 )
-from stages.select_measurements.stage import run
 
 
 def blueprint() -> Any:
@@ -49,12 +65,18 @@ def blueprint() -> Any:
 STAGE: Final = Stage(
     name="select_measurements",
     config_type=SelectMeasurementsConfig,
-    run=run,
+    run=lazy("stages.select_measurements.stage:run"),
     inputs=("graph",),
     optional_inputs=("select_landmarks",),
     version="1",
     blueprint=blueprint,
-    help="Select the tag measurements that best localise the focused landmarks (information, leverage, ...).",
+    help="Stage two: keep the --budget (K) tag measurements that best localise the focused landmarks (information "
+    "| leverage | uniform | random | all).",
+    options=(
+        Option("--strategy", "strategy", "Selection strategy (see configs/default.yaml for the choices)."),
+        Option("--budget", "budget", "How many to keep.", int, min=0),
+        Option("--focus", "focus", "'selected': the focused landmarks of stage one; 'all': every landmark."),
+    ),
 )
 
 __all__ = [

@@ -67,7 +67,6 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="Measurements per worker count (median).")
     args = parser.parse_args()
     sets = args.sets if args.sets is not None else ["detect.workers=1"]
-    os.environ["FOCUSMAP_PROGRESS"] = "0"
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         (root / "bags").mkdir()

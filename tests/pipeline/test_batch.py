@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -126,7 +125,7 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     for package in ("pipeline", "stages", "cli"):
         shutil.copytree(ROOT / package, root / package, ignore=shutil.ignore_patterns("__pycache__"))
     # Subprocesses run with the snapshot as working directory too: ``python -c`` puts it first on sys.path.
-    return {**os.environ, "PYTHONPATH": str(root), "FOCUSMAP_PROGRESS": "0", "COLUMNS": "200"}
+    return {**os.environ, "PYTHONPATH": str(root), "COLUMNS": "200"}
 
 
 @pytest.fixture(scope="module")
@@ -208,7 +207,7 @@ def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None
 
 
 def test_headlines_count_lists_and_skip_non_numbers_without_any_stage_names() -> None:
-    registry = Registry([], {"n": Headline(pa.int64()), "x": Headline(pa.float64(), short="X")})
+    registry = Registry([], {"n": Headline("int64"), "x": Headline("float64", short="X")})
     out = Outcome(
         recording="/r/a.bag",
         run="a",
@@ -219,7 +218,7 @@ def test_headlines_count_lists_and_skip_non_numbers_without_any_stage_names() ->
     row = summary_table([out], [], registry).to_pylist()[0]
     assert row["n"] == 3 and row["x"] == 2.0  # a list counts; a string is no figure, the next stage's is
     with pytest.raises(ValueError, match="headline 'n' reads unknown stage 'graph'"):
-        Registry([], {"n": Headline(pa.int64(), (("graph", "landmarks"),))})
+        Registry([], {"n": Headline("int64", (("graph", "landmarks"),))})
 
 
 # --- end to end ----------------------------------------------------------------------------------------------

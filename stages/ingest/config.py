@@ -1,0 +1,29 @@
+"""Settings of the ingest stage (YAML section ``ingest``)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class IngestConfig(BaseModel):
+    """What to read from the recording."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    image_topic: str = Field("", description="Camera image topic (Image or CompressedImage); empty = the only one.")
+    camera_info_topic: str = Field("", description="CameraInfo topic; empty = the only one.")
+    odometry_topic: str = Field("", description="nav_msgs/Odometry topic; empty = the only one.")
+    scan_topic: str = Field("", description="LaserScan topic; empty = the only one.")
+    tf_static_topic: str = Field("", description="Static transforms topic; empty = the one named */tf_static.")
+    detections_topic: str = Field(
+        "", description="AprilTag detections topic (apriltag_msgs), used instead of images; empty = the only one."
+    )
+    camera_file: str = Field(
+        "",
+        description="Calibration file (Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML) used instead of "
+        "CameraInfo messages; empty = read CameraInfo from the bag.",
+    )
+    start_s: float = Field(0.0, ge=0, description="Skip messages before this time, seconds from the bag start.")
+    end_s: float | None = Field(None, gt=0, description="Skip messages after this time, seconds from the bag start.")
+    frame_stride: int = Field(1, ge=1, description="Keep every n-th camera frame (counted from the first in the bag).")
+    salvage: bool = Field(False, description="Read a damaged bag up to the damage instead of failing.")
