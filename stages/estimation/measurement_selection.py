@@ -44,6 +44,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from stages.estimation.blas import single_threaded_blas
+from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import Factor, LinearSystem
 from stages.estimation.sparse_cov import (
     SPDSolver,
@@ -58,8 +59,6 @@ IntArray = npt.NDArray[np.int64]
 
 SelectionStatus = Literal["ok", "budget_zero", "budget_exceeds_candidates", "no_candidates"]
 Measure = Literal["logdet", "trace", "max_eig"]
-
-_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
 
 
 @dataclass
@@ -141,10 +140,6 @@ def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:
     return [i for i, f in enumerate(system.factors) if i not in cand and f.kind != "landmark" and f.rows]
 
 
-def _entropy(logdet_cov: float, dim: int) -> float:
-    return 0.5 * (logdet_cov + dim * _LOG_2PI_E)
-
-
 def _focused_cov(solver: SPDSolver, n: int, fcols: IntArray) -> tuple[FloatArray, FloatArray]:
     E = np.zeros((n, len(fcols)))
     E[fcols, np.arange(len(fcols))] = 1.0
@@ -174,7 +169,7 @@ def focused_entropy(
     solver = SPDSolver(prob.info0)
     fcols = prob.system.columns(prob.focused)
     _, SF = _focused_cov(solver, prob.system.dim, fcols)
-    return _entropy(logdet_spd(SF), len(fcols))
+    return entropy_from_logdet(logdet_spd(SF), len(fcols))
 
 
 def _padded_candidates(sub: LinearSystem, cand: Sequence[int]) -> tuple[FloatArray, IntArray]:
@@ -550,7 +545,7 @@ def select_information(
         raise ValueError("no focused variables: run landmark selection first")
     solver = SPDSolver(prob.info0)
     XF, SF = _focused_cov(solver, n, fcols)
-    h0 = _entropy(logdet_spd(SF), f)
+    h0 = entropy_from_logdet(logdet_spd(SF), f)
     N = len(cand)
     status = _budget_status(budget, N)
     stats: dict[str, float] = {"setup_s": time.perf_counter() - t0}

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pipeline.errors import StageError
+from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
     MeasurementSelection,
@@ -39,7 +40,6 @@ if TYPE_CHECKING:
     from stages.graph.load import LoadedGraph
 
 FloatArray = npt.NDArray[np.float64]
-_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
 
 
 def linear_system(loaded: LoadedGraph) -> LinearSystem:
@@ -210,7 +210,7 @@ def focused_covariances(
         d = system.variables[v].dim
         blocks.append(SF[off : off + d, off : off + d])
         off += d
-    return blocks, 0.5 * (logdet_spd(SF) + len(cols) * _LOG_2PI_E)
+    return blocks, entropy_from_logdet(logdet_spd(SF), len(cols))
 
 
 def summary_of(choice: MeasurementChoice) -> dict[str, Any]:
