@@ -8,7 +8,6 @@ Conventions: planar poses are ``(x, y, θ)``; 3-D poses are gtsam ``Pose3`` tang
 from __future__ import annotations
 
 import heapq
-import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, TypeVar
@@ -454,29 +453,6 @@ def select_mutual_information(
             remaining.discard(l_)
             add(l_)
     return LandmarkSelection(picks, gains, st or "ok", {"objective": np.cumsum(gains)})
-
-
-def mutual_information(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], subset: Sequence[int]
-) -> float:
-    """``F(A)`` from scratch (dense), for brute force and checks."""
-    lam = info0.copy()
-    for l_ in subset:
-        cols, B = contributions[l_]
-        lam[np.ix_(cols, cols)] += B
-    return 0.5 * (np.linalg.slogdet(lam)[1] - np.linalg.slogdet(info0)[1])
-
-
-def brute_force_mutual_information(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], budget: int
-) -> tuple[float, tuple[int, ...]]:
-    """Best ``F`` over all subsets of size ``budget`` (small problems only)."""
-    best = (-np.inf, ())
-    for sub in itertools.combinations(range(len(contributions)), budget):
-        v = mutual_information(info0, contributions, sub)
-        if v > best[0]:
-            best = (v, sub)
-    return best
 
 
 # ------------------------------------------------------------------ leverage, uniform, random

@@ -30,7 +30,7 @@ from stages.estimation.measurement_selection import (
     select_leverage,
 )
 from stages.estimation.sparse_cov import SPDSolver, logdet_spd
-from stages.estimation.synthetic import planar_problem
+from tests.fixtures.planar_problems import planar_problem
 
 
 def floor_seconds(pp) -> float:

@@ -14,15 +14,13 @@ from stages.estimation.collision import (
     stabilised_covariances,
 )
 from stages.estimation.landmark_selection import (
-    brute_force_mutual_information,
     landmark_leverage_probabilities,
-    mutual_information,
     select_landmark_leverage,
     select_landmark_random,
     select_landmark_uniform,
     select_mutual_information,
 )
-from stages.estimation.synthetic import random_mi_problem
+from tests.fixtures.planar_problems import random_mi_problem
 from tests.oracles.collision import (
     halfplane_collision_probability,
     riccati_iterate,
@@ -30,6 +28,7 @@ from tests.oracles.collision import (
     select_collision_reference,
     stabilised_covariance,
 )
+from tests.oracles.mutual_information import brute_force_mutual_information, mutual_information
 
 Q = np.diag([0.02, 0.02, 0.005]) ** 2
 

@@ -16,7 +16,7 @@ from stages.estimation.measurement_selection import (
     select_random,
     select_uniform,
 )
-from stages.estimation.synthetic import planar_problem
+from tests.fixtures.planar_problems import planar_problem
 
 SLAM_GRAPHS = "/work/shared/data/slam-graphs"
 
