@@ -375,7 +375,7 @@ def _selected_mi_ops(
     return gain, add
 
 
-MI_BACKEND: Literal["auto", "selected", "dense", "sparse"] = "auto"
+MIBackend = Literal["auto", "selected", "dense", "sparse"]
 """How the MI greedy evaluates gains (``auto``: the cheapest by a flop count; the others for tests and benchmarks).
 
 ``selected``: the level-block selected inverse of the current information, recomputed after each pick
@@ -383,9 +383,9 @@ MI_BACKEND: Literal["auto", "selected", "dense", "sparse"] = "auto"
 ``sparse``: a sparse factorisation per pick and r solves per gain (memory-lean fallback above ``DENSE_MAX_DIM``)."""
 
 
-def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float) -> str:
-    if MI_BACKEND != "auto":
-        return MI_BACKEND
+def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float, backend: MIBackend) -> str:
+    if backend != "auto":
+        return backend
     if budget * blocks.cost() <= float(n) ** 3 + budget * 2.0 * float(n) ** 2 * rank or n > DENSE_MAX_DIM:
         return "selected"
     return "dense"
@@ -397,6 +397,8 @@ def select_mutual_information(
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     budget: int,
     lazy: bool = True,
+    backend: MIBackend = "auto",
+    min_block: int | None = None,
 ) -> LandmarkSelection:
     """Greedy ``F(A) = ½ log det(Λ₀ + Σ_{l∈A} Λ_l) − ½ log det Λ₀`` (monotone submodular; lazy is exact).
 
@@ -406,6 +408,8 @@ def select_mutual_information(
             the trajectory columns ``cols`` (see :func:`schur_contribution`).
         budget: number of landmarks.
         lazy: lazy evaluation (exact here, as every ``Λ_l`` is PSD).
+        backend: how the gains are evaluated (:data:`MIBackend`; the same picks every way).
+        min_block: smallest level block of the selected inverse (default :data:`LEVEL_BLOCK_MIN`).
 
     Returns:
         Picks with their marginal gains (nats); ``extra['objective']`` is ``F`` after each pick.
@@ -417,9 +421,10 @@ def select_mutual_information(
     budget = min(budget, L)
     n = info0.shape[0]
     factors = [(np.asarray(c, dtype=np.int64), _low_rank(b)) for c, b in contributions]
-    blocks = _LevelBlocks(_as_sparse(info0) + _scatter(n, [(c, np.ones((len(c), len(c)))) for c, _ in factors]))
+    pattern = _as_sparse(info0) + _scatter(n, [(c, np.ones((len(c), len(c)))) for c, _ in factors])
+    blocks = _LevelBlocks(pattern, min_block)
     rank = float(np.mean([B.shape[1] for _, B in factors]))
-    backend = _mi_backend(n, budget, blocks, rank)
+    backend = _mi_backend(n, budget, blocks, rank, backend)
     if backend == "selected":
         gain, add = _selected_mi_ops(info0, factors, blocks)
     elif backend == "dense":
@@ -464,16 +469,19 @@ def _measure(cov: FloatArray, measure: Measure) -> float:
     return float(np.linalg.slogdet(cov)[1])
 
 
-def _measure_information(lam: sp.spmatrix, measure: Measure, blocks: _LevelBlocks | None = None) -> float:
+def _measure_information(
+    lam: sp.spmatrix, measure: Measure, blocks: _LevelBlocks | None = None, min_block: int | None = None
+) -> float:
     """:func:`_measure` of ``lam⁻¹`` from a sparse factorisation of the information ``lam`` (no dense inverse).
 
-    ``blocks``: a level-block structure that contains ``lam``'s pattern (built from it if not given).
+    ``blocks``: a level-block structure that contains ``lam``'s pattern (built from it, with ``min_block``, if not
+    given).
     """
     if measure == "max_eig":
         dense = lam.shape[0] <= 200
         w = np.linalg.eigvalsh(lam.toarray())[0] if dense else spla.eigsh(lam, k=1, sigma=0.0, which="LM")[0][0]
         return 1.0 / float(w)
-    blocks = _LevelBlocks(lam) if blocks is None else blocks
+    blocks = _LevelBlocks(lam, min_block) if blocks is None else blocks
     D, C = blocks.store(lam)
     if measure == "logdet":
         return -blocks.logdet(D, C)
@@ -481,12 +489,14 @@ def _measure_information(lam: sp.spmatrix, measure: Measure, blocks: _LevelBlock
 
 
 def _all_information(
-    info0: FloatArray | sp.spmatrix, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+    info0: FloatArray | sp.spmatrix,
+    contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    min_block: int | None = None,
 ) -> tuple[sp.csc_matrix, _LevelBlocks]:
     """``Λ₀ + Σ_l Λ_l`` and its level-block structure (which holds the pattern of every subset's information)."""
     lam = (_as_sparse(info0) + _scatter(info0.shape[0], contributions)).tocsc()
     pattern = lam + _scatter(info0.shape[0], [(c, np.ones((len(c), len(c)))) for c, _ in contributions])
-    return lam, _LevelBlocks(pattern)
+    return lam, _LevelBlocks(pattern, min_block)
 
 
 def _leverage_probabilities(
@@ -518,14 +528,15 @@ def _leverage_probabilities(
 
 @blas_single
 def landmark_leverage_probabilities(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], min_block: int | None = None
 ) -> FloatArray:
     """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1).
 
     ``tr(Σ Λ_l)`` only reads ``Σ = Λ_all⁻¹`` on landmark l's support, which is inside the sparsity pattern of
-    ``Λ_all``: one selected inversion (:class:`_LevelBlocks`) gives all of them, without the dense inverse.
+    ``Λ_all``: one selected inversion (:class:`_LevelBlocks`, level blocks of at least ``min_block`` variables)
+    gives all of them, without the dense inverse.
     """
-    lam, blocks = _all_information(info0, contributions)
+    lam, blocks = _all_information(info0, contributions, min_block)
     return _leverage_probabilities(info0, contributions, lam, blocks)
 
 

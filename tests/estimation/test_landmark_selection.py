@@ -172,30 +172,29 @@ def _dense_leverage_probabilities(info0, contrib):
 
 @pytest.mark.parametrize("backend", ["selected", "dense", "sparse"])
 @pytest.mark.parametrize("min_block", [1, 96])
-def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, backend, min_block) -> None:
+def test_sparse_leverage_and_mi_equal_the_dense_formulas(backend, min_block) -> None:
     """The level-block selected inverse gives the dense inverse's numbers (probabilities, draw measures, MI gains).
 
     ``min_block = 1``: many blocks (one per BFS level); 96: the whole 36-dimensional problem in one block.
     """
-    import stages.estimation.landmark_selection as ls
     from stages.estimation.landmark_selection import _measure, _measure_information, _scatter
-
-    monkeypatch.setattr(ls, "MI_BACKEND", backend)
-    monkeypatch.setattr(ls, "LEVEL_BLOCK_MIN", min_block)
 
     info0, contrib = random_mi_problem(np.random.default_rng(3), T=12, L=20)
     np.testing.assert_allclose(
-        landmark_leverage_probabilities(info0, contrib), _dense_leverage_probabilities(info0, contrib), rtol=1e-9
+        landmark_leverage_probabilities(info0, contrib, min_block),
+        _dense_leverage_probabilities(info0, contrib),
+        rtol=1e-9,
     )
     lam = info0 + _scatter(info0.shape[0], contrib[:6]).toarray()
     for measure in ("logdet", "trace", "max_eig"):
         dense = _measure(np.linalg.inv(lam), measure)
-        assert _measure_information(sp.csc_matrix(lam), measure) == pytest.approx(dense, rel=1e-8)
-    sel = select_mutual_information(info0, contrib, 6)
+        assert _measure_information(sp.csc_matrix(lam), measure, min_block=min_block) == pytest.approx(dense, rel=1e-8)
+    sel = select_mutual_information(info0, contrib, 6, backend=backend, min_block=min_block)
     assert mutual_information(info0, contrib, sel.picks) == pytest.approx(sum(sel.scores), rel=1e-9)
-    assert select_mutual_information(sp.csc_matrix(info0), contrib, 6).picks == sel.picks
-    monkeypatch.setattr(ls, "MI_BACKEND", "dense")
-    ref = select_mutual_information(info0, contrib, 6)
+    assert select_mutual_information(sp.csc_matrix(info0), contrib, 6, backend=backend, min_block=min_block).picks == (
+        sel.picks
+    )
+    ref = select_mutual_information(info0, contrib, 6, backend="dense")
     assert ref.picks == sel.picks
     np.testing.assert_allclose(ref.scores, sel.scores, rtol=1e-9)
 
