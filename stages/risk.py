@@ -13,7 +13,7 @@ Per keyframe ``t`` of the full graph:
 * **Σ*(x_t)**: the steady state of belief stabilisation (eq. 19) at ``x_t`` with the *given* landmark
   map restricted to the focused tags that are visible (range-bearing model, measurement noise that
   includes the landmark's own marginal, eq. 26), via
-  :func:`stages.estimation.landmark_selection.stabilised_covariance`. A pose that sees no focused
+  :func:`stages.estimation.collision.stabilised_covariances`. A pose that sees no focused
   landmark gets dead reckoning from the nearest localised pose along the path,
   ``Σ(t) = Σ*(s) + min(|t − s|, cap_steps) · Q``, and ``cap_steps · Q`` when no pose is localised.
 * **risk**: ``P_t = 1 − Φ(m_t / sqrt(n_tᵀ Σ_xy n_t))`` with the margin ``m_t = d_t − robot_radius_m``
@@ -44,11 +44,12 @@ import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 
-from stages.estimation.landmark_selection import (
-    _propagate_unlocalised,  # the documented dead-reckoning rule, shared with select_collision
+from stages.estimation.collision import (
     collision_risk,
+    dead_reckoning_covariances,
     mahalanobis_to_obstacle,
-    planar_range_bearing,
+    measurement_information,
+    stabilised_covariances,
 )
 
 if TYPE_CHECKING:
@@ -353,52 +354,8 @@ def _risk_of(geometry: PathGeometry, sigma: FloatArray, params: RiskParams) -> t
     return np.asarray(p), maha
 
 
-def measurement_information(
-    pose: FloatArray, landmarks: LandmarkMap, rows: Sequence[int], sigmas: tuple[float, float]
-) -> FloatArray:
-    """``J = Σ_l Hᵀ R̄⁻¹ H`` (3×3) of the range-bearing measurements of ``rows`` from ``pose`` (eq. 26 noise).
-
-    The Riccati recursion of eq. 19 sees the measurements only through ``Σ⁻¹ + J``, so ``J`` replaces the
-    stacked ``H`` and block-diagonal ``R̄`` without changing Σ*.
-    """
-    J = np.zeros((3, 3))
-    for r in rows:
-        H, R = planar_range_bearing(pose, landmarks.positions[r], landmarks.covariances[r], sigmas)
-        J += H.T @ np.linalg.solve(R, H)
-    return 0.5 * (J + J.T)
-
-
-def stabilised_covariances(Q: FloatArray, J: FloatArray, cap_steps: int, max_iter: int = 100) -> FloatArray:
-    """Σ* of eq. 19 for a batch of information matrices ``J`` (B, 3, 3), by the structured doubling algorithm.
-
-    Same model as :func:`stages.estimation.landmark_selection.stabilised_covariance` (``A = I``; ``A = ρI``,
-    ``ρ = 1 − 1/(2·cap_steps)`` where ``J`` is rank deficient), solved for every pose at once with
-    3×3 batched numpy instead of one ``scipy.linalg.solve_discrete_are`` per pose (agrees to ~1e-13; tested).
-    Doubling: ``A ← A W⁻¹ A``, ``G ← G + A W⁻¹ G Aᵀ``, ``X ← X + Aᵀ X W⁻¹ A`` with ``W = I + G X``, from
-    ``(A, J, Q)``; ``X → Σ*`` quadratically.
-    """
-    J = np.asarray(J, dtype=float).reshape(-1, 3, 3)
-    B = len(J)
-    if B == 0:
-        return np.zeros((0, 3, 3))
-    w = np.linalg.eigvalsh(J)
-    observable = (w > 1e-10 * np.maximum(w[:, -1:], 1e-300)).sum(axis=1) == 3
-    rho = np.where(observable, 1.0, 1.0 - 0.5 / cap_steps)
-    eye = np.eye(3)
-    A = rho[:, None, None] * eye
-    G = J.copy()
-    X = np.broadcast_to(Q, (B, 3, 3)).copy()
-    for _ in range(max_iter):
-        Winv = np.linalg.inv(eye + G @ X)
-        AW = A @ Winv
-        X_new = X + np.swapaxes(A, 1, 2) @ X @ Winv @ A
-        G = G + AW @ G @ np.swapaxes(A, 1, 2)
-        A = AW @ A
-        done = np.abs(X_new - X).max() <= 1e-15 * np.abs(X_new).max()
-        X = X_new
-        if done:
-            break
-    return np.asarray(0.5 * (X + np.swapaxes(X, 1, 2)))
+def _information(pose: FloatArray, landmarks: LandmarkMap, rows: list[int], sigmas: tuple[float, float]) -> FloatArray:
+    return measurement_information(pose, landmarks.positions[rows], landmarks.covariances[rows], sigmas)
 
 
 def path_risk(
@@ -442,15 +399,13 @@ def path_risk(
             else:
                 todo.append((int(t), key))
         if todo:
-            J = np.array(
-                [measurement_information(geometry.poses[t], landmarks, sorted(k[1]), geometry.sigmas) for t, k in todo]
-            )
+            J = np.array([_information(geometry.poses[t], landmarks, sorted(k[1]), geometry.sigmas) for t, k in todo])
             S = stabilised_covariances(geometry.Q, J, params.cap_steps)
             for (t, key), s_t in zip(todo, S, strict=True):
                 sig[t] = s_t
                 if cache is not None:
                     cache[key] = s_t
-    sigma = _propagate_unlocalised(sig, localised, geometry.Q, params.cap_steps)
+    sigma = dead_reckoning_covariances(sig, localised, geometry.Q, params.cap_steps)
     p, maha = _risk_of(geometry, sigma, params)
     return PathRisk(sigma, localised, p, maha)
 

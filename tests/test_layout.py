@@ -33,3 +33,10 @@ def test_layers_only_import_downwards() -> None:
         assert not (_imports(path) & {"stages", "cli"}), f"{path} imports upwards"
     for path in (ROOT / "stages").rglob("*.py"):
         assert "cli" not in _imports(path), f"{path} imports the CLI"
+
+
+def test_production_code_does_not_import_the_tests() -> None:
+    """References and generators live in tests/ (oracles, fixtures); nothing that ships may need them."""
+    for pkg in ("pipeline", "stages", "cli", "sample_data"):
+        for path in (ROOT / pkg).rglob("*.py"):
+            assert "tests" not in _imports(path), f"{path} imports from tests/"

@@ -1,23 +1,21 @@
-"""Stage one of focused inference: choose the landmarks that matter (Mu et al. Alg. 2, Beinhofer et al., leverage).
+"""Stage one of focused inference: choose the landmarks that matter (Beinhofer et al. MI, leverage, uniform, random).
 
 Conventions: planar poses are ``(x, y, θ)``; 3-D poses are gtsam ``Pose3`` tangents
-``(ω_x, ω_y, ω_z, t_x, t_y, t_z)`` (rotation first). Collision risk uses the position block.
+``(ω_x, ω_y, ω_z, t_x, t_y, t_z)`` (rotation first). Mu et al. Alg. 2 (collision risk) is in
+:mod:`stages.estimation.collision`; all strategies return a :class:`LandmarkSelection`.
 """
 
 from __future__ import annotations
 
 import heapq
-import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
-import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.stats import norm
 
 from stages.estimation.blas import blas_single
 
@@ -26,79 +24,7 @@ Measure = Literal["logdet", "trace", "max_eig"]
 T = TypeVar("T")
 
 
-# ------------------------------------------------------------------ belief stabilisation (eq. 19, 26)
-def riccati_steady_state(A: FloatArray, Q: FloatArray, H: FloatArray, R: FloatArray) -> FloatArray:
-    """Fixed point of eq. 19: ``Σ = Q + A(Σ − ΣHᵀ(HΣHᵀ + R)⁻¹HΣ)Aᵀ`` (``scipy.linalg.solve_discrete_are``)."""
-    S = sla.solve_discrete_are(A.T, H.T, Q, R)
-    return np.asarray(0.5 * (S + S.T))
-
-
-def riccati_iterate(
-    A: FloatArray, Q: FloatArray, H: FloatArray, R: FloatArray, sigma0: FloatArray, steps: int
-) -> FloatArray:
-    """Iterate the recursion of eq. 19 ``steps`` times from ``sigma0`` (for checking the fixed point)."""
-    S = sigma0
-    for _ in range(steps):
-        K = S @ H.T @ np.linalg.inv(H @ S @ H.T + R)
-        S = Q + A @ (S - K @ H @ S) @ A.T
-    return S
-
-
-def planar_range_bearing(
-    pose: FloatArray, landmark: FloatArray, landmark_cov: FloatArray, sigmas: tuple[float, float]
-) -> tuple[FloatArray, FloatArray]:
-    """Jacobian w.r.t. the pose (2×3) of (bearing, range) and the noise of eq. 26 ``R + M R_L Mᵀ``."""
-    dx, dy = landmark[0] - pose[0], landmark[1] - pose[1]
-    q = max(dx * dx + dy * dy, 1e-12)
-    r = np.sqrt(q)
-    H = np.array([[dy / q, -dx / q, -1.0], [-dx / r, -dy / r, 0.0]])
-    M = np.array([[-dy / q, dx / q], [dx / r, dy / r]])  # w.r.t. the landmark position
-    R = np.diag(np.square(sigmas)) + M @ landmark_cov @ M.T
-    return H, R
-
-
-def pose3_point(
-    rotation: FloatArray, translation: FloatArray, landmark: FloatArray, landmark_cov: FloatArray, sigma: float
-) -> tuple[FloatArray, FloatArray]:
-    """Landmark position in the body, ``z = Rᵀ(l − t)``: Jacobian (3×6, gtsam tangent order) and eq.-26 noise."""
-    z = rotation.T @ (landmark - translation)
-    skew = np.array([[0, -z[2], z[1]], [z[2], 0, -z[0]], [-z[1], z[0], 0]])
-    H = np.hstack([skew, -np.eye(3)])
-    M = rotation.T
-    return H, sigma**2 * np.eye(3) + M @ landmark_cov @ M.T
-
-
-def stabilised_covariance(
-    Q: FloatArray, H_R: Sequence[tuple[FloatArray, FloatArray]], cap_steps: int = 50
-) -> FloatArray:
-    """``Σ*`` at a pose held still (``A = I``) observing the given landmarks (stacked ``H``, block ``R̄``).
-
-    When the landmarks leave a direction unobservable (e.g. one range-bearing landmark and a
-    planar pose), ``A = I`` has no finite fixed point; then ``A = ρ I`` with
-    ``ρ = 1 − 1/(2·cap_steps)`` is used, so that unobservable directions saturate at about
-    ``cap_steps · Q``, the same cap as the dead-reckoning rule for poses that see no landmark.
-    """
-    H = np.vstack([h for h, _ in H_R])
-    R = sla.block_diag(*[r for _, r in H_R])
-    n = Q.shape[0]
-    observable = np.linalg.matrix_rank(H) == n  # with A = I the observability matrix has the rank of H
-    rho = 1.0 if observable else 1.0 - 0.5 / cap_steps
-    return riccati_steady_state(rho * np.eye(n), Q, H, R)
-
-
-# ------------------------------------------------------------------ collision risk (half-plane, eq. 20)
-def halfplane_collision_probability(cov_pos: FloatArray, normal: FloatArray, clearance: float) -> float:
-    """``P = 1 − Φ(d / sqrt(nᵀΣn))``: probability that the position crosses the obstacle half-plane."""
-    s = float(np.sqrt(max(normal @ cov_pos @ normal, 1e-300)))
-    return float(norm.sf(clearance / s))
-
-
-def mahalanobis_to_obstacle(cov_pos: FloatArray, offset: FloatArray) -> float:
-    """Eq. 20: ``(x − x_obst)ᵀ Σ⁻¹ (x − x_obst)`` (squared standard deviations to the nearest return)."""
-    return float(offset @ np.linalg.solve(cov_pos, offset))
-
-
-# ------------------------------------------------------------------ Alg. 2
+# ------------------------------------------------------------------ result
 @dataclass
 class LandmarkSelection:
     """Result of a landmark selection."""
@@ -119,131 +45,6 @@ def _status(budget: int, n: int) -> str | None:
     if budget > n:
         return "budget_exceeds_landmarks"
     return None
-
-
-def _propagate_unlocalised(
-    sigmas: FloatArray, localised: npt.NDArray[np.bool_], Q: FloatArray, cap_steps: int
-) -> FloatArray:
-    """Covariance of poses that see no selected landmark.
-
-    Rule: ``Σ(t) = Σ*(s) + min(|t − s|, cap_steps) · Q`` with ``s`` the nearest pose along the path
-    that does see one (dead reckoning from there, one odometry step of noise ``Q`` per pose);
-    if no pose is localised, ``cap_steps · Q``.
-    """
-    T = len(localised)
-    out = sigmas.copy()
-    idx = np.flatnonzero(localised)
-    if len(idx) == 0:
-        out[:] = cap_steps * Q
-        return out
-    t = np.arange(T)
-    pos = np.searchsorted(idx, t)
-    left = idx[np.clip(pos - 1, 0, len(idx) - 1)]
-    right = idx[np.clip(pos, 0, len(idx) - 1)]
-    nearest = np.where(np.abs(t - left) <= np.abs(right - t), left, right)
-    steps = np.minimum(np.abs(t - nearest), cap_steps)
-    un = ~localised
-    out[un] = sigmas[nearest[un]] + steps[un, None, None] * Q
-    return out
-
-
-def collision_risk(
-    poses_cov: FloatArray, clearance: FloatArray, normals: FloatArray, pos_idx: Sequence[int]
-) -> FloatArray:
-    """Half-plane collision probability of every pose (``pos_idx``: the position rows of the covariance)."""
-    P = poses_cov[:, pos_idx][:, :, pos_idx]
-    var = np.einsum("ti,tij,tj->t", normals, P, normals)
-    return np.asarray(norm.sf(clearance / np.sqrt(np.maximum(var, 1e-300))))
-
-
-def select_collision(
-    poses: FloatArray,
-    landmarks: FloatArray,
-    landmark_covs: FloatArray,
-    visible: npt.NDArray[np.bool_],
-    clearance: FloatArray,
-    normals: FloatArray,
-    Q: FloatArray,
-    budget: int,
-    bearing_range_sigmas: tuple[float, float] = (0.02, 0.1),
-    cap_steps: int = 50,
-) -> LandmarkSelection:
-    """Mu et al. Alg. 2 for planar poses: pick the landmark seen from the riskiest pose, repeat.
-
-    Args:
-        poses: (T, 3) x, y, θ of the keyframes, in time order.
-        landmarks: (L, 2) landmark positions; ``landmark_covs`` (L, 2, 2) their marginals.
-        visible: (T, L) whether landmark l is visible from pose t.
-        clearance: (T,) distance to the nearest laser return; ``normals`` (T, 2) unit vectors from
-            the pose towards it (world frame).
-        Q: (3, 3) odometry noise per step.
-        budget: number of landmarks to pick.
-        bearing_range_sigmas: measurement noise (rad, m).
-        cap_steps: cap of the dead-reckoning rule for poses that see no selected landmark.
-
-    Returns:
-        Picks with, as scores, the maximum collision probability along the path after each pick;
-        ``extra`` holds ``risk_before``/``risk_after`` (T,), ``sigma_after`` (T, 3, 3) and
-        ``mahalanobis_after`` (T,).
-    """
-    T, L = visible.shape
-    st = _status(budget, L)
-    sig = np.zeros((T, 3, 3))
-    localised = np.zeros(T, dtype=bool)
-    chosen: list[int] = []
-
-    def refresh(ts: npt.NDArray[np.int64]) -> None:
-        for t in ts:
-            ls = [l_ for l_ in chosen if visible[t, l_]]
-            if ls:
-                sig[t] = stabilised_covariance(
-                    Q,
-                    [
-                        planar_range_bearing(poses[t], landmarks[l_], landmark_covs[l_], bearing_range_sigmas)
-                        for l_ in ls
-                    ],
-                )
-                localised[t] = True
-
-    cov = _propagate_unlocalised(sig, localised, Q, cap_steps)
-    risk0 = collision_risk(cov, clearance, normals, [0, 1])
-    if st in ("no_landmarks", "budget_zero"):
-        return LandmarkSelection([], [], st, {"risk_before": risk0, "risk_after": risk0})
-    budget = min(budget, L)
-    risk = risk0
-    scores: list[float] = []
-    for _ in range(budget):
-        available = visible & ~np.isin(np.arange(L), chosen)[None, :]
-        cand_poses = np.flatnonzero(available.any(axis=1))
-        if len(cand_poses) == 0:  # remaining landmarks are seen from nowhere: append by index
-            rest = [l_ for l_ in range(L) if l_ not in chosen]
-            chosen.append(rest[0])
-            scores.append(float(risk.max()))
-            continue
-        t = cand_poses[np.argmax(risk[cand_poses])]
-        # among the landmarks seen from the riskiest pose, the one that lowers its risk most
-        best: tuple[float, int] | None = None
-        for l_ in np.flatnonzero(available[t]):
-            ls = [x for x in chosen if visible[t, x]] + [int(l_)]
-            s = stabilised_covariance(
-                Q, [planar_range_bearing(poses[t], landmarks[x], landmark_covs[x], bearing_range_sigmas) for x in ls]
-            )
-            p = halfplane_collision_probability(s[:2, :2], normals[t], clearance[t])
-            if best is None or p < best[0]:
-                best = (p, int(l_))
-        assert best is not None
-        chosen.append(best[1])
-        refresh(np.flatnonzero(visible[:, best[1]]))
-        cov = _propagate_unlocalised(sig, localised, Q, cap_steps)
-        risk = collision_risk(cov, clearance, normals, [0, 1])
-        scores.append(float(risk.max()))
-    maha = np.array([mahalanobis_to_obstacle(cov[t, :2, :2], clearance[t] * normals[t]) for t in range(T)])
-    return LandmarkSelection(
-        chosen,
-        scores,
-        st or "ok",
-        {"risk_before": risk0, "risk_after": risk, "sigma_after": cov, "mahalanobis_after": maha},
-    )
 
 
 # ------------------------------------------------------------------ sparse trajectory information
@@ -574,7 +375,7 @@ def _selected_mi_ops(
     return gain, add
 
 
-MI_BACKEND: Literal["auto", "selected", "dense", "sparse"] = "auto"
+MIBackend = Literal["auto", "selected", "dense", "sparse"]
 """How the MI greedy evaluates gains (``auto``: the cheapest by a flop count; the others for tests and benchmarks).
 
 ``selected``: the level-block selected inverse of the current information, recomputed after each pick
@@ -582,9 +383,9 @@ MI_BACKEND: Literal["auto", "selected", "dense", "sparse"] = "auto"
 ``sparse``: a sparse factorisation per pick and r solves per gain (memory-lean fallback above ``DENSE_MAX_DIM``)."""
 
 
-def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float) -> str:
-    if MI_BACKEND != "auto":
-        return MI_BACKEND
+def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float, backend: MIBackend) -> str:
+    if backend != "auto":
+        return backend
     if budget * blocks.cost() <= float(n) ** 3 + budget * 2.0 * float(n) ** 2 * rank or n > DENSE_MAX_DIM:
         return "selected"
     return "dense"
@@ -596,6 +397,8 @@ def select_mutual_information(
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     budget: int,
     lazy: bool = True,
+    backend: MIBackend = "auto",
+    min_block: int | None = None,
 ) -> LandmarkSelection:
     """Greedy ``F(A) = ½ log det(Λ₀ + Σ_{l∈A} Λ_l) − ½ log det Λ₀`` (monotone submodular; lazy is exact).
 
@@ -605,6 +408,8 @@ def select_mutual_information(
             the trajectory columns ``cols`` (see :func:`schur_contribution`).
         budget: number of landmarks.
         lazy: lazy evaluation (exact here, as every ``Λ_l`` is PSD).
+        backend: how the gains are evaluated (:data:`MIBackend`; the same picks every way).
+        min_block: smallest level block of the selected inverse (default :data:`LEVEL_BLOCK_MIN`).
 
     Returns:
         Picks with their marginal gains (nats); ``extra['objective']`` is ``F`` after each pick.
@@ -616,9 +421,10 @@ def select_mutual_information(
     budget = min(budget, L)
     n = info0.shape[0]
     factors = [(np.asarray(c, dtype=np.int64), _low_rank(b)) for c, b in contributions]
-    blocks = _LevelBlocks(_as_sparse(info0) + _scatter(n, [(c, np.ones((len(c), len(c)))) for c, _ in factors]))
+    pattern = _as_sparse(info0) + _scatter(n, [(c, np.ones((len(c), len(c)))) for c, _ in factors])
+    blocks = _LevelBlocks(pattern, min_block)
     rank = float(np.mean([B.shape[1] for _, B in factors]))
-    backend = _mi_backend(n, budget, blocks, rank)
+    backend = _mi_backend(n, budget, blocks, rank, backend)
     if backend == "selected":
         gain, add = _selected_mi_ops(info0, factors, blocks)
     elif backend == "dense":
@@ -654,29 +460,6 @@ def select_mutual_information(
     return LandmarkSelection(picks, gains, st or "ok", {"objective": np.cumsum(gains)})
 
 
-def mutual_information(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], subset: Sequence[int]
-) -> float:
-    """``F(A)`` from scratch (dense), for brute force and checks."""
-    lam = info0.copy()
-    for l_ in subset:
-        cols, B = contributions[l_]
-        lam[np.ix_(cols, cols)] += B
-    return 0.5 * (np.linalg.slogdet(lam)[1] - np.linalg.slogdet(info0)[1])
-
-
-def brute_force_mutual_information(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], budget: int
-) -> tuple[float, tuple[int, ...]]:
-    """Best ``F`` over all subsets of size ``budget`` (small problems only)."""
-    best = (-np.inf, ())
-    for sub in itertools.combinations(range(len(contributions)), budget):
-        v = mutual_information(info0, contributions, sub)
-        if v > best[0]:
-            best = (v, sub)
-    return best
-
-
 # ------------------------------------------------------------------ leverage, uniform, random
 def _measure(cov: FloatArray, measure: Measure) -> float:
     if measure == "trace":
@@ -686,16 +469,19 @@ def _measure(cov: FloatArray, measure: Measure) -> float:
     return float(np.linalg.slogdet(cov)[1])
 
 
-def _measure_information(lam: sp.spmatrix, measure: Measure, blocks: _LevelBlocks | None = None) -> float:
+def _measure_information(
+    lam: sp.spmatrix, measure: Measure, blocks: _LevelBlocks | None = None, min_block: int | None = None
+) -> float:
     """:func:`_measure` of ``lam⁻¹`` from a sparse factorisation of the information ``lam`` (no dense inverse).
 
-    ``blocks``: a level-block structure that contains ``lam``'s pattern (built from it if not given).
+    ``blocks``: a level-block structure that contains ``lam``'s pattern (built from it, with ``min_block``, if not
+    given).
     """
     if measure == "max_eig":
         dense = lam.shape[0] <= 200
         w = np.linalg.eigvalsh(lam.toarray())[0] if dense else spla.eigsh(lam, k=1, sigma=0.0, which="LM")[0][0]
         return 1.0 / float(w)
-    blocks = _LevelBlocks(lam) if blocks is None else blocks
+    blocks = _LevelBlocks(lam, min_block) if blocks is None else blocks
     D, C = blocks.store(lam)
     if measure == "logdet":
         return -blocks.logdet(D, C)
@@ -703,12 +489,14 @@ def _measure_information(lam: sp.spmatrix, measure: Measure, blocks: _LevelBlock
 
 
 def _all_information(
-    info0: FloatArray | sp.spmatrix, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+    info0: FloatArray | sp.spmatrix,
+    contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    min_block: int | None = None,
 ) -> tuple[sp.csc_matrix, _LevelBlocks]:
     """``Λ₀ + Σ_l Λ_l`` and its level-block structure (which holds the pattern of every subset's information)."""
     lam = (_as_sparse(info0) + _scatter(info0.shape[0], contributions)).tocsc()
     pattern = lam + _scatter(info0.shape[0], [(c, np.ones((len(c), len(c)))) for c, _ in contributions])
-    return lam, _LevelBlocks(pattern)
+    return lam, _LevelBlocks(pattern, min_block)
 
 
 def _leverage_probabilities(
@@ -740,14 +528,15 @@ def _leverage_probabilities(
 
 @blas_single
 def landmark_leverage_probabilities(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], min_block: int | None = None
 ) -> FloatArray:
     """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1).
 
     ``tr(Σ Λ_l)`` only reads ``Σ = Λ_all⁻¹`` on landmark l's support, which is inside the sparsity pattern of
-    ``Λ_all``: one selected inversion (:class:`_LevelBlocks`) gives all of them, without the dense inverse.
+    ``Λ_all``: one selected inversion (:class:`_LevelBlocks`, level blocks of at least ``min_block`` variables)
+    gives all of them, without the dense inverse.
     """
-    lam, blocks = _all_information(info0, contributions)
+    lam, blocks = _all_information(info0, contributions, min_block)
     return _leverage_probabilities(info0, contributions, lam, blocks)
 
 

@@ -44,6 +44,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from stages.estimation.blas import single_threaded_blas
+from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import Factor, LinearSystem
 from stages.estimation.sparse_cov import (
     SPDSolver,
@@ -58,8 +59,6 @@ IntArray = npt.NDArray[np.int64]
 
 SelectionStatus = Literal["ok", "budget_zero", "budget_exceeds_candidates", "no_candidates"]
 Measure = Literal["logdet", "trace", "max_eig"]
-
-_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
 
 
 @dataclass
@@ -141,10 +140,6 @@ def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:
     return [i for i, f in enumerate(system.factors) if i not in cand and f.kind != "landmark" and f.rows]
 
 
-def _entropy(logdet_cov: float, dim: int) -> float:
-    return 0.5 * (logdet_cov + dim * _LOG_2PI_E)
-
-
 def _focused_cov(solver: SPDSolver, n: int, fcols: IntArray) -> tuple[FloatArray, FloatArray]:
     E = np.zeros((n, len(fcols)))
     E[fcols, np.arange(len(fcols))] = 1.0
@@ -174,7 +169,7 @@ def focused_entropy(
     solver = SPDSolver(prob.info0)
     fcols = prob.system.columns(prob.focused)
     _, SF = _focused_cov(solver, prob.system.dim, fcols)
-    return _entropy(logdet_spd(SF), len(fcols))
+    return entropy_from_logdet(logdet_spd(SF), len(fcols))
 
 
 def _padded_candidates(sub: LinearSystem, cand: Sequence[int]) -> tuple[FloatArray, IntArray]:
@@ -217,33 +212,37 @@ def _clique_covariances(
     return out
 
 
-def _batched_logdet(M: FloatArray) -> FloatArray:
-    """``log det`` of a stack of small SPD matrices (closed form for 1×1 to 3×3); ``inf`` if not PD."""
-    m = M.shape[-1]
-    if m == 1:
-        det = M[:, 0, 0]
-    elif m == 2:
-        det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
-    elif m == 3:
-        det = (
-            M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
-            - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
-            + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0])
-        )
-    else:
-        sign, ld = np.linalg.slogdet(M)
-        return np.where(sign > 0, ld, np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(det > 0, np.log(np.where(det > 0, det, 1.0)), np.inf)
+@dataclass(frozen=True)
+class TrackerOptions:
+    """How :func:`select_information` keeps ``Σ_S`` between sparse factorisations: the same picks and gains every
+    way (tested against the dense reference), at different costs. The defaults are the measured best."""
 
+    tracker: Literal["auto", "window", "capacitance"] = "capacitance"
+    """``window``: a sequential Woodbury window stored at the tracked rows, on the Schur-reduced system (cost grows
+    with the candidates' rows); ``capacitance``: nothing stored at the tracked rows, two solves per step with the
+    last factor of the whole compact graph (cost fixed by the graph; see :class:`_CapacitanceTracker`); ``auto``:
+    ``capacitance`` once the candidates' and focused columns exceed ``capacitance_above`` of the state, else
+    ``window``.
 
-_TRACK_FOCUSED_MAX = 128
-"""Up to this many focused columns, ``Σ Wᵀ`` is kept at the tracked rows instead of solved for per step."""
-
-
-_REDUCE_BELOW = 1.0
-"""Track the Schur complement of ``Λ₀`` onto the candidates' and focused columns when they are fewer
-than this fraction of the state (measured: worth it even at 77% of the state, 4.9 vs 7.2 ms/step)."""
+    Default ``capacitance``: its time per step is flat in the number of candidates (issue 6's target: 1.20-1.29x
+    from 1,000 to 10,000 candidates) and the whole greedy stays within 5x of one GTSAM optimise plus marginals
+    (0.6x for K=90, 2.6x for K=1000). ``auto`` is up to 4x cheaper per step on small candidate sets (the
+    Schur-reduced window), at the price of a step cost that grows with the candidates."""
+    capacitance_above: float = 0.75
+    """``auto``: the fraction of the state above which the capacitance tracker is used. Measured on the benchmark
+    graph (all landmarks focused, 100 steps): window 0.64 ms/step at 9% of the state and 2.5–2.7 at 77%, 3.0–3.5
+    on the whole graph; capacitance 2.3 and 2.7–3.0 ms/step (flat): they tie near 75%."""
+    track_focused_max: int = 128
+    """``window``: up to this many focused columns, ``Σ Wᵀ`` is kept at the tracked rows instead of solved for
+    per step."""
+    reduce_below: float = 1.0
+    """``window``: track the Schur complement of ``Λ₀`` onto the candidates' and focused columns when they are
+    fewer than this fraction of the state (measured: worth it even at 77% of the state, 4.9 vs 7.2 ms/step)."""
+    refactor_on_first_observation: bool = False
+    """``capacitance``: also refactorise right after a pick that observes a landmark that ``Λ_last`` holds only
+    through the weak prior (the pick that makes ``C`` ill-conditioned, cond ~1e6). Not needed for exactness once
+    ``C`` is kept as a Cholesky factor (measured: same picks, gains within 1e-8 of the dense reference either
+    way), and costly when most picks are first observations."""
 
 
 class _Refactorising:
@@ -350,30 +349,6 @@ class _Tracker(_Refactorising):
         return False
 
 
-_TRACKER: Literal["auto", "window", "capacitance"] = "capacitance"
-"""How ``Σ_S`` is kept between sparse factorisations: ``window`` (sequential Woodbury window stored at
-the tracked rows, Schur-reduced system; cost grows with the candidates' rows), ``capacitance`` (nothing
-stored at the tracked rows; two solves per step with the last factor of the whole compact graph, cost
-fixed by the graph; see :class:`_CapacitanceTracker`), ``auto``: ``capacitance`` once the candidates'
-and focused columns exceed ``_CAPACITANCE_ABOVE`` of the state, else ``window``.
-
-Default ``capacitance``: its time per step is flat in the number of candidates (issue 6's target:
-1.20-1.29x from 1,000 to 10,000 candidates) and the whole greedy stays within 5x of one GTSAM optimise
-plus marginals (0.6x for K=90, 2.6x for K=1000). ``auto`` is up to 4x cheaper per step on small
-candidate sets (the Schur-reduced window), at the price of a step cost that grows with the candidates."""
-
-_CAPACITANCE_ABOVE = 0.75
-"""``auto``: the fraction of the state above which the capacitance tracker is used. Measured on the
-benchmark graph (all landmarks focused, 100 steps): window 0.64 ms/step at 9% of the state and 2.5–2.7
-at 77%, 3.0–3.5 on the whole graph; capacitance 2.3 and 2.7–3.0 ms/step (flat): they tie near 75%."""
-
-_REFACTOR_ON_FIRST_OBSERVATION = False
-"""Capacitance tracker: also refactorise right after a pick that observes a landmark that ``Λ_last``
-holds only through the weak prior (the pick that makes ``C`` ill-conditioned, cond ~1e6). Not needed
-for exactness once ``C`` is kept as a Cholesky factor (measured: same picks, gains within 1e-8 of the
-dense reference either way), and costly when most picks are first observations."""
-
-
 class _CapacitanceTracker(_Refactorising):
     """Solves with ``Λ_S = Λ_last + A_Wᵀ A_W`` (the picks ``W`` since the last factorisation).
 
@@ -393,9 +368,11 @@ class _CapacitanceTracker(_Refactorising):
         add_info: Callable[[list[int]], sp.spmatrix],
         refactor_every: int | None,
         weak: npt.NDArray[np.bool_] | None,
+        refactor_on_first_observation: bool = False,
         max_window: int = 256,
     ) -> None:
         super().__init__(info, m, add_info, refactor_every, max_window)
+        self.refactor_on_first_observation = refactor_on_first_observation
         self.cols = np.zeros((self.cap, d), dtype=np.int64)
         self.A = np.zeros((self.cap, m, d))
         self.WX = np.zeros((len(fcols), self.cap * m))  # W Σ_last A_iᵀ
@@ -439,7 +416,7 @@ class _CapacitanceTracker(_Refactorising):
             nzc = cols[np.any(A != 0, axis=0)]
             first = bool(self.weak[nzc].any())
             self.weak[nzc] = False
-        if first and _REFACTOR_ON_FIRST_OBSERVATION:
+        if first and self.refactor_on_first_observation:
             self.first_observation_refactorisations += 1
         elif not self._window_full():
             return False
@@ -489,6 +466,275 @@ def _sym_inv(A: FloatArray) -> FloatArray:
     return 0.5 * (inv + inv.T)
 
 
+@dataclass
+class _Candidates:
+    """The candidates' whitened Jacobians, padded to ``m × d``, and where their columns are among the tracked rows."""
+
+    index: list[int]
+    """Their factor indices in the compact system."""
+    Ac: FloatArray
+    """(N, m, d) Jacobians (zero padding)."""
+    cols: IntArray
+    """(N, d) compact columns (padding: column 0)."""
+    width: IntArray
+    """(N,) columns actually used."""
+    rows: IntArray
+    """The rows the gains read: every candidate's columns and the focused ones."""
+    pos: IntArray
+    """(N, d) positions of ``cols`` in ``rows`` (padding: 0, where the Jacobian is zero)."""
+    fpos: IntArray
+    """Positions of the focused columns in ``rows``."""
+
+
+def _candidates(sub: LinearSystem, cidx: list[int], fcols: IntArray) -> _Candidates:
+    Ac, cols = _padded_candidates(sub, cidx)
+    d = Ac.shape[2]
+    width = np.array([len(sub.factor_columns(c)) for c in cidx], dtype=np.int64)
+    rows = np.unique(np.concatenate([cols.ravel(), fcols]))
+    pos_of = np.full(sub.dim, -1, dtype=np.int64)
+    pos_of[rows] = np.arange(len(rows))
+    pos = np.where(np.arange(d)[None, :] < width[:, None], pos_of[cols], 0)
+    return _Candidates(cidx, Ac, cols, width, rows, pos, pos_of[fcols])
+
+
+@dataclass
+class _Gains:
+    """What the gains read, kept current as picks join: ``M_c`` and ``K_c`` (upper triangles), ``Σ_F`` and
+    ``P = Σ_F⁻¹``, and the operator ``B`` that applies every ``A_c`` at once."""
+
+    Mu: FloatArray
+    """(m(m+1)/2, N) upper triangles of ``M_c = A_c Σ A_cᵀ``."""
+    Ku: FloatArray
+    """The same of ``K_c = A_c Σ_{·|F} A_cᵀ``."""
+    SF: FloatArray
+    P: FloatArray
+    B: sp.csr_matrix
+    pairs: list[tuple[int, int]]
+    m: int
+    picked: npt.NDArray[np.bool_]
+
+
+def _initial_gains(prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates) -> _Gains:
+    """``M_c = A_c Σ₀ A_cᵀ`` and ``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c`` with ``U_c = W Σ₀ A_cᵀ`` (from the focused columns)."""
+    Ac, cols = c.Ac, c.cols
+    N, m, d = Ac.shape
+    Sig_c = _clique_covariances(prob.info0, prob.system, c.index, d, None, solver=solver)
+    M0 = Ac @ Sig_c @ np.swapaxes(Ac, 1, 2)
+    P = _sym_inv(SF)
+    K0 = np.empty_like(M0)
+    for s in range(0, N, 2048):
+        U = np.einsum("ndf,nad->nfa", XF[cols[s : s + 2048]], Ac[s : s + 2048])  # (n_c, f, m)
+        K0[s : s + 2048] = M0[s : s + 2048] - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
+    pairs = _sym_pairs(m)
+    Mu = np.ascontiguousarray(np.stack([M0[:, a, b] for a, b in pairs]))
+    Ku = np.ascontiguousarray(np.stack([K0[:, a, b] for a, b in pairs]))
+    B = _candidate_operator(Ac, c.pos, len(c.rows))
+    return _Gains(Mu, Ku, SF, P, B, pairs, m, np.zeros(N, dtype=bool))
+
+
+def _best_gain(g: _Gains) -> tuple[int, float]:
+    """The unpicked candidate of largest ``½ log det(I + M_c) − ½ log det(I + K_c)`` (first on ties)."""
+    det_m = _det_eye_plus_sym(g.Mu, g.m)
+    det_k = _det_eye_plus_sym(g.Ku, g.m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = 0.5 * np.log(det_m / det_k)
+    if not (det_m.min() > 0 and det_k.min() > 0):  # not PD: log det = inf (as for a singular block)
+        gain = np.where(det_k <= 0, -np.inf, np.where(det_m <= 0, np.inf, gain))
+    gain[g.picked] = -np.inf
+    j = int(np.argmax(gain))
+    return j, float(gain[j])
+
+
+@dataclass
+class _Step:
+    """One pick ``j``: ``Vt = (Σ A_jᵀ)ᵀ`` and ``Xt = (Σ Wᵀ p)ᵀ`` at the tracked rows, ``w = W Σ A_jᵀ``,
+    ``T = I + A_j Σ A_jᵀ``, ``p = Σ_F⁻¹ w`` and ``E = T − wᵀ p`` (inverted); for the capacitance tracker also
+    ``wx = W Σ_last A_jᵀ`` and ``lt = L⁻¹ A_W Σ_last A_jᵀ``."""
+
+    Vt: FloatArray
+    Xt: FloatArray
+    w: FloatArray
+    T: FloatArray
+    Tinv: FloatArray
+    p: FloatArray
+    Einv: FloatArray
+    wx: FloatArray | None = None
+    lt: FloatArray | None = None
+
+
+def _capacitance_step(ct: _CapacitanceTracker, c: _Candidates, j: int, fcols: IntArray, P: FloatArray) -> _Step:
+    """The pick's quantities from two solves with the last factor (see :class:`_CapacitanceTracker`)."""
+    n, m, wj = ct.n, ct.m, c.width[j]
+    cj, Aj = c.cols[j, :wj], c.Ac[j, :, :wj]
+    rhs = np.zeros((n, m))
+    rhs[cj] = Aj.T
+    x1 = ct.solve_last(rhs)  # Σ_last A_jᵀ
+    T = np.eye(m) + Aj @ x1[cj]
+    wx = x1[fcols]  # W Σ_last A_jᵀ
+    w = wx
+    k = len(ct.window)
+    if k:
+        lt = ct.lsolve(ct.gather(x1))  # L⁻¹ A_W Σ_last A_jᵀ
+        T = T - lt.T @ lt
+        y = ct.ltsolve(lt)  # C⁻¹ A_W Σ_last A_jᵀ
+        w = wx - ct.WX[:, : k * m] @ y
+    else:
+        lt = np.zeros((0, m))
+    Tinv = _sym_inv(T)
+    p = P @ w
+    Einv = _sym_inv(T - w.T @ p)
+    rhs = np.zeros((n, 2 * m))
+    rhs[fcols, m:] = p
+    if k:
+        y2 = ct.ltsolve(ct.lsolve(ct.WX[:, : k * m].T @ p))
+        ct.scatter(np.hstack([y, -y2]), rhs)
+    Z = ct.solve_last(rhs)
+    V = x1 - Z[:, :m] if k else x1  # Σ_S A_jᵀ
+    Vt = np.ascontiguousarray(V[c.rows].T)
+    Xt = np.ascontiguousarray(Z[c.rows, m:].T)  # (Σ_S Wᵀ p)ᵀ at rows
+    return _Step(Vt, Xt, w, T, Tinv, p, Einv, wx, lt)
+
+
+def _window_step(
+    tracker: _Tracker, c: _Candidates, j: int, fcols: IntArray, P: FloatArray, Yt: FloatArray | None
+) -> _Step:
+    """The pick's quantities from the window tracker; ``Σ Wᵀ p`` from ``Yt = (W Σ)ᵀ`` at the tracked rows when it is
+    kept (then updated in place), else from a second solve."""
+    wj = c.width[j]
+    Vt = tracker.solve(c.cols[j, :wj], c.Ac[j, :, :wj].T, c.pos[j, :wj])  # (Σ A_jᵀ)ᵀ at rows
+    T = np.eye(tracker.m) + c.Ac[j] @ Vt[:, c.pos[j]].T
+    Tinv = _sym_inv(T)
+    w = np.ascontiguousarray(Vt[:, c.fpos].T)  # W Σ A_jᵀ, (f, m)
+    p = P @ w
+    Einv = _sym_inv(T - w.T @ p)
+    if Yt is None:
+        Xt = tracker.solve(fcols, p, c.fpos)  # (Σ Wᵀ p)ᵀ at rows
+    else:
+        Xt = p.T @ Yt
+        Yt -= (Tinv @ w.T).T @ Vt
+    return _Step(Vt, Xt, w, T, Tinv, p, Einv)
+
+
+def _apply_pick(g: _Gains, st: _Step) -> None:
+    """``M_c −= g_c T⁻¹ g_cᵀ``, ``K_c −= k_c E⁻¹ k_cᵀ`` for every candidate, ``Σ_F −= w T⁻¹ wᵀ``, ``P += p E⁻¹ pᵀ``.
+
+    ``H = A_c [V L_T, (V − X) L_E]`` at the candidates' columns (``T⁻¹ = L_T L_Tᵀ``, ``E⁻¹ = L_E L_Eᵀ``) is one
+    sparse product; the updates run on the upper triangles.
+    """
+    m, N = g.m, g.Mu.shape[1]
+    LT = np.linalg.cholesky(0.5 * (st.Tinv + st.Tinv.T))
+    LE = np.linalg.cholesky(0.5 * (st.Einv + st.Einv.T))
+    H = g.B @ np.hstack([st.Vt.T @ LT, (st.Vt - st.Xt).T @ LE])  # (m N, 2m)
+    Ht = np.ascontiguousarray(H.reshape(m, N, 2 * m).transpose(0, 2, 1))  # (m, 2m, N)
+    for q, (a, b) in enumerate(g.pairs):
+        prod = Ht[a] * Ht[b]
+        g.Mu[q] -= prod[:m].sum(axis=0)
+        g.Ku[q] -= prod[m:].sum(axis=0)
+    g.SF -= st.w @ st.Tinv @ st.w.T
+    g.P += st.p @ st.Einv @ st.p.T
+
+
+def _tracked_information(
+    prob: _Problem, rows: IntArray, options: TrackerOptions
+) -> tuple[bool, sp.csc_matrix, IntArray | None]:
+    """Which tracker, and the information it tracks: ``(capacitance, info, rows)``, ``rows`` None when ``info`` is
+    the Schur complement of ``Λ₀`` onto the tracked rows (picks only touch them, so ``Σ_S`` there is its inverse
+    plus the picks: exact, and smaller)."""
+    n = prob.system.dim
+    mode = options.tracker
+    capacitance = mode == "capacitance" or (mode == "auto" and len(rows) > options.capacitance_above * n)
+    if not capacitance and len(rows) < options.reduce_below * n:
+        reduced = schur_complement(prob.info0, rows)
+        if reduced is not None:
+            return capacitance, reduced, None
+    return capacitance, prob.info0, rows
+
+
+def _capacitance_tracker(
+    prob: _Problem,
+    add_info: Callable[[list[int]], sp.spmatrix],
+    m: int,
+    d: int,
+    fcols: IntArray,
+    refactor_every: int | None,
+    options: TrackerOptions,
+) -> _CapacitanceTracker:
+    """The capacitance tracker on ``Λ₀``, told which columns only the weak landmark prior holds."""
+    sub = prob.system
+    weak = np.zeros(sub.dim, dtype=bool)
+    weak[sub.columns(prob.landmark_vars)] = True
+    for bf in prob.base:
+        weak[sub.factor_columns(bf)] = False
+    return _CapacitanceTracker(
+        prob.info0, m, d, fcols, add_info, refactor_every, weak, options.refactor_on_first_observation
+    )
+
+
+def _tracker_stats(tracker: _Tracker | _CapacitanceTracker) -> dict[str, float]:
+    stats = {"factor_s": tracker.factor_s, "refactorisations": float(tracker.refactorisations)}
+    if isinstance(tracker, _CapacitanceTracker):
+        stats["first_observation_refactorisations"] = float(tracker.first_observation_refactorisations)
+    return stats
+
+
+def _greedy(
+    prob: _Problem,
+    c: _Candidates,
+    g: _Gains,
+    Yt: FloatArray | None,
+    budget: int,
+    refactor_every: int | None,
+    options: TrackerOptions,
+) -> tuple[list[int], list[float], dict[str, float]]:
+    """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain."""
+    fcols = prob.system.columns(prob.focused)
+    t_red = time.perf_counter()
+    capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
+    stats = {"reduce_s": time.perf_counter() - t_red}
+
+    def add_info(js: list[int]) -> sp.spmatrix:
+        info = prob.system.information([c.index[i] for i in js])
+        return info if rows_t is not None else info[c.rows][:, c.rows]
+
+    picks: list[int] = []
+    gains: list[float] = []
+    t_update = t_gain = 0.0
+    t_loop = time.perf_counter()
+    with single_threaded_blas():
+        tracker: _Tracker | _CapacitanceTracker
+        if capacitance:
+            Yt = None  # Σ Wᵀ p comes with the second solve at no extra cost
+            tracker = _capacitance_tracker(prob, add_info, g.m, c.Ac.shape[2], fcols, refactor_every, options)
+        else:
+            tracker = _Tracker(info_t, rows_t, g.m, add_info, refactor_every)
+        for _ in range(budget):
+            tg = time.perf_counter()
+            j, gain = _best_gain(g)
+            t_gain += time.perf_counter() - tg
+            picks.append(j)
+            gains.append(gain)
+            g.picked[j] = True
+            if isinstance(tracker, _CapacitanceTracker):
+                st = _capacitance_step(tracker, c, j, fcols, g.P)
+            else:
+                st = _window_step(tracker, c, j, fcols, g.P, Yt)
+            tu = time.perf_counter()
+            _apply_pick(g, st)
+            t_update += time.perf_counter() - tu
+            if isinstance(tracker, _CapacitanceTracker):
+                assert st.wx is not None and st.lt is not None
+                refactorised = tracker.add(j, c.cols[j], c.Ac[j], st.wx, st.lt.T, st.T)
+            else:
+                refactorised = tracker.add(j, st.Vt, st.Tinv)
+            if refactorised:
+                g.P = _sym_inv(g.SF)
+    stats |= {"loop_s": time.perf_counter() - t_loop, "update_s": t_update, "gain_s": t_gain}
+    stats |= _tracker_stats(tracker)
+    stats["solve_s"] = stats["loop_s"] - t_update
+    stats |= {"tracked_rows": float(len(c.rows)), "reduced": float(rows_t is None), "capacitance": float(capacitance)}
+    return picks, gains, stats
+
+
 def select_information(
     system: LinearSystem,
     candidates: Sequence[int],
@@ -497,6 +743,7 @@ def select_information(
     base: Sequence[int] | None = None,
     landmark_prior_sigma: float = 100.0,
     refactor_every: int | None = 64,
+    options: TrackerOptions | None = None,
 ) -> MeasurementSelection:
     """Greedy focused-entropy measurement selection (Mu et al. Alg. 1), exact and fast.
 
@@ -534,23 +781,22 @@ def select_information(
             factor plus a Woodbury correction over the picks since); ``None`` is adaptive:
             refactorise once the Woodbury work since the last factorisation has cost as much as
             that factorisation (at most 256 picks apart).
+        options: how ``Σ_S`` is tracked (:class:`TrackerOptions`; same picks and gains, different cost).
 
     Returns:
         The picks in order with their entropy reductions (nats).
     """
     t0 = time.perf_counter()
+    options = options or TrackerOptions()
     cand = list(dict.fromkeys(int(c) for c in candidates))
     base = default_base(system, cand) if base is None else list(base)
     prob = _compact_problem(system, base, cand, focused, landmark_prior_sigma)
-    sub = prob.system
-    n = sub.dim
-    fcols = sub.columns(prob.focused)
-    f = len(fcols)
-    if f == 0:
+    fcols = prob.system.columns(prob.focused)
+    if len(fcols) == 0:
         raise ValueError("no focused variables: run landmark selection first")
     solver = SPDSolver(prob.info0)
-    XF, SF = _focused_cov(solver, n, fcols)
-    h0 = _entropy(logdet_spd(SF), f)
+    XF, SF = _focused_cov(solver, prob.system.dim, fcols)
+    h0 = entropy_from_logdet(logdet_spd(SF), len(fcols))
     N = len(cand)
     status = _budget_status(budget, N)
     stats: dict[str, float] = {"setup_s": time.perf_counter() - t0}
@@ -559,164 +805,17 @@ def select_information(
     if budget >= N:
         after = focused_entropy(system, base + cand, focused, landmark_prior_sigma)
         return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget, h0, after, stats)
-
-    cidx = prob.candidates
-    Ac, cols = _padded_candidates(sub, cidx)
-    m, d = Ac.shape[1], Ac.shape[2]
-    width = np.array([len(sub.factor_columns(c)) for c in cidx], dtype=np.int64)
-    # the rows the gains read: every candidate's columns and the focused ones
-    rows = np.unique(np.concatenate([cols.ravel(), fcols]))
-    pos_of = np.full(n, -1, dtype=np.int64)
-    pos_of[rows] = np.arange(len(rows))
-    pos = pos_of[cols]
-    fpos = pos_of[fcols]
-    # initial M_c = A_c Σ₀ A_cᵀ and K_c = M_c − U_cᵀ Σ_F⁻¹ U_c, U_c = W Σ₀ A_cᵀ (from the focused columns)
-    Sig_c = _clique_covariances(prob.info0, sub, cidx, d, None, solver=solver)
-    M0 = Ac @ Sig_c @ np.swapaxes(Ac, 1, 2)
-    P = _sym_inv(SF)
-    K0 = np.empty_like(M0)
-    for s in range(0, N, 2048):
-        U = np.einsum("ndf,nad->nfa", XF[cols[s : s + 2048]], Ac[s : s + 2048])  # (n_c, f, m)
-        K0[s : s + 2048] = M0[s : s + 2048] - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
+    c = _candidates(prob.system, prob.candidates, fcols)
+    g = _initial_gains(prob, solver, XF, SF, c)
     # Small focus: keep W Σ at the tracked rows (f × rows) current, W Σ −= w T⁻¹ Vᵀ (4·f·m·rows flops
     # per step), instead of a second solve per step (a sparse solve plus a Woodbury window).
-    Yt = np.ascontiguousarray(XF[rows].T) if f <= _TRACK_FOCUSED_MAX else None
+    Yt = np.ascontiguousarray(XF[c.rows].T) if len(fcols) <= options.track_focused_max else None
     del XF
-    pairs = _sym_pairs(m)
-    Mu = np.ascontiguousarray(np.stack([M0[:, a, b] for a, b in pairs]))  # upper triangles, (pairs, N)
-    Ku = np.ascontiguousarray(np.stack([K0[:, a, b] for a, b in pairs]))
-    pos = np.where(np.arange(d)[None, :] < width[:, None], pos, 0)  # padding (zero Jacobian) at row 0
-    B = _candidate_operator(Ac, pos, len(rows))
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
-
-    # Picks only touch the tracked rows, so Σ_S there is the inverse of the Schur complement of Λ₀ onto
-    # them plus the picks: track that smaller system when it is much smaller (exact).
-    t_red = time.perf_counter()
-    info_t, rows_t = prob.info0, rows
-    capacitance = _TRACKER == "capacitance" or (_TRACKER == "auto" and len(rows) > _CAPACITANCE_ABOVE * n)
-    if capacitance:
-        Yt = None  # Σ Wᵀ p comes with the second solve at no extra cost
-    elif len(rows) < _REDUCE_BELOW * n:
-        reduced = schur_complement(prob.info0, rows)
-        if reduced is not None:
-            info_t, rows_t = reduced, None
-    stats["reduce_s"] = time.perf_counter() - t_red
-
-    def add_info(js: list[int]) -> sp.spmatrix:
-        info = sub.information([cidx[i] for i in js])
-        return info if rows_t is not None else info[rows][:, rows]
-
-    eye_m = np.eye(m)
-    picked = np.zeros(N, dtype=bool)
-    picks: list[int] = []
-    gains: list[float] = []
-    t_update = 0.0
-    t_gain = 0.0
-    t_loop = time.perf_counter()
-    with single_threaded_blas():
-        ctracker: _CapacitanceTracker | None = None
-        if capacitance:
-            weak = np.zeros(n, dtype=bool)
-            weak[sub.columns(prob.landmark_vars)] = True
-            for bf in prob.base:
-                weak[sub.factor_columns(bf)] = False
-            ctracker = _CapacitanceTracker(info_t, m, d, fcols, add_info, refactor_every, weak)
-        else:
-            tracker = _Tracker(info_t, rows_t, m, add_info, refactor_every)
-        for _ in range(budget):
-            tg = time.perf_counter()
-            det_m = _det_eye_plus_sym(Mu, m)
-            det_k = _det_eye_plus_sym(Ku, m)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                gain = 0.5 * np.log(det_m / det_k)
-            if not (det_m.min() > 0 and det_k.min() > 0):  # not PD: log det = inf (as for a singular block)
-                gain = np.where(det_k <= 0, -np.inf, np.where(det_m <= 0, np.inf, gain))
-            gain[picked] = -np.inf
-            j = int(np.argmax(gain))
-            t_gain += time.perf_counter() - tg
-            picks.append(cand[j])
-            gains.append(float(gain[j]))
-            picked[j] = True
-            wj = width[j]
-            if ctracker is not None:
-                cj, Aj = cols[j, :wj], Ac[j, :, :wj]
-                rhs = np.zeros((n, m))
-                rhs[cj] = Aj.T
-                x1 = ctracker.solve_last(rhs)  # Σ_last A_jᵀ
-                T = eye_m + Aj @ x1[cj]
-                wx = x1[fcols]  # W Σ_last A_jᵀ
-                w = wx
-                k = len(ctracker.window)
-                if k:
-                    lt = ctracker.lsolve(ctracker.gather(x1))  # L⁻¹ A_W Σ_last A_jᵀ
-                    T = T - lt.T @ lt
-                    y = ctracker.ltsolve(lt)  # C⁻¹ A_W Σ_last A_jᵀ
-                    w = wx - ctracker.WX[:, : k * m] @ y
-                else:
-                    lt = np.zeros((0, m))
-                Tinv = _sym_inv(T)
-                p = P @ w
-                E = T - w.T @ p
-                Einv = _sym_inv(E)
-                rhs = np.zeros((n, 2 * m))
-                rhs[fcols, m:] = p
-                if k:
-                    y2 = ctracker.ltsolve(ctracker.lsolve(ctracker.WX[:, : k * m].T @ p))
-                    ctracker.scatter(np.hstack([y, -y2]), rhs)
-                Z = ctracker.solve_last(rhs)
-                V = x1 - Z[:, :m] if k else x1  # Σ_S A_jᵀ
-                Vt = np.ascontiguousarray(V[rows].T)
-                Xt = np.ascontiguousarray(Z[rows, m:].T)  # (Σ_S Wᵀ p)ᵀ at rows
-            else:
-                Vt = tracker.solve(cols[j, :wj], Ac[j, :, :wj].T, pos[j, :wj])  # (Σ A_jᵀ)ᵀ at rows
-                T = eye_m + Ac[j] @ Vt[:, pos[j]].T
-                Tinv = _sym_inv(T)
-                w = np.ascontiguousarray(Vt[:, fpos].T)  # W Σ A_jᵀ, (f, m)
-                p = P @ w
-                E = T - w.T @ p
-                Einv = _sym_inv(E)
-            if ctracker is not None:
-                pass  # Xt came with the second solve
-            elif Yt is None:
-                Xt = tracker.solve(fcols, p, fpos)  # (Σ Wᵀ p)ᵀ at rows
-            else:
-                Xt = p.T @ Yt
-                Yt -= (Tinv @ w.T).T @ Vt
-            tu = time.perf_counter()
-            # H = A_c [V L_T, (V − X) L_E] at the candidates' columns (T⁻¹ = L_T L_Tᵀ, E⁻¹ = L_E L_Eᵀ): one
-            # sparse product; then M_c −= H_T H_Tᵀ, K_c −= H_E H_Eᵀ on the upper triangles
-            LT = np.linalg.cholesky(0.5 * (Tinv + Tinv.T))
-            LE = np.linalg.cholesky(0.5 * (Einv + Einv.T))
-            H = B @ np.hstack([Vt.T @ LT, (Vt - Xt).T @ LE])  # (m N, 2m)
-            Ht = np.ascontiguousarray(H.reshape(m, N, 2 * m).transpose(0, 2, 1))  # (m, 2m, N)
-            for q, (a, b) in enumerate(pairs):
-                prod = Ht[a] * Ht[b]
-                Mu[q] -= prod[:m].sum(axis=0)
-                Ku[q] -= prod[m:].sum(axis=0)
-            SF -= w @ Tinv @ w.T
-            P += p @ Einv @ p.T
-            t_update += time.perf_counter() - tu
-            if ctracker is not None:
-                if ctracker.add(j, cols[j], Ac[j], wx, lt.T, T):
-                    P = _sym_inv(SF)
-            elif tracker.add(j, Vt, Tinv):
-                P = _sym_inv(SF)
-    stats["loop_s"] = time.perf_counter() - t_loop
-    stats["update_s"] = t_update
-    stats["gain_s"] = t_gain
-    if ctracker is not None:
-        stats["factor_s"] = ctracker.factor_s
-        stats["refactorisations"] = float(ctracker.refactorisations)
-        stats["first_observation_refactorisations"] = float(ctracker.first_observation_refactorisations)
-    else:
-        stats["factor_s"] = tracker.factor_s
-        stats["refactorisations"] = float(tracker.refactorisations)
-    stats["solve_s"] = stats["loop_s"] - t_update
-    stats["tracked_rows"] = float(len(rows))
-    stats["reduced"] = float(rows_t is None)
-    stats["capacitance"] = float(ctracker is not None)
+    js, gains, loop_stats = _greedy(prob, c, g, Yt, budget, refactor_every, options)
+    stats |= loop_stats
     h1 = h0 - float(np.sum(gains))
-    return MeasurementSelection(picks, gains, "ok", N, budget, h0, h1, stats)
+    return MeasurementSelection([cand[j] for j in js], gains, "ok", N, budget, h0, h1, stats)
 
 
 # ---------------------------------------------------------------------------------- other strategies

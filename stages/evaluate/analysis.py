@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from stages.geometry import wrap_angle
 from stages.graph.factors import FactorRow
 from stages.graph.load import LoadedGraph
 from stages.navigation.truth import MapTruth
@@ -35,10 +36,6 @@ CHI2_2_95 = 5.991464547107979
 """95 % quantile of χ² with 2 degrees of freedom."""
 
 
-def _wrap(a: FloatArray) -> FloatArray:
-    return np.asarray((np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi)
-
-
 def _pose_stamps(loaded: LoadedGraph) -> dict[int, int]:
     return {int(k): int(s) for k, s in zip(loaded.pose_keys, loaded.pose_stamps_ns, strict=True)}
 
@@ -46,7 +43,7 @@ def _pose_stamps(loaded: LoadedGraph) -> dict[int, int]:
 def predicted_bearing_range(pose: FloatArray, landmark: FloatArray) -> FloatArray:
     """Planar ``h(x, l)``: bearing (rad, in the pose's frame) and range (m) of ``landmark`` from ``pose``."""
     d = np.asarray(landmark, dtype=float)[:2] - np.asarray(pose, dtype=float)[:2]
-    return np.array([float(_wrap(np.arctan2(d[1], d[0]) - pose[2])), float(np.hypot(d[0], d[1]))])
+    return np.array([float(wrap_angle(np.arctan2(d[1], d[0]) - pose[2])), float(np.hypot(d[0], d[1]))])
 
 
 @dataclass(frozen=True)
@@ -106,7 +103,7 @@ def tag_residual(row: FactorRow, truth: MapTruth, stamps: Mapping[int, int]) -> 
     pose = truth.pose_at([stamps[int(row.keys[0])]])[0]
     h = predicted_bearing_range(pose, truth.tags[int(row.tag_id)])
     z = np.asarray(row.measurement, dtype=float)
-    return np.array([float(_wrap(z[0] - h[0])), z[1] - h[1]])
+    return np.array([float(wrap_angle(z[0] - h[0])), z[1] - h[1]])
 
 
 def measurement_consistency(
@@ -127,9 +124,9 @@ def measurement_consistency(
             a, b = truth.pose_at([stamps[int(row.keys[0])], stamps[int(row.keys[1])]])
             c, s = np.cos(a[2]), np.sin(a[2])
             d = b[:2] - a[:2]
-            true_rel = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(_wrap(b[2] - a[2]))])
+            true_rel = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap_angle(b[2] - a[2]))])
             m = np.asarray(row.measurement, dtype=float)
-            orr.append(np.array([m[0] - true_rel[0], m[1] - true_rel[1], float(_wrap(m[2] - true_rel[2]))]))
+            orr.append(np.array([m[0] - true_rel[0], m[1] - true_rel[1], float(wrap_angle(m[2] - true_rel[2]))]))
             oc.append(np.asarray(row.covariance, dtype=float).reshape(3, 3))
     out = {}
     for kind, res, cov in (("tag", tr, tc), ("odometry", orr, oc)):
@@ -197,7 +194,7 @@ def oracle_rows(
         C = np.asarray(row.covariance, dtype=float).reshape(2, 2)
         noise = np.random.default_rng([seed, int(i)]).multivariate_normal(np.zeros(2), C)
         z = h + noise
-        z[0] = float(_wrap(np.array(z[0])))
+        z[0] = float(wrap_angle(np.array(z[0])))
         out[int(i)] = FactorRow(
             kind=row.kind,
             type=row.type,

@@ -38,8 +38,8 @@ from stages.evaluate.analysis import (
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
-from stages.navigation import LandmarkMap as NavMap
 from stages.navigation import (
+    NavigationMap,
     NavigationParams,
     NavigationResult,
     NominalPath,
@@ -456,7 +456,7 @@ def navigate(inputs: EvalInputs, result: CaseResult) -> None:
         fit = rigid_alignment(lm.tag_ids, lm.positions, setup.true_landmarks)
         if fit is not None:
             R, t = fit
-            moved = NavMap(
+            moved = NavigationMap(
                 np.asarray(lm.tag_ids),
                 np.asarray(lm.positions)[:, :2] @ R.T + t,
                 np.einsum("ij,njk,lk->nil", R, np.asarray(lm.covariances)[:, :2, :2], R),

@@ -14,8 +14,8 @@ Public API:
 from __future__ import annotations
 
 from stages.navigation.lqg import (
-    LandmarkMap,
     MapLike,
+    NavigationMap,
     NavigationParams,
     NavigationResult,
     NominalPath,
@@ -37,9 +37,9 @@ from stages.navigation.walls import (
 
 __all__ = [
     "GroundTruth",
-    "LandmarkMap",
     "MapLike",
     "MapTruth",
+    "NavigationMap",
     "NavigationParams",
     "NavigationResult",
     "NominalPath",

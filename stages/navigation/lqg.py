@@ -27,16 +27,12 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from stages.geometry import wrap_angle
 from stages.navigation.stats import wilson_interval
 from stages.navigation.walls import Obstacles
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
-
-
-def wrap(a: FloatArray) -> FloatArray:
-    """Angles wrapped to [-π, π)."""
-    return np.asarray((np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi)
 
 
 @dataclass(frozen=True)
@@ -119,10 +115,11 @@ class MapLike(Protocol):
 
 
 @dataclass(frozen=True)
-class LandmarkMap:
-    """The map a case gives the robot: landmark ids, estimated positions and their covariances (map frame).
+class NavigationMap:
+    """The landmark map a simulated robot navigates with: ids, estimated positions and their covariances (map frame).
 
-    Field names match :class:`stages.risk.LandmarkMap`, so either can be passed to :func:`simulate`.
+    A :class:`MapLike`, as is :class:`stages.risk.LandmarkMap` (the map of a solved graph), so either can be
+    passed to :func:`simulate`.
     """
 
     tag_ids: IntArray
@@ -333,7 +330,7 @@ class _TrialStats:
 def _control(xh: FloatArray, path: NominalPath, gains: FloatArray, k: int, params: NavigationParams) -> FloatArray:
     """The LQR control of step ``k`` from the estimates, clipped to the speed and yaw-rate limits."""
     e = xh - path.poses[k]
-    e[:, 2] = wrap(e[:, 2])
+    e[:, 2] = wrap_angle(e[:, 2])
     u = path.controls[k] - e @ gains[k].T
     u[:, 0] = np.clip(u[:, 0], -params.max_speed_mps, params.max_speed_mps)
     u[:, 1] = np.clip(u[:, 1], -params.max_yaw_rate_radps, params.max_yaw_rate_radps)
@@ -343,7 +340,7 @@ def _control(xh: FloatArray, path: NominalPath, gains: FloatArray, k: int, param
 def _measure(x: FloatArray, landmark: FloatArray, R: FloatArray, rng: np.random.Generator) -> FloatArray:
     """Noisy bearing and range of the true ``landmark`` from each true pose."""
     d = landmark - x[:, :2]
-    z = np.column_stack([wrap(np.arctan2(d[:, 1], d[:, 0]) - x[:, 2]), np.hypot(d[:, 0], d[:, 1])])
+    z = np.column_stack([wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - x[:, 2]), np.hypot(d[:, 0], d[:, 1])])
     return z + rng.standard_normal((len(x), 2)) * np.sqrt(np.diag(R))
 
 
@@ -368,6 +365,6 @@ def _ekf_update(
     S = H @ PHt + Rbar
     Kg = PHt @ np.linalg.inv(S)
     nu = z - zh
-    nu[:, 0] = wrap(nu[:, 0])
+    nu[:, 0] = wrap_angle(nu[:, 0])
     IKH = np.eye(3) - Kg @ H
     return xh + np.einsum("nij,nj->ni", Kg, nu), IKH @ P @ IKH.transpose(0, 2, 1) + Kg @ Rbar @ Kg.transpose(0, 2, 1)

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pipeline.errors import StageError
+from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.problem import GraphProblem
@@ -35,7 +36,6 @@ from stages.graph.variables import var_kind
 from stages.risk import LandmarkMap
 
 FloatArray = npt.NDArray[np.float64]
-_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
 
 
 @dataclass
@@ -65,17 +65,6 @@ class ReducedMap:
         """Focused landmarks that kept at least one measurement."""
         obs = set(self.observed_tag_ids)
         return [t for t in self.focused_tag_ids if t in obs]
-
-
-def gaussian_entropy(cov: FloatArray) -> float:
-    """``½ log det(2πe Σ)`` nats (0 for an empty matrix)."""
-    d = cov.shape[0]
-    if d == 0:
-        return 0.0
-    sign, logdet = np.linalg.slogdet(0.5 * (cov + cov.T))
-    if sign <= 0:
-        return float("-inf")
-    return 0.5 * (float(logdet) + d * _LOG_2PI_E)
 
 
 def solve_reduced(
@@ -130,7 +119,7 @@ def solve_reduced(
     missing_dim = sum(
         loaded.kind(loaded.landmark_keys[t]).dim for t in scored if t not in set(observed) and t in loaded.landmark_keys
     )
-    h_missing = 0.5 * missing_dim * (np.log(unobserved_sigma_m**2) + _LOG_2PI_E)
+    h_missing = missing_dim * entropy_from_logdet(np.log(unobserved_sigma_m**2), 1)  # independent per dimension
     return ReducedMap(
         problem=problem,
         solution=solution,

@@ -18,10 +18,9 @@ import numpy.typing as npt
 import pyarrow as pa
 
 from pipeline.errors import StageError
+from stages.estimation.collision import select_collision
 from stages.estimation.landmark_selection import (
     LandmarkSelection,
-    _propagate_unlocalised,  # the documented dead-reckoning rule of Alg. 2
-    collision_risk,
     schur_contribution,
     select_landmark_leverage,
     select_landmark_random,
@@ -33,11 +32,9 @@ from stages.risk import (
     PathGeometry,
     PathRisk,
     RiskParams,
-    measurement_information,
     path_geometry,
     path_risk,
     read_path_inputs,
-    stabilised_covariances,
 )
 from stages.select_landmarks.config import NEEDS_LASER, SelectLandmarksConfig
 
@@ -192,65 +189,24 @@ class LandmarkChoice:
 
 
 def collision_greedy(geo: PathGeometry, lm: LandmarkMap, budget: int, params: RiskParams) -> LandmarkSelection:
-    """Mu et al. Alg. 2 with the steps and tie-breaks of :func:`stages.estimation.landmark_selection.select_collision`.
+    """Mu et al. Alg. 2 (:func:`stages.estimation.collision.select_collision`) on a run's keyframes and landmark map.
 
-    Pick the riskiest keyframe that sees an unselected landmark, add the landmark that lowers that keyframe's
-    risk most, re-solve Σ* of the keyframes that see it, repeat. Σ* comes from the batched doubling solver
-    (:func:`stages.risk.stabilised_covariances`), so each step is a few batched 3×3 operations instead of one
-    ``solve_discrete_are`` per keyframe; the picks equal ``select_collision``'s (tested on the sample).
     Scores: the maximum collision probability along the path after each pick.
     """
-    from scipy.stats import norm
-
     col = {int(t): c for c, t in enumerate(geo.tag_ids)}
     visible = geo.visible[:, [col[int(t)] for t in lm.tag_ids]]
-    T, L = visible.shape
-    margin, normals, Q, cap = geo.margin(params), geo.normals, geo.Q, params.cap_steps
-    sig = np.zeros((T, 3, 3))
-    localised = np.zeros(T, dtype=bool)
-    chosen: list[int] = []
-    is_chosen = np.zeros(L, dtype=bool)
-
-    def risk_now() -> tuple[FloatArray, FloatArray]:
-        cov = _propagate_unlocalised(sig, localised, Q, cap)
-        return cov, np.asarray(collision_risk(cov, margin, normals, [0, 1]))
-
-    cov, risk = risk_now()
-    if L == 0:
-        return LandmarkSelection([], [], "no_landmarks", {"risk_before": risk, "risk_after": risk})
-    if budget <= 0:
-        return LandmarkSelection([], [], "budget_zero", {"risk_before": risk, "risk_after": risk})
-    risk0 = risk
-    scores: list[float] = []
-    for _ in range(min(budget, L)):
-        available = visible & ~is_chosen[None, :]
-        cand_poses = np.flatnonzero(available.any(axis=1))
-        if len(cand_poses) == 0:  # the rest are seen from nowhere: by index, as select_collision does
-            nxt = int(np.flatnonzero(~is_chosen)[0])
-            chosen.append(nxt)
-            is_chosen[nxt] = True
-            scores.append(float(risk.max()))
-            continue
-        t = int(cand_poses[np.argmax(risk[cand_poses])])
-        base = [x for x in chosen if visible[t, x]]
-        cands = np.flatnonzero(available[t])
-        J = np.array([measurement_information(geo.poses[t], lm, [*base, int(c)], geo.sigmas) for c in cands])
-        S = stabilised_covariances(Q, J, cap)
-        var = np.einsum("i,bij,j->b", normals[t], S[:, :2, :2], normals[t])
-        p = norm.sf(margin[t] / np.sqrt(np.maximum(var, 1e-300)))
-        best = int(cands[int(np.argmin(p))])
-        chosen.append(best)
-        is_chosen[best] = True
-        ts = np.flatnonzero(visible[:, best])
-        J = np.array(
-            [measurement_information(geo.poses[u], lm, [x for x in chosen if visible[u, x]], geo.sigmas) for u in ts]
-        )
-        sig[ts] = stabilised_covariances(Q, J, cap)
-        localised[ts] = True
-        cov, risk = risk_now()
-        scores.append(float(risk.max()))
-    status = "budget_exceeds_landmarks" if budget > L else "ok"
-    return LandmarkSelection(chosen, scores, status, {"risk_before": risk0, "risk_after": risk, "sigma_after": cov})
+    return select_collision(
+        geo.poses,
+        lm.positions,
+        lm.covariances,
+        visible,
+        geo.margin(params),
+        geo.normals,
+        geo.Q,
+        budget,
+        geo.sigmas,
+        params.cap_steps,
+    )
 
 
 def _message(status: str, budget: int, n: int, picked: int, strategy: str) -> str:

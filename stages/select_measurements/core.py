@@ -22,9 +22,11 @@ import numpy as np
 import numpy.typing as npt
 
 from pipeline.errors import StageError
+from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
     MeasurementSelection,
+    TrackerOptions,
     focused_entropy,
     select_all,
     select_information,
@@ -39,7 +41,6 @@ if TYPE_CHECKING:
     from stages.graph.load import LoadedGraph
 
 FloatArray = npt.NDArray[np.float64]
-_LOG_2PI_E = float(np.log(2.0 * np.pi * np.e))
 
 
 def linear_system(loaded: LoadedGraph) -> LinearSystem:
@@ -113,6 +114,7 @@ def choose(
     focused_tag_ids: Sequence[int] | None,
     cfg: SelectMeasurementsConfig,
     system: LinearSystem | None = None,
+    tracker: TrackerOptions | None = None,
 ) -> MeasurementChoice:
     """Run one measurement-selection strategy.
 
@@ -121,6 +123,8 @@ def choose(
         focused_tag_ids: the focused landmarks (``focused.json``'s ``tag_ids``); ignored with ``cfg.focus == "all"``.
         cfg: the settings (``strategy``, ``budget``, ``focus``, ...).
         system: the graph linearised at its solution (:func:`linear_system`), to reuse across calls.
+        tracker: ``information``: how the greedy tracks the covariance (default :class:`TrackerOptions`; the
+            variants give the same selection at different costs).
 
     Raises:
         StageError: no focused landmarks, or focused tags that the graph does not have.
@@ -148,7 +152,7 @@ def choose(
     sigma = cfg.landmark_prior_sigma_m
     sel: MeasurementSelection
     if cfg.strategy == "information":
-        sel = select_information(system, cands, focused, cfg.budget, base, sigma, cfg.refactor_every)
+        sel = select_information(system, cands, focused, cfg.budget, base, sigma, cfg.refactor_every, tracker)
     elif cfg.strategy == "leverage":
         sel = select_leverage(
             system, cands, focused, cfg.budget, base, cfg.leverage_draws, cfg.leverage_measure, cfg.seed, sigma
@@ -210,7 +214,7 @@ def focused_covariances(
         d = system.variables[v].dim
         blocks.append(SF[off : off + d, off : off + d])
         off += d
-    return blocks, 0.5 * (logdet_spd(SF) + len(cols) * _LOG_2PI_E)
+    return blocks, entropy_from_logdet(logdet_spd(SF), len(cols))
 
 
 def summary_of(choice: MeasurementChoice) -> dict[str, Any]:

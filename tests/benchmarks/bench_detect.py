@@ -30,8 +30,8 @@ from stages.camera import colmap_camera  # noqa: E402
 from stages.detect.backends import make_detector, shortest_side_px  # noqa: E402
 from stages.detect.config import DetectConfig  # noqa: E402
 from stages.detect.core import FrameJob, FrameProcessor  # noqa: E402
-from stages.detect.render import TagPlacement, look_at_tag, render_frame  # noqa: E402
 from stages.detect.stage import _corner_sigma  # noqa: E402
+from tests.fixtures.tag_render import TagPlacement, look_at_tag, render_frame  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
 DEFAULT = "apriltag3 dec1 wb15 (default)"

@@ -43,7 +43,7 @@ def timing(args: argparse.Namespace) -> None:
     from stages.graph.factors import build_graph
     from stages.graph.solve import check_problem, marginal_covariances, optimise
     from stages.graph.solve_all import solve_and_write
-    from stages.graph.synthetic import synthetic_planar_problem
+    from tests.fixtures.synthetic_runs import synthetic_planar_problem
 
     t = time.perf_counter()
     sigma = GraphConfig().tag_scale_sigma if args.tag_scale_sigma is None else args.tag_scale_sigma
@@ -203,7 +203,7 @@ def synthetic(args: argparse.Namespace) -> None:
     from stages.graph.config import GraphConfig
     from stages.graph.factors import build_graph
     from stages.graph.solve import marginal_covariances, optimise
-    from stages.graph.synthetic import synthetic_run
+    from tests.fixtures.synthetic_runs import synthetic_run
 
     rows = []
     for model in args.models:

@@ -28,13 +28,12 @@ import scipy.sparse.linalg as spla
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from stages.estimation.landmark_selection import (
-    brute_force_mutual_information,
-    mutual_information,
     schur_contribution,
     select_landmark_leverage,
     select_mutual_information,
 )
-from stages.estimation.synthetic import random_mi_problem
+from tests.fixtures.planar_problems import random_mi_problem
+from tests.oracles.mutual_information import brute_force_mutual_information, mutual_information
 
 
 def planar_problem(rng: np.random.Generator, T: int, L: int, seen_from: int = 12):

@@ -19,9 +19,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-import stages.estimation.measurement_selection as ms
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
+    TrackerOptions,
     _compact_problem,
     _focused_cov,
     default_base,
@@ -30,7 +30,7 @@ from stages.estimation.measurement_selection import (
     select_leverage,
 )
 from stages.estimation.sparse_cov import SPDSolver, logdet_spd
-from stages.estimation.synthetic import planar_problem
+from tests.fixtures.planar_problems import planar_problem
 
 
 def floor_seconds(pp) -> float:
@@ -111,7 +111,7 @@ def main() -> None:
         "--tracker",
         choices=["auto", "window", "capacitance"],
         default=None,
-        help="tracker for the totals (default: the module default)",
+        help="tracker for the totals (default: TrackerOptions' default)",
     )
     ap.add_argument("--memory-probe", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -119,9 +119,8 @@ def main() -> None:
         memory_probe(args.memory_probe)
         return
     print(f"uptime before: {uptime()}")
-    args.tracker = args.tracker or ms._TRACKER
-    ms._TRACKER = args.tracker
-    print(f"tracker for the totals: {args.tracker}")
+    totals = TrackerOptions() if args.tracker is None else TrackerOptions(tracker=args.tracker)
+    print(f"tracker for the totals: {totals.tracker}")
     pp = planar_problem(args.poses, args.landmarks, args.measurements, seed=0, extent=200, sensor_range=30)
     system = LinearSystem.from_gtsam(pp.graph, pp.values)
     lms = system.variables_of_kind("landmark")
@@ -141,7 +140,7 @@ def main() -> None:
         t_floor.append(floor_seconds(pp))
         for K in args.budgets:
             t = time.perf_counter()
-            sel[K] = select_information(system, cand, focused, K)
+            sel[K] = select_information(system, cand, focused, K, options=totals)
             t_greedy[K].append(time.perf_counter() - t)
             t = time.perf_counter()
             lev[K] = select_leverage(system, cand, focused, K, draws=args.draws)
@@ -177,11 +176,11 @@ def main() -> None:
     info: dict[tuple[str, int], list[dict[str, float]]] = {key: [] for key in per_step}
     for _ in range(args.repeats):
         for variant, nc in per_step:
-            ms._TRACKER = variant
-            s = select_information(system, pp.measurement_factors[:nc], lms, steps)
+            s = select_information(
+                system, pp.measurement_factors[:nc], lms, steps, options=TrackerOptions(tracker=variant)
+            )
             per_step[(variant, nc)].append(1e3 * s.stats["loop_s"] / steps)
             info[(variant, nc)].append(s.stats)
-    ms._TRACKER = args.tracker
 
     def med(variant: str, nc: int, key: str) -> float:
         return float(np.median([1e3 * st[key] / steps for st in info[(variant, nc)]]))
@@ -206,7 +205,7 @@ def main() -> None:
     )
     print(probe.stdout.strip() or probe.stderr.strip())
     tracemalloc.start()
-    select_information(system, cand, focused, K)
+    select_information(system, cand, focused, K, options=totals)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     print(f"peak numpy/Python allocations in greedy K={K}: {peak / 2**20:.0f} MiB")

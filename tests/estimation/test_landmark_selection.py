@@ -6,40 +6,52 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from stages.estimation.landmark_selection import (
-    brute_force_mutual_information,
-    halfplane_collision_probability,
-    landmark_leverage_probabilities,
-    mutual_information,
+from stages.estimation.collision import (
+    collision_risk,
+    measurement_information,
     planar_range_bearing,
-    riccati_iterate,
-    riccati_steady_state,
     select_collision,
+    stabilised_covariances,
+)
+from stages.estimation.landmark_selection import (
+    landmark_leverage_probabilities,
     select_landmark_leverage,
     select_landmark_random,
     select_landmark_uniform,
     select_mutual_information,
+)
+from tests.fixtures.planar_problems import random_mi_problem
+from tests.oracles.collision import (
+    halfplane_collision_probability,
+    riccati_iterate,
+    riccati_steady_state,
+    select_collision_reference,
     stabilised_covariance,
 )
-from stages.estimation.synthetic import random_mi_problem
+from tests.oracles.mutual_information import brute_force_mutual_information, mutual_information
 
 Q = np.diag([0.02, 0.02, 0.005]) ** 2
+
+
+SIGMAS = (0.02, 0.1)
 
 
 def _visible_at_pose():
     pose = np.array([1.0, 2.0, 0.3])
     lms = np.array([[4.0, 3.0], [2.0, -1.0]])
     covs = np.stack([0.01 * np.eye(2), 0.04 * np.eye(2)])
-    HR = [planar_range_bearing(pose, lms[i], covs[i], (0.02, 0.1)) for i in range(2)]
-    return pose, HR
+    HR = [planar_range_bearing(pose, lms[i], covs[i], SIGMAS) for i in range(2)]
+    return pose, lms, covs, HR
 
 
 def test_riccati_equals_iteration_and_ekf_converges() -> None:
-    _, HR = _visible_at_pose()
+    """Σ* by doubling (production) is the fixed point of eq. 19: DARE, the iterated recursion and an EKF agree."""
+    pose, lms, covs, HR = _visible_at_pose()
     H = np.vstack([h for h, _ in HR])
     R = np.block([[HR[0][1], np.zeros((2, 2))], [np.zeros((2, 2)), HR[1][1]]])
-    star = stabilised_covariance(Q, HR)
-    np.testing.assert_allclose(star, riccati_steady_state(np.eye(3), Q, H, R))
+    star = stabilised_covariances(Q, measurement_information(pose, lms, covs, SIGMAS)[None], 50)[0]
+    np.testing.assert_allclose(star, riccati_steady_state(np.eye(3), Q, H, R), rtol=1e-10)
+    np.testing.assert_allclose(star, stabilised_covariance(Q, HR), rtol=1e-10)
     np.testing.assert_allclose(riccati_iterate(np.eye(3), Q, H, R, np.eye(3), 2000), star, rtol=1e-6, atol=1e-12)
     # an EKF held at the pose: predict with Q, update with the landmarks; its prior covariance converges to Σ*
     P = 4.0 * np.eye(3)
@@ -59,6 +71,7 @@ def test_halfplane_probability_matches_monte_carlo_against_laser_points() -> Non
     n = np.array([1.0, 0.0])
     d = float(np.min(wall @ n))
     p = halfplane_collision_probability(cov, n, d)
+    assert collision_risk(cov[None], np.array([d]), n[None], [0, 1])[0] == pytest.approx(p, rel=1e-12)
     x = rng.multivariate_normal(np.zeros(2), cov, size=200_000)
     crossed = x[:, 0] >= wall[:, 0].min()
     mc = crossed.mean()
@@ -110,7 +123,7 @@ def _corridor():
 
 def test_collision_greedy_picks_the_door_landmarks_first() -> None:
     poses, landmarks, covs, visible, clearance, normals = _corridor()
-    sel = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 2)
+    sel = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 2, SIGMAS, 50)
     door = np.flatnonzero(clearance < 1.0)
     assert visible[door, sel.picks[0]].any()  # the first pick serves the probabilistically narrow door
     assert sel.extra["risk_after"].max() < sel.extra["risk_before"].max()
@@ -122,12 +135,30 @@ def test_collision_greedy_picks_the_door_landmarks_first() -> None:
 
 def test_landmark_budget_edge_cases() -> None:
     poses, landmarks, covs, visible, clearance, normals = _corridor()
-    assert select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 0).status == "budget_zero"
-    over = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 99)
+    assert select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 0, SIGMAS, 50).status == (
+        "budget_zero"
+    )
+    over = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 99, SIGMAS, 50)
     assert over.status == "budget_exceeds_landmarks" and sorted(over.picks) == list(range(6))
+    none = select_collision(poses, landmarks[:0], covs[:0], visible[:, :0], clearance, normals, Q, 3, SIGMAS, 50)
+    assert none.status == "no_landmarks" and none.picks == []
     info0, contrib = random_mi_problem(np.random.default_rng(0), L=4)
     assert select_mutual_information(info0, contrib, 0).picks == []
     assert sorted(select_mutual_information(info0, contrib, 9).picks) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("budget", [1, 3, 6, 9])
+def test_alg2_equals_the_reference_on_the_corridor(budget: int) -> None:
+    """Production Alg. 2 (batched doubling Σ*) picks and scores as the per-pose DARE reference does."""
+    poses, landmarks, covs, visible, clearance, normals = _corridor()
+    landmarks[5] = [10.7, -1.9]  # no mirror image of landmark 2: no exact tie for the two Σ* solvers to break
+    covs[3] *= 4.0
+    visible[30:, 4] = False  # a landmark seen from fewer poses, so picks differ in their re-solved poses
+    fast = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, budget, SIGMAS, 50)
+    ref = select_collision_reference(poses, landmarks, covs, visible, clearance, normals, Q, budget, SIGMAS, 50)
+    assert fast.picks == ref.picks and fast.status == ref.status
+    np.testing.assert_allclose(fast.scores, ref.scores, rtol=1e-8)
+    np.testing.assert_allclose(fast.extra["risk_after"], ref.extra["risk_after"], rtol=1e-8, atol=1e-300)
 
 
 def _dense_leverage_probabilities(info0, contrib):
@@ -141,30 +172,29 @@ def _dense_leverage_probabilities(info0, contrib):
 
 @pytest.mark.parametrize("backend", ["selected", "dense", "sparse"])
 @pytest.mark.parametrize("min_block", [1, 96])
-def test_sparse_leverage_and_mi_equal_the_dense_formulas(monkeypatch, backend, min_block) -> None:
+def test_sparse_leverage_and_mi_equal_the_dense_formulas(backend, min_block) -> None:
     """The level-block selected inverse gives the dense inverse's numbers (probabilities, draw measures, MI gains).
 
     ``min_block = 1``: many blocks (one per BFS level); 96: the whole 36-dimensional problem in one block.
     """
-    import stages.estimation.landmark_selection as ls
     from stages.estimation.landmark_selection import _measure, _measure_information, _scatter
-
-    monkeypatch.setattr(ls, "MI_BACKEND", backend)
-    monkeypatch.setattr(ls, "LEVEL_BLOCK_MIN", min_block)
 
     info0, contrib = random_mi_problem(np.random.default_rng(3), T=12, L=20)
     np.testing.assert_allclose(
-        landmark_leverage_probabilities(info0, contrib), _dense_leverage_probabilities(info0, contrib), rtol=1e-9
+        landmark_leverage_probabilities(info0, contrib, min_block),
+        _dense_leverage_probabilities(info0, contrib),
+        rtol=1e-9,
     )
     lam = info0 + _scatter(info0.shape[0], contrib[:6]).toarray()
     for measure in ("logdet", "trace", "max_eig"):
         dense = _measure(np.linalg.inv(lam), measure)
-        assert _measure_information(sp.csc_matrix(lam), measure) == pytest.approx(dense, rel=1e-8)
-    sel = select_mutual_information(info0, contrib, 6)
+        assert _measure_information(sp.csc_matrix(lam), measure, min_block=min_block) == pytest.approx(dense, rel=1e-8)
+    sel = select_mutual_information(info0, contrib, 6, backend=backend, min_block=min_block)
     assert mutual_information(info0, contrib, sel.picks) == pytest.approx(sum(sel.scores), rel=1e-9)
-    assert select_mutual_information(sp.csc_matrix(info0), contrib, 6).picks == sel.picks
-    monkeypatch.setattr(ls, "MI_BACKEND", "dense")
-    ref = select_mutual_information(info0, contrib, 6)
+    assert select_mutual_information(sp.csc_matrix(info0), contrib, 6, backend=backend, min_block=min_block).picks == (
+        sel.picks
+    )
+    ref = select_mutual_information(info0, contrib, 6, backend="dense")
     assert ref.picks == sel.picks
     np.testing.assert_allclose(ref.scores, sel.scores, rtol=1e-9)
 

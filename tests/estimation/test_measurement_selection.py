@@ -1,6 +1,14 @@
-"""Fast focused-information measurement greedy against a plain dense reference, and the other strategies."""
+"""Fast focused-information measurement greedy against a plain dense reference, and the other strategies.
+
+The dense reference (:func:`tests.oracles.measurement_selection.reference_greedy`) is the slow part: it is computed
+once per problem (:func:`_reference`, cached by the problem's name) and shared by every parametrisation and tracker
+variant that selects on that problem.
+"""
 
 from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -8,6 +16,7 @@ import pytest
 
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
+    TrackerOptions,
     default_base,
     focused_entropy,
     leverage_probabilities,
@@ -16,69 +25,22 @@ from stages.estimation.measurement_selection import (
     select_random,
     select_uniform,
 )
-from stages.estimation.synthetic import planar_problem
+from tests.fixtures.planar_problems import PlanarProblem, planar_problem
+from tests.oracles.measurement_selection import reference_greedy
 
 SLAM_GRAPHS = "/work/shared/data/slam-graphs"
 
 
-def reference_greedy(system, candidates, focused, budget, base, landmark_prior_sigma=100.0):
-    """Alg. 1 as written: for every candidate, recompute ½ log det(W Λ⁻¹ Wᵀ) from scratch (dense)."""
-    used = sorted({v for f in list(base) + list(candidates) for v in system.factors[f].variables} | set(focused))
-    cols = system.columns(used)
-    fidx = np.searchsorted(cols, system.columns(focused))
-    lms = [v for v in used if system.variables[v].kind == "landmark"]
-    lam = (system.information(base) + system.diagonal_prior(lms, landmark_prior_sigma)).toarray()[np.ix_(cols, cols)]
-    infos = {c: system.information([c]).toarray()[np.ix_(cols, cols)] for c in candidates}
-
-    def entropy(L):
-        cov = np.linalg.inv(L)
-        return 0.5 * np.linalg.slogdet(cov[np.ix_(fidx, fidx)])[1]
-
-    picks, gains = [], []
-    for _ in range(budget):
-        h = entropy(lam)
-        best = max(((h - entropy(lam + infos[c]), c) for c in candidates if c not in picks), key=lambda t: t[0])
-        picks.append(best[1])
-        gains.append(best[0])
-        lam = lam + infos[best[1]]
-    return picks, np.array(gains)
-
-
-def _planar(seed: int, n_poses=50, n_lm=8, n_meas=50):
-    pp = planar_problem(n_poses, n_lm, n_meas, seed=seed, extent=30.0, sensor_range=12.0)
+@functools.cache
+def _planar(seed: int, n_poses=50, n_lm=8, n_meas=50, extent=30.0) -> tuple[PlanarProblem, LinearSystem, list[int]]:
+    pp = planar_problem(n_poses, n_lm, n_meas, seed=seed, extent=extent, sensor_range=12.0)
     system = LinearSystem.from_gtsam(pp.graph, pp.values)
     lms = system.variables_of_kind("landmark")
     return pp, system, lms
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-@pytest.mark.parametrize("refactor_every", [3, 64])
-def test_fast_equals_reference_on_random_planar_graphs(seed: int, refactor_every: int) -> None:
-    pp, system, lms = _planar(seed)
-    focused = lms[:3]
-    cand = [f for f in pp.measurement_factors if set(system.factors[f].variables) & set(focused)]
-    base = default_base(system, cand)
-    budget = min(8, len(cand) - 1)
-    fast = select_information(system, cand, focused, budget, base=base, refactor_every=refactor_every)
-    picks, gains = reference_greedy(system, cand, focused, budget, base)
-    assert fast.picks == picks
-    np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
-    # the entropy bookkeeping agrees with a fresh computation
-    after = focused_entropy(system, base + fast.picks, focused)
-    assert fast.entropy_after == pytest.approx(after, abs=1e-6)
-
-
-def test_fast_equals_reference_all_landmarks_focused() -> None:
-    pp, system, lms = _planar(7, n_poses=40, n_lm=6, n_meas=40)
-    cand = pp.measurement_factors
-    base = default_base(system, cand)
-    fast = select_information(system, cand, lms, 10, base=base, refactor_every=4)
-    picks, gains = reference_greedy(system, cand, lms, 10, base)
-    assert fast.picks == picks
-    np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
-
-
-def _pose_graph(name: str, n_keep: int):
+@functools.cache
+def _pose_graph(name: str, n_keep: int) -> tuple[LinearSystem, list[int], list[int]]:
     """A pose graph from slam-graphs: odometry (consecutive) is the base, loop closures the candidates."""
     graph, values = gtsam.load2D(f"{SLAM_GRAPHS}/{name}")
     small = gtsam.NonlinearFactorGraph()
@@ -101,16 +63,82 @@ def _pose_graph(name: str, n_keep: int):
     return system, odo, loops
 
 
-@pytest.mark.parametrize(("name", "n_keep"), [("w100.graph", 60), ("w100.graph", 100)])
-def test_fast_equals_reference_on_slam_graphs(name: str, n_keep: int) -> None:
-    system, odo, loops = _pose_graph(name, n_keep)
-    assert len(loops) > 5
-    focused = [n_keep - 1, n_keep // 2]  # focus on two poses: W selects their blocks
-    budget = min(6, len(loops) - 1)
-    fast = select_information(system, loops, focused, budget, base=odo, refactor_every=2)
-    picks, gains = reference_greedy(system, loops, focused, budget, odo)
+@dataclass(frozen=True)
+class Case:
+    """A selection problem: the system, the candidates, the focused variables, the always-kept base and the budget."""
+
+    system: LinearSystem
+    cand: list[int]
+    focused: list[int]
+    base: list[int]
+    budget: int
+
+
+def _touching(pp: PlanarProblem, system: LinearSystem, focused: list[int]) -> list[int]:
+    return [f for f in pp.measurement_factors if set(system.factors[f].variables) & set(focused)]
+
+
+@functools.cache
+def _case(name: str) -> Case:
+    """``planar-<seed>``: 50 poses, 8 landmarks, 3 focused; ``all_focused``: 40 poses, all 6 landmarks focused;
+    ``refactorisations``: 150 poses, 12 landmarks, 3 focused, 14 picks (several refactorisations);
+    ``refactorisations_all``: the same graph, all 12 focused, every measurement a candidate, 24 picks;
+    ``w100-<n>``: the first n poses of w100, loop closures as candidates, two poses focused."""
+    if name.startswith("planar-"):
+        pp, system, lms = _planar(int(name.split("-")[1]))
+        cand = _touching(pp, system, lms[:3])
+        return Case(system, cand, lms[:3], default_base(system, cand), min(8, len(cand) - 1))
+    if name == "all_focused":
+        pp, system, lms = _planar(7, n_poses=40, n_lm=6, n_meas=40)
+        return Case(system, pp.measurement_factors, lms, default_base(system, pp.measurement_factors), 10)
+    if name.startswith("refactorisations"):
+        pp, system, lms = _planar(11, 150, 12, 220, extent=40.0)
+        assert len(lms) == 12  # the generator measures every landmark
+        if name == "refactorisations":
+            cand = _touching(pp, system, lms[:3])
+            return Case(system, cand, lms[:3], default_base(system, cand), 14)
+        return Case(system, pp.measurement_factors, lms, default_base(system, pp.measurement_factors), 24)
+    n_keep = int(name.split("-")[1])
+    system, odo, loops = _pose_graph("w100.graph", n_keep)
+    return Case(system, loops, [n_keep - 1, n_keep // 2], odo, min(6, len(loops) - 1))
+
+
+@functools.cache
+def _reference(name: str) -> tuple[list[int], np.ndarray]:
+    """The dense reference greedy's picks and gains on :func:`_case` ``name``, once per session."""
+    c = _case(name)
+    return reference_greedy(c.system, c.cand, c.focused, c.budget, c.base)
+
+
+def _check_against_reference(name: str, refactor_every: int | None, options: TrackerOptions | None = None):
+    c = _case(name)
+    fast = select_information(
+        c.system, c.cand, c.focused, c.budget, base=c.base, refactor_every=refactor_every, options=options
+    )
+    picks, gains = _reference(name)
     assert fast.picks == picks
     np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
+    return fast
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.parametrize("refactor_every", [3, 64])
+def test_fast_equals_reference_on_random_planar_graphs(seed: int, refactor_every: int) -> None:
+    fast = _check_against_reference(f"planar-{seed}", refactor_every)
+    # the entropy bookkeeping agrees with a fresh computation
+    c = _case(f"planar-{seed}")
+    after = focused_entropy(c.system, c.base + fast.picks, c.focused)
+    assert fast.entropy_after == pytest.approx(after, abs=1e-6)
+
+
+def test_fast_equals_reference_all_landmarks_focused() -> None:
+    _check_against_reference("all_focused", 4)
+
+
+@pytest.mark.parametrize("n_keep", [60, 100])
+def test_fast_equals_reference_on_slam_graphs(n_keep: int) -> None:
+    assert len(_case(f"w100-{n_keep}").cand) > 5
+    _check_against_reference(f"w100-{n_keep}", 2)
 
 
 def test_budget_edge_cases() -> None:
@@ -154,33 +182,18 @@ def test_uniform_is_even_in_time() -> None:
 
 @pytest.mark.parametrize("reduce", [True, False])
 @pytest.mark.parametrize("track_focused", [True, False])
-def test_fast_equals_reference_through_refactorisations(monkeypatch, track_focused: bool, reduce: bool) -> None:
-    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, both ways
-    of getting ``Σ Wᵀ p`` (kept at the tracked rows, or a second solve per step), with and without the
+def test_fast_equals_reference_through_refactorisations(track_focused: bool, reduce: bool) -> None:
+    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, the window tracker
+    both ways of getting ``Σ Wᵀ p`` (kept at the tracked rows, or a second solve per step), with and without the
     Schur reduction onto the tracked rows."""
-    import stages.estimation.measurement_selection as ms
-
-    monkeypatch.setattr(ms, "_TRACKER", "window")  # this test covers the window tracker's paths
-    if not track_focused:
-        monkeypatch.setattr(ms, "_TRACK_FOCUSED_MAX", 0)
-    monkeypatch.setattr(ms, "_REDUCE_BELOW", 1.0 if reduce else 0.0)
-    pp = planar_problem(150, 12, 220, seed=11, extent=40.0, sensor_range=12.0)
-    system = LinearSystem.from_gtsam(pp.graph, pp.values)
-    lms = system.variables_of_kind("landmark")
-    assert len(lms) == 12  # the generator measures every landmark
-    focused = lms[:3]
-    cand = [f for f in pp.measurement_factors if set(system.factors[f].variables) & set(focused)]
-    base = default_base(system, cand)
-    budget = 14
-    fast = select_information(system, cand, focused, budget, base=base, refactor_every=4)
+    options = TrackerOptions(
+        tracker="window", track_focused_max=128 if track_focused else 0, reduce_below=1.0 if reduce else 0.0
+    )
+    fast = _check_against_reference("refactorisations", 4, options)
     assert fast.stats["refactorisations"] >= 3
     assert fast.stats["reduced"] == float(reduce)
-    picks, gains = reference_greedy(system, cand, focused, budget, base)
-    assert fast.picks == picks
-    np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
-    adaptive = select_information(system, cand, focused, budget, base=base, refactor_every=None)
-    assert adaptive.picks == picks
-    np.testing.assert_allclose(adaptive.gains, gains, rtol=1e-6, atol=1e-8)
+    assert fast.stats["capacitance"] == 0.0
+    _check_against_reference("refactorisations", None, options)  # the adaptive schedule
 
 
 def test_schur_complement_is_the_inverse_of_the_covariance_block() -> None:
@@ -200,34 +213,16 @@ def test_schur_complement_is_the_inverse_of_the_covariance_block() -> None:
 
 
 @pytest.mark.parametrize("first_observation", [False, True])
-@pytest.mark.parametrize("case", ["planar", "all_focused", "refactorisations", "w100"])
-def test_capacitance_tracker_equals_reference(monkeypatch, case: str, first_observation: bool) -> None:
-    """The capacitance-form tracker (two fixed-size solves per step, ``C`` as a bordered Cholesky
-    factor) on the cases above, with and without refactorising at a landmark's first observation."""
-    import stages.estimation.measurement_selection as ms
-
-    monkeypatch.setattr(ms, "_TRACKER", "capacitance")
-    monkeypatch.setattr(ms, "_REFACTOR_ON_FIRST_OBSERVATION", first_observation)
-    if case == "planar":
-        pp, system, lms = _planar(2)
-        focused = lms[:3]
-        cand = [f for f in pp.measurement_factors if set(system.factors[f].variables) & set(focused)]
-        base, budget, every = default_base(system, cand), min(8, len(cand) - 1), 64
-    elif case == "all_focused":
-        pp, system, focused = _planar(7, n_poses=40, n_lm=6, n_meas=40)
-        cand = pp.measurement_factors
-        base, budget, every = default_base(system, cand), 10, 4
-    elif case == "refactorisations":
-        pp = planar_problem(150, 12, 220, seed=11, extent=40.0, sensor_range=12.0)
-        system = LinearSystem.from_gtsam(pp.graph, pp.values)
-        focused = system.variables_of_kind("landmark")  # all 12: many first observations in one window
-        cand = pp.measurement_factors
-        base, budget, every = default_base(system, cand), 24, 64
-    else:
-        system, base, cand = _pose_graph("w100.graph", 100)
-        focused, budget, every = [99, 50], 6, 2
-    fast = select_information(system, cand, focused, budget, base=base, refactor_every=every)
+@pytest.mark.parametrize(
+    ("case", "refactor_every"),
+    [("planar-2", 64), ("all_focused", 4), ("refactorisations_all", 64), ("w100-100", 2)],
+)
+def test_capacitance_tracker_equals_reference(case: str, refactor_every: int, first_observation: bool) -> None:
+    """The capacitance-form tracker (two fixed-size solves per step, ``C`` as a bordered Cholesky factor) on the
+    cases above (``refactorisations_all``: many first observations in one window), with and without
+    refactorising at a landmark's first observation."""
+    options = TrackerOptions(tracker="capacitance", refactor_on_first_observation=first_observation)
+    fast = _check_against_reference(case, refactor_every, options)
     assert fast.stats["capacitance"] == 1.0
-    picks, gains = reference_greedy(system, cand, focused, budget, base)
-    assert fast.picks == picks
-    np.testing.assert_allclose(fast.gains, gains, rtol=1e-6, atol=1e-8)
+    n_first = fast.stats["first_observation_refactorisations"]
+    assert n_first == 0.0 if not first_observation else case != "refactorisations_all" or n_first > 0

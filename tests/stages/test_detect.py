@@ -23,7 +23,7 @@ from stages.detect.config import DetectConfig
 from stages.detect.core import detect_image
 from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import estimate_tag_pose
-from stages.detect.render import TagPlacement, corners_of, look_at_tag, render_frame
+from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag, render_frame
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 BACKENDS = ("apriltag3", "opencv")

@@ -20,7 +20,7 @@ from stages.detect.pose import (
     so3_exp,
     tag_object_points,
 )
-from stages.detect.render import TagPlacement, corners_of, look_at_tag
+from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag
 
 CAMERA = {
     "width": 640,

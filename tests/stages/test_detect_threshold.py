@@ -10,7 +10,7 @@ import pytest
 from stages.camera import colmap_camera
 from stages.detect.backends import _quad_thresh_params, make_detector
 from stages.detect.config import DetectConfig
-from stages.detect.render import TagPlacement, look_at_tag, render_frame
+from tests.fixtures.tag_render import TagPlacement, look_at_tag, render_frame
 
 CAMERA = {
     "width": 640,

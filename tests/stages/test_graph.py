@@ -31,7 +31,7 @@ from stages.graph.factors import SCALE_KEY, FactorRow, build_graph
 from stages.graph.g2o import read_graph_file, write_g2o
 from stages.graph.problem import VAR_DIMS, GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
-from stages.graph.synthetic import synthetic_run
+from tests.fixtures.synthetic_runs import synthetic_run
 from tests.stages.upstream import seed_upstream, stand_in
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"

@@ -12,7 +12,7 @@ from stages.graph.factors import SCALE_KEY, build_graph, has_python_factors
 from stages.graph.problem import VAR_DIMS
 from stages.graph.python_loop import optimise_in_python
 from stages.graph.solve import optimise
-from stages.graph.synthetic import synthetic_planar_problem
+from tests.fixtures.synthetic_runs import synthetic_planar_problem
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import pytest
 
 from stages.navigation import (
     GroundTruth,
-    LandmarkMap,
+    NavigationMap,
     NavigationParams,
     SegmentWalls,
     ground_truth_file,
@@ -44,7 +44,7 @@ def corridor():
 
 
 def _map(ids, xy, sigma):
-    return LandmarkMap(ids, xy, np.repeat(np.eye(2)[None] * sigma**2, len(ids), 0))
+    return NavigationMap(ids, xy, np.repeat(np.eye(2)[None] * sigma**2, len(ids), 0))
 
 
 def test_nominal_path_controls_reproduce_the_path(corridor) -> None:

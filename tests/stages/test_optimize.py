@@ -19,9 +19,9 @@ from pipeline.runner import run_stage
 from stages import graph as graph_stage
 from stages import optimize as optimize_stage
 from stages.graph.load import load_graph
-from stages.graph.synthetic import SyntheticRun, synthetic_run
 from stages.optimize import gaussian_entropy, landmark_heights, solve_reduced
 from stages.risk import LandmarkMap
+from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
 from tests.stages.upstream import seed_upstream, stand_in
 
 ROOM = (8.0, 6.0)

@@ -227,10 +227,10 @@ def test_import_graph_run(tmp_path: Path) -> None:
 
 
 def test_batched_sigma_star_and_greedy_equal_the_reference(inputs: LandmarkInputs) -> None:
-    """The batched doubling Σ* equals stabilised_covariance; collision_greedy picks as select_collision does."""
-    from stages.estimation.landmark_selection import planar_range_bearing, select_collision, stabilised_covariance
-    from stages.risk import measurement_information, stabilised_covariances
+    """The batched doubling Σ* equals the per-pose DARE reference; Alg. 2 picks as the reference does."""
+    from stages.estimation.collision import measurement_information, planar_range_bearing, stabilised_covariances
     from stages.select_landmarks.core import collision_greedy
+    from tests.oracles.collision import select_collision_reference, stabilised_covariance
 
     geo, lm, params = inputs.geometry, inputs.landmarks, inputs.params
     rng = np.random.default_rng(0)
@@ -239,7 +239,7 @@ def test_batched_sigma_star_and_greedy_equal_the_reference(inputs: LandmarkInput
         rows = sorted(rng.choice(len(lm.tag_ids), int(rng.integers(1, 5)), replace=False).tolist())
         H_R = [planar_range_bearing(geo.poses[t], lm.positions[r], lm.covariances[r], geo.sigmas) for r in rows]
         ref.append(stabilised_covariance(geo.Q, H_R, params.cap_steps))
-        J.append(measurement_information(geo.poses[t], lm, rows, geo.sigmas))
+        J.append(measurement_information(geo.poses[t], lm.positions[rows], lm.covariances[rows], geo.sigmas))
     S = stabilised_covariances(geo.Q, np.array(J), params.cap_steps)
     for a, b in zip(S, ref, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-12 * np.abs(b).max())
@@ -255,7 +255,7 @@ def test_batched_sigma_star_and_greedy_equal_the_reference(inputs: LandmarkInput
         visible=geo.visible[:n],
     )
     fast = collision_greedy(sub, lm, 6, params)
-    slow = select_collision(
+    slow = select_collision_reference(
         sub.poses,
         lm.positions,
         lm.covariances,

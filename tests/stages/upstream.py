@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict
 
 from pipeline.run_folder import RunFolder
 from pipeline.stage import Stage
-from stages.graph.synthetic import SyntheticRun
+from tests.fixtures.synthetic_runs import SyntheticRun
 
 
 class Unconfigured(BaseModel):
