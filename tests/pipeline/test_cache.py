@@ -22,8 +22,8 @@ from stages import evaluate as evaluate_stage
 from stages import graph as graph_stage
 from stages import optimize as optimize_stage
 from stages import select_landmarks, select_measurements
-from stages.graph.synthetic import SyntheticRun, synthetic_run
 from stages.select_landmarks.artifacts import read_focused
+from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
 from tests.stages.test_optimize import synthetic_scans, write_ground_truth
 from tests.stages.upstream import seed_upstream, stand_in
 
@@ -184,7 +184,8 @@ def test_editing_a_module_changes_the_code_of_its_users_only(tmp_path: Path) -> 
     v3 = _edited(v2, tmp_path / "v3", "stages/graph/g2o.py")
     assert _stage_digests(v3)["graph"] != again["graph"]
     # a module nobody imports: no stage changes
-    v4 = _edited(v3, tmp_path / "v4", "stages/estimation/synthetic.py")
+    (v3 / "stages" / "estimation" / "unused.py").write_text("x = 1\n")
+    v4 = _edited(v3, tmp_path / "v4", "stages/estimation/unused.py")
     assert _stage_digests(v4) == _stage_digests(v3)
 
 
