@@ -18,8 +18,7 @@ from stages import optimize as optimize_stage
 from stages import select_landmarks, select_measurements
 from stages.evaluate.cases import TABLE_I
 from stages.graph.synthetic import synthetic_run
-from tests.stages.test_optimize import synthetic_scans, write_ground_truth
-from tests.stages.upstream import seed_upstream, stand_in
+from tests.fixtures.upstream import seed_upstream, stand_in, synthetic_scans, write_ground_truth
 
 
 @pytest.fixture(scope="module")

@@ -26,9 +26,9 @@ from pipeline.runner import run_stage
 from sample_data.simulate import SimConfig, ground_truth_path, simulate, write_bag
 from stages import detect, graph, ingest
 from stages.geometry import umeyama_alignment
+from tests.fixtures.shared_data import need_shared
 
 REGISTRY = Registry([ingest.STAGE, detect.STAGE, graph.STAGE])
-TAGSLAM = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "tagslam-test"
 
 
 def _run(bag: Path, out: Path, overrides: list[str], stages=("ingest", "detect", "graph")) -> RunFolder:
@@ -173,9 +173,7 @@ def test_evo_reader_rejects_what_evo_rejects(tmp_path: Path) -> None:
 
 
 def _tagslam(name: str, tmp_path: Path) -> tuple[Path, Path]:
-    folder = TAGSLAM / name
-    if not (folder / "tag_detections.bag.bz2").is_file():
-        pytest.skip(f"TagSLAM recordings not present at {TAGSLAM} (../shared/data is only in the team's workspace)")
+    folder = need_shared(f"tagslam-test/{name}/tag_detections.bag.bz2").parent
     bag = tmp_path / name / "tag_detections.bag"
     bag.parent.mkdir(parents=True)
     with bz2.open(folder / "tag_detections.bag.bz2", "rb") as src, bag.open("wb") as dst:
