@@ -62,7 +62,7 @@ def corridor(tmp_path_factory):
     rec = simulate(SimConfig(seed=11, path="corridor", duration_s=14.0))
     bag = tmp / "corridor.mcap"
     write_bag(rec, bag, "mcap", overwrite=True)
-    run = _run(bag, tmp / "run", ["detect.tag_size_m=0.16"])
+    run = _run(bag, tmp / "run", ["detect.tag_size_m=0.16", "detect.workers=1"])
     gt = json.loads(ground_truth_path(bag).read_text())
     return run, gt, rec
 
