@@ -18,7 +18,8 @@ from stages import optimize as optimize_stage
 from stages import select_landmarks, select_measurements
 from stages.evaluate.cases import TABLE_I
 from stages.graph.synthetic import synthetic_run
-from tests.fixtures.upstream import seed_upstream, stand_in, synthetic_scans, write_ground_truth
+from tests.fixtures.room import synthetic_scans, write_ground_truth
+from tests.fixtures.upstream import seed_upstream, stand_in
 
 
 @pytest.fixture(scope="module")

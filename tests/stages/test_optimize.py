@@ -22,7 +22,8 @@ from stages.graph.load import load_graph
 from stages.graph.synthetic import SyntheticRun, synthetic_run
 from stages.optimize import gaussian_entropy, landmark_heights, solve_reduced
 from stages.risk import LandmarkMap
-from tests.fixtures.upstream import seed_upstream, stand_in, synthetic_scans, write_ground_truth
+from tests.fixtures.room import synthetic_scans, write_ground_truth
+from tests.fixtures.upstream import seed_upstream, stand_in
 
 
 def make_graph_run(tmp_path: Path, sim: SyntheticRun, truth: bool = True) -> tuple[RunFolder, Registry]:
