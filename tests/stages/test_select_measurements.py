@@ -16,8 +16,8 @@ from stages.estimation.linear_system import Factor, LinearSystem
 from stages.estimation.measurement_selection import focused_entropy, select_information
 from stages.graph.load import load_graph
 from stages.select_measurements import SelectMeasurementsConfig, choose, focused_variables, linear_system
-from tests.estimation.test_measurement_selection import reference_greedy
 from tests.fixtures.office import copy_run, rrd_rows, run_select
+from tests.oracles.measurement_selection import reference_greedy
 
 
 @pytest.fixture(scope="module")
