@@ -14,7 +14,7 @@ Commands (each prints what it measured in this run; nothing is asserted)::
     /work/venv/bin/python tests/benchmarks/bench_graph.py diagnose --bag sample_data/office/office.bag \\
         /tmp/g4/office_seed1.bag /tmp/g4/office_seed2.bag /tmp/g4/office_seed3.bag --work /tmp/g4/work --estimator-mc
 
-    # the same statistics on the image-free synthetic runs of stages/graph/synthetic.py
+    # the same statistics on the image-free synthetic runs of tests/fixtures/synthetic_runs.py
     /work/venv/bin/python tests/benchmarks/bench_graph.py synthetic --seeds 0 1 2 3 4 5 6 7 8 9
 """
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import write_minimal_bag
+from tests.fixtures.bags import write_minimal_bag
 
 FOCUSMAP = [sys.executable, "-m", "cli.app"]
 ROOT = Path(__file__).resolve().parents[2]
@@ -109,12 +109,20 @@ def test_truncated_bag_fails_and_salvage_recovers(shared_data: Path, tmp_path: P
     assert data["salvaged"]["stopped_at"]
 
 
-def test_ingest_minimal_bag_works(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def minimal_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.CompletedProcess[str]]:
+    """``focusmap ingest`` of the minimal bag with a calibrated camera, once for the tests that read its run
+    folder (they do not change it); returns the run folder and the finished process."""
+    tmp = tmp_path_factory.mktemp("minimal")
+    bag = write_minimal_bag(tmp / "ok.bag")
+    return tmp / "runs" / "ok", focusmap("ingest", bag, "--out", tmp / "runs")
+
+
+def test_ingest_minimal_bag_works(minimal_run: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
     """The control for the cases above: the same bag with a calibrated camera ingests."""
-    bag = write_minimal_bag(tmp_path / "ok.bag")
-    proc = focusmap("ingest", bag, "--out", tmp_path / "runs")
+    run, proc = minimal_run
     assert proc.returncode == 0, proc.stderr
-    assert (tmp_path / "runs" / "ok" / "ingest" / "frames.parquet").is_file()
+    assert (run / "ingest" / "frames.parquet").is_file()
 
 
 @pytest.mark.parametrize(
@@ -133,28 +141,29 @@ def test_help(args: list[str]) -> None:
     assert proc.returncode == 0 and "Usage" in proc.stdout
 
 
-def test_view_opens_every_stage_recording_with_the_run_layout(tmp_path: Path) -> None:
-    bag = write_minimal_bag(tmp_path / "ok.bag")
-    assert focusmap("ingest", bag, "--out", tmp_path / "runs").returncode == 0
-    proc = focusmap("view", tmp_path / "runs" / "ok", "--print")
+def test_view_opens_every_stage_recording_with_the_run_layout(
+    minimal_run: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    run, ingested = minimal_run
+    assert ingested.returncode == 0, ingested.stderr
+    proc = focusmap("view", run, "--print")
     assert proc.returncode == 0, proc.stderr
     args = proc.stdout.split()
     assert args[0].endswith("rerun")
-    assert args[1:] == [str(tmp_path / "runs" / "ok" / "ingest.rrd"), str(tmp_path / "runs" / "ok" / "focusmap.rbl")]
-    proc = focusmap("view", tmp_path / "runs" / "nothing")
+    assert args[1:] == [str(run / "ingest.rrd"), str(run / "focusmap.rbl")]
+    proc = focusmap("view", run.parent / "nothing")
     assert_one_error_line(proc, "does not exist")
 
 
-def test_view_screenshot_from_a_headless_viewer(tmp_path: Path) -> None:
-    """A picture of the run without a screen; skipped where the machine has no Vulkan driver."""
-    from pipeline.errors import PipelineError
+def test_view_screenshot_from_a_headless_viewer(
+    headless_viewer: None, minimal_run: tuple[Path, subprocess.CompletedProcess[str]], tmp_path: Path
+) -> None:
+    """A picture of the run without a screen; skipped (with the viewer's message) where the machine has no
+    Vulkan driver, found by the ``headless_viewer`` probe. Where the viewer can draw, a failure here is focusmap's."""
     from pipeline.viewer import screenshot
 
-    bag = write_minimal_bag(tmp_path / "ok.bag")
-    assert focusmap("ingest", bag, "--out", tmp_path / "runs").returncode == 0
+    run, ingested = minimal_run
+    assert ingested.returncode == 0, ingested.stderr
     out = tmp_path / "view.png"
-    try:
-        screenshot([tmp_path / "runs" / "ok" / "ingest.rrd"], out, timeout_s=60)
-    except PipelineError as err:
-        pytest.skip(f"no headless viewer here: {err}")
+    screenshot([run / "ingest.rrd"], out, timeout_s=60)
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000

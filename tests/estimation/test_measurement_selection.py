@@ -26,9 +26,8 @@ from stages.estimation.measurement_selection import (
     select_uniform,
 )
 from tests.fixtures.planar_problems import PlanarProblem, planar_problem
+from tests.fixtures.shared_data import need_shared
 from tests.oracles.measurement_selection import reference_greedy
-
-SLAM_GRAPHS = "/work/shared/data/slam-graphs"
 
 
 @functools.cache
@@ -42,7 +41,7 @@ def _planar(seed: int, n_poses=50, n_lm=8, n_meas=50, extent=30.0) -> tuple[Plan
 @functools.cache
 def _pose_graph(name: str, n_keep: int) -> tuple[LinearSystem, list[int], list[int]]:
     """A pose graph from slam-graphs: odometry (consecutive) is the base, loop closures the candidates."""
-    graph, values = gtsam.load2D(f"{SLAM_GRAPHS}/{name}")
+    graph, values = gtsam.load2D(str(need_shared(f"slam-graphs/{name}")))
     small = gtsam.NonlinearFactorGraph()
     vals = gtsam.Values()
     for k in range(n_keep):

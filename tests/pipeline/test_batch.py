@@ -43,6 +43,10 @@ ROOT = Path(__file__).resolve().parents[2]
 UNTIL = "detect"
 FORMATS = (("s1.bag", "ros1"), ("s2", "ros2-sqlite"), ("s3", "ros2-mcap"))
 TIMING = re.compile(r"seconds|timing|per_second|_s$")
+# One detect process per recording: these tests are about the batch's own workers. detect's default pool would
+# spawn two more interpreters per recording (4-8 s of imports on two cores) to detect tags in ten frames; the pool
+# itself is tested in tests/stages/test_detect.py.
+SETS = ("--set", "detect.workers=1")
 
 
 # --- helpers -----------------------------------------------------------------------------------------
@@ -91,9 +95,9 @@ from pipeline.batch import collect_recordings, plan_tasks, run_batch, summary_ta
 from pipeline.config import load_settings
 from stages import REGISTRY
 
-out, until, *bags = sys.argv[1:]
+out, until, sets, *bags = sys.argv[1:]
 stages = [s.name for s in REGISTRY.between(None, until)]
-tasks = plan_tasks(collect_recordings(bags), Path(out), stages, load_settings(REGISTRY.models()),
+tasks = plan_tasks(collect_recordings(bags), Path(out), stages, load_settings(REGISTRY.models(), None, [sets]),
                    preflight="stages.ingest.bags:detect_format")
 with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", processes=True, dashboard_address=None) as c:
     result = run_batch(tasks, scheduler=c.scheduler_address, progress=False)
@@ -134,7 +138,7 @@ def local_out(
 ) -> tuple[Path, subprocess.CompletedProcess[str]]:
     """``focusmap batch`` (local pool, 2 workers) over the bags; returns OUT and the finished process."""
     out = tmp_path_factory.mktemp("local") / "runs"
-    cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2")
+    cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2", *SETS)
     return out, subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
 
 
@@ -250,7 +254,7 @@ def test_dask_cluster_gives_the_same_run_folders_and_summary(
 ) -> None:
     out, _ = local_out
     dask_out = tmp_path / "runs"
-    cmd = [sys.executable, "-c", DASK_SCRIPT, str(dask_out), UNTIL, *map(str, bags)]
+    cmd = [sys.executable, "-c", DASK_SCRIPT, str(dask_out), UNTIL, SETS[1], *map(str, bags)]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
@@ -268,7 +272,7 @@ def test_second_call_skips_what_is_up_to_date(
 ) -> None:
     out, _ = local_out
     before = {p.parent.name: p.read_text() for p in out.glob("*/manifest.json")}
-    cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2")
+    cmd = _cli("batch", *map(str, bags), "--out", str(out), "--until", UNTIL, "--workers", "2", *SETS)
     result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
     assert result.returncode == 1, result.stderr
     status = {r["run"]: (r["status"], r["stages_run"]) for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
@@ -281,7 +285,7 @@ def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
 ) -> None:
     good = [str(b) for b in bags[:2]]
     out = tmp_path / "runs"
-    cmd = _cli("batch", *good, "--out", str(out), "--until", UNTIL, "--workers", "1")
+    cmd = _cli("batch", *good, "--out", str(out), "--until", UNTIL, "--workers", "1", *SETS)
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=env["PYTHONPATH"])
     finished: dict[tuple[str, str], tuple[str, str, int]] = {}
     deadline = time.monotonic() + 60

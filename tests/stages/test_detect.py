@@ -23,17 +23,10 @@ from stages.detect.config import DetectConfig
 from stages.detect.core import detect_image
 from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import estimate_tag_pose
+from tests.fixtures.shared_data import need_shared
 from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag, render_frame
 
-SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 BACKENDS = ("apriltag3", "opencv")
-
-
-def _shared(name: str) -> Path:
-    path = SHARED / name
-    if not path.is_dir():
-        pytest.skip(f"../shared/data not present: {path} (third-party test data, only in the team's workspace)")
-    return path
 
 
 def _camera(model: str = "plumb_bob", width: int = 640, height: int = 480) -> dict:
@@ -130,7 +123,7 @@ def test_frame_without_tags_gives_no_rows() -> None:
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize(("family", "count"), [("tag36h11", 587), ("tag25h9", 35), ("tag16h5", 30)])
 def test_every_reference_bitmap_decodes_to_its_id(backend: str, family: str, count: int) -> None:
-    mosaic = cv2.imread(str(_shared("tag-bitmaps") / f"{family}-mosaic.png"), cv2.IMREAD_UNCHANGED)
+    mosaic = cv2.imread(str(need_shared("tag-bitmaps") / f"{family}-mosaic.png"), cv2.IMREAD_UNCHANGED)
     gray = np.where(mosaic[:, :, 3] > 0, mosaic[:, :, 0], 255).astype(np.uint8)
     pitch = {"tag36h11": 11, "tag25h9": 10, "tag16h5": 9}[family]  # tag with white border + 1 px separator
     per_row = (gray.shape[1] + 1) // pitch
@@ -157,7 +150,7 @@ def _photo_truth(txt: Path) -> list[np.ndarray]:
 
 
 def test_real_photos_every_tag_found() -> None:
-    folder = _shared("apriltag-photos")
+    folder = need_shared("apriltag-photos")
     detector = make_detector(DetectConfig(backend="apriltag3"))
     for jpg in sorted(folder.glob("*.jpg")):
         truth = _photo_truth(jpg.with_suffix(".txt"))
@@ -229,7 +222,7 @@ def test_position_cov_is_the_translation_block_in_the_camera_frame() -> None:
 
 
 def test_kalibr_cameras_yaml_both_lens_models() -> None:
-    folder = _shared("tagslam-test")
+    folder = need_shared("tagslam-test")
     fish = load_camera_file(folder / "test_1" / "cameras.yaml")
     assert fish["distortion_model"] == "equidistant" and fish["width"] == 1280 and len(fish["D"]) == 4
     assert colmap_camera(fish).model_name == "OPENCV_FISHEYE"
@@ -336,7 +329,7 @@ def test_stage_reads_detections_the_bag_holds(tmp_path: Path) -> None:
 
     from rosbags.highlevel import AnyReader
 
-    folder = _shared("tagslam-test") / "test_1"
+    folder = need_shared("tagslam-test") / "test_1"
     bag = tmp_path / "tag_detections.bag"
     bag.write_bytes(bz2.decompress((folder / "tag_detections.bag.bz2").read_bytes()))
     per_msg: Counter[int] = Counter()

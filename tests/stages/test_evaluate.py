@@ -17,9 +17,9 @@ from stages import graph as graph_stage
 from stages import optimize as optimize_stage
 from stages import select_landmarks, select_measurements
 from stages.evaluate.cases import TABLE_I
+from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import synthetic_run
-from tests.stages.test_optimize import synthetic_scans, write_ground_truth
-from tests.stages.upstream import seed_upstream, stand_in
+from tests.fixtures.upstream import seed_upstream, stand_in
 
 
 @pytest.fixture(scope="module")

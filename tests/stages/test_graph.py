@@ -31,17 +31,9 @@ from stages.graph.factors import SCALE_KEY, FactorRow, build_graph
 from stages.graph.g2o import read_graph_file, write_g2o
 from stages.graph.problem import VAR_DIMS, GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
+from tests.fixtures.shared_data import need_shared
 from tests.fixtures.synthetic_runs import synthetic_run
-from tests.stages.upstream import seed_upstream, stand_in
-
-SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-GRAPHS = SHARED / "slam-graphs"
-
-
-def _need_graphs() -> Path:
-    if not GRAPHS.is_dir():
-        pytest.skip(f"GTSAM example graphs not present at {GRAPHS} (../shared/data is only in the team's workspace)")
-    return GRAPHS
+from tests.fixtures.upstream import seed_upstream, stand_in
 
 
 @pytest.fixture(scope="module")
@@ -258,7 +250,7 @@ EXPECTED = {
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_import_every_shared_graph(tmp_path: Path, name: str) -> None:
     model, n_poses, n_lm, kinds = EXPECTED[name]
-    run = import_graph(_need_graphs() / name, tmp_path, None)
+    run = import_graph(need_shared(f"slam-graphs/{name}"), tmp_path, None)
     summary = json.loads((run / "graph" / "summary.json").read_text())
     assert (summary["model"], summary["poses"], summary["landmarks"]) == (model, n_poses, n_lm)
     assert summary["factors_by_kind"] == kinds
@@ -274,7 +266,7 @@ def test_import_every_shared_graph(tmp_path: Path, name: str) -> None:
 
 
 def test_import_matches_gtsam_loader() -> None:
-    path = _need_graphs() / "example.graph"
+    path = need_shared("slam-graphs/example.graph")
     p = read_graph_file(path)
     g = build_graph(p.rows)
     ref_graph, ref_values = gtsam.load2D(str(path))

@@ -9,17 +9,19 @@ detection's range is short by the same ~0.2 %); with the scale factor's first fo
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pyarrow.parquet as pq
 
 from stages.evaluate.analysis import landmark_consistency
 from stages.geometry import umeyama_alignment
 from stages.navigation.truth import GroundTruth
-from tests.stages.test_select_landmarks import TRUTH, prepared_run
+from tests.fixtures.office import TRUTH
 
 
-def test_sample_map_is_accurate_and_its_covariances_are_honest() -> None:
-    graph = prepared_run() / "graph"
+def test_sample_map_is_accurate_and_its_covariances_are_honest(office_run: Path) -> None:
+    graph = office_run / "graph"
     poses = pq.read_table(graph / "poses.parquet").to_pydict()
     lms = pq.read_table(graph / "landmarks.parquet").to_pydict()
     truth = GroundTruth.load(TRUTH).in_map(int(poses["stamp_ns"][0]))

@@ -36,7 +36,7 @@ from stages.graph.factors import (
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
 from tests.fixtures.synthetic_runs import synthetic_run
-from tests.stages.upstream import seed_upstream, stand_in
+from tests.fixtures.upstream import seed_upstream, stand_in
 
 H = 1e-6
 

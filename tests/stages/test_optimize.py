@@ -21,58 +21,9 @@ from stages import optimize as optimize_stage
 from stages.graph.load import load_graph
 from stages.optimize import gaussian_entropy, landmark_heights, solve_reduced
 from stages.risk import LandmarkMap
+from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
-from tests.stages.upstream import seed_upstream, stand_in
-
-ROOM = (8.0, 6.0)
-
-
-def room_walls(room: tuple[float, float] = ROOM) -> np.ndarray:
-    W, H = room
-    return np.array([[0, 0, W, 0], [W, 0, W, H], [W, H, 0, H], [0, H, 0, 0]], dtype=float)
-
-
-def synthetic_scans(sim: SyntheticRun, room: tuple[float, float] = ROOM, rate_hz: float = 10.0) -> pa.Table:
-    """360-beam scans of the rectangular room from the true poses (laser at the base origin)."""
-    W, H = room
-    t0, t1 = int(sim.true_stamps_ns[0]), int(sim.true_stamps_ns[-1])
-    stamps = np.arange(t0, t1, int(1e9 / rate_hz), dtype=np.int64)
-    poses = sim.true_pose_at(stamps)
-    angles = -np.pi + np.arange(360) * (2 * np.pi / 360)
-    ranges = []
-    for x, y, yaw in poses:
-        a = angles + yaw
-        c, s = np.cos(a), np.sin(a)
-        with np.errstate(divide="ignore"):
-            tx = np.where(c > 0, (W - x) / c, np.where(c < 0, -x / c, np.inf))
-            ty = np.where(s > 0, (H - y) / s, np.where(s < 0, -y / s, np.inf))
-        ranges.append(np.minimum(tx, ty).astype(np.float32).tolist())
-    n = len(stamps)
-    return pa.table(
-        {
-            "stamp_ns": stamps,
-            "frame_id": ["laser"] * n,
-            "angle_min": np.full(n, -np.pi),
-            "angle_max": np.full(n, np.pi - 2 * np.pi / 360),
-            "angle_increment": np.full(n, 2 * np.pi / 360),
-            "range_min": np.full(n, 0.05),
-            "range_max": np.full(n, 20.0),
-            "ranges": pa.array(ranges, pa.list_(pa.float32())),
-        }
-    )
-
-
-def write_ground_truth(sim: SyntheticRun, path: Path, room: tuple[float, float] = ROOM) -> None:
-    """A ``<name>.ground_truth.json`` in the simulator's layout."""
-    gt = {
-        "world": {"walls": room_walls(room).tolist()},
-        "tags": [{"id": int(t), "position": T[:3, 3].tolist()} for t, T in sim.tags_world.items()],
-        "poses": [
-            {"stamp_ns": int(s), "x": float(p[0]), "y": float(p[1]), "yaw": float(p[2])}
-            for s, p in zip(sim.true_stamps_ns, sim.true_poses, strict=True)
-        ],
-    }
-    path.write_text(json.dumps(gt))
+from tests.fixtures.upstream import seed_upstream, stand_in
 
 
 def make_graph_run(tmp_path: Path, sim: SyntheticRun, truth: bool = True) -> tuple[RunFolder, Registry]:

@@ -1,18 +1,14 @@
 """select_landmarks on the committed office sample: artifacts, recording, the collision claim, edge cases, no laser.
 
-The sample (``sample_data/office``) is ingested, detected and graphed once per test process
-(:func:`prepared_run`, shared with ``test_select_measurements.py``); each test works on a copy.
+The sample (``sample_data/office``) is ingested, detected and graphed once per session (the ``office_run``
+fixture of ``tests/stages/conftest.py``); each test that runs a stage works on a copy.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import itertools
 import json
-import shutil
-import tempfile
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -20,56 +16,12 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.artifacts import StageInput
-from pipeline.config import load_settings
 from pipeline.errors import StageError
 from pipeline.run_folder import RunFolder
-from pipeline.runner import run_stage
-from stages import REGISTRY
 from stages.graph.load import load_graph
 from stages.risk import RiskParams, path_geometry
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig, choose
-
-ROOT = Path(__file__).resolve().parents[2]
-SAMPLE = ROOT / "sample_data" / "office" / "office.bag"
-TRUTH = ROOT / "sample_data" / "office" / "office.ground_truth.json"
-BASE_SETTINGS = ["detect.tag_size_m=0.16", "detect.workers=1"]
-
-
-@functools.cache
-def prepared_run() -> Path:
-    """The office sample through ingest, detect and graph (once per process); do not modify it, copy it."""
-    root = Path(tempfile.mkdtemp(prefix="focusmap_select_"))
-    run = RunFolder.create(root / "office", SAMPLE)
-    settings = load_settings(REGISTRY.models(), None, BASE_SETTINGS)
-    for name in ("ingest", "detect", "graph"):
-        run_stage(run, REGISTRY, name, settings)
-    return run.path
-
-
-def copy_run(tmp_path: Path) -> RunFolder:
-    """A private copy of the prepared run."""
-    dst = tmp_path / "office"
-    shutil.copytree(prepared_run(), dst)
-    return RunFolder(dst)
-
-
-def run_select(run: RunFolder, stage: str, overrides: list[str]) -> dict:
-    """Run one stage with overrides; return its summary."""
-    settings = load_settings(REGISTRY.models(), None, BASE_SETTINGS + overrides)
-    return run_stage(run, REGISTRY, stage, settings, force=True).summary
-
-
-def rrd_rows(path: Path) -> tuple[Counter[str], Counter[str]]:
-    """Rows per entity path, and rows on the selection_step timeline per entity path."""
-    from rerun.chunk import RrdReader
-
-    rows: Counter[str] = Counter()
-    steps: Counter[str] = Counter()
-    for chunk in RrdReader(path).stream():
-        rows[str(chunk.entity_path)] += chunk.num_rows
-        if "selection_step" in chunk.timeline_names:
-            steps[str(chunk.entity_path)] += chunk.num_rows
-    return rows, steps
+from tests.fixtures.office import TRUTH, copy_run, rrd_rows, run_select
 
 
 def region_of_tags() -> dict[int, str]:
@@ -88,9 +40,9 @@ def region_of_tags() -> dict[int, str]:
 
 
 @pytest.fixture(scope="module")
-def inputs() -> LandmarkInputs:
-    """The prepared run's inputs, loaded once (no run folder needed)."""
-    path = prepared_run()
+def inputs(office_run: Path) -> LandmarkInputs:
+    """The office run's inputs, loaded once (no run folder needed)."""
+    path = office_run
     loaded = load_graph(StageInput("graph", path / "graph"))
     ingest = StageInput("ingest", path / "ingest")
     T_bl = np.asarray(ingest.read_json("extrinsics.json")["sensors"]["laser"]["T_base_sensor"])
@@ -98,8 +50,8 @@ def inputs() -> LandmarkInputs:
     return LandmarkInputs.from_pieces(loaded, ingest.read_table("scans.parquet"), T_bl, detections)
 
 
-def test_stage_outputs_and_recording(tmp_path: Path) -> None:
-    run = copy_run(tmp_path)
+def test_stage_outputs_and_recording(office_run: Path, tmp_path: Path) -> None:
+    run = copy_run(office_run, tmp_path)
     budget = 8
     summary = run_select(run, "select_landmarks", [f"select_landmarks.budget={budget}"])
     out = run.stage_dir("select_landmarks")
@@ -170,8 +122,8 @@ def test_collision_focuses_on_corridor_and_door(inputs: LandmarkInputs) -> None:
     assert results["collision"][1] < results["random"][1]
 
 
-def test_budget_edges(tmp_path: Path) -> None:
-    run = copy_run(tmp_path)
+def test_budget_edges(office_run: Path, tmp_path: Path) -> None:
+    run = copy_run(office_run, tmp_path)
     s = run_select(run, "select_landmarks", ["select_landmarks.budget=0"])
     focused = json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())
     assert s["status"] == "budget_zero" and focused["tag_ids"] == [] and "budget 0" in s["message"]
@@ -210,11 +162,11 @@ def test_visibility_window_and_no_laser(inputs: LandmarkInputs) -> None:
         choose(no_laser, SelectLandmarksConfig(strategy="collision", budget=3))
 
 
-def test_import_graph_run(tmp_path: Path) -> None:
+def test_import_graph_run(office_run: Path, tmp_path: Path) -> None:
     """A run made by import-graph (graph only): non-collision strategies work, collision says why it cannot."""
     from stages.graph import import_graph
 
-    run_dir = import_graph(prepared_run() / "graph" / "graph.g2o", tmp_path, "imported")
+    run_dir = import_graph(office_run / "graph" / "graph.g2o", tmp_path, "imported")
     run = RunFolder(run_dir)
     s = run_select(run, "select_landmarks", ["select_landmarks.strategy=uniform", "select_landmarks.budget=5"])
     assert s["status"] == "ok" and s["laser"] is False and "note" in s

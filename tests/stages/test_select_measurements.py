@@ -16,14 +16,14 @@ from stages.estimation.linear_system import Factor, LinearSystem
 from stages.estimation.measurement_selection import focused_entropy, select_information
 from stages.graph.load import load_graph
 from stages.select_measurements import SelectMeasurementsConfig, choose, focused_variables, linear_system
-from tests.estimation.test_measurement_selection import reference_greedy
-from tests.stages.test_select_landmarks import copy_run, prepared_run, rrd_rows, run_select
+from tests.fixtures.office import copy_run, rrd_rows, run_select
+from tests.oracles.measurement_selection import reference_greedy
 
 
 @pytest.fixture(scope="module")
-def loaded():
-    """The prepared run's full graph."""
-    return load_graph(StageInput("graph", prepared_run() / "graph"))
+def loaded(office_run: Path):
+    """The office run's full graph."""
+    return load_graph(StageInput("graph", office_run / "graph"))
 
 
 @pytest.fixture(scope="module")
@@ -32,14 +32,14 @@ def system(loaded):
     return linear_system(loaded)
 
 
-def _selected_run(tmp_path: Path, budget: int = 8) -> RunFolder:
-    run = copy_run(tmp_path)
+def _selected_run(office_run: Path, tmp_path: Path, budget: int = 8) -> RunFolder:
+    run = copy_run(office_run, tmp_path)
     run_select(run, "select_landmarks", [f"select_landmarks.budget={budget}", "select_landmarks.max_replay_steps=0"])
     return run
 
 
-def test_stage_outputs_and_recording(tmp_path: Path, loaded, system) -> None:
-    run = _selected_run(tmp_path)
+def test_stage_outputs_and_recording(office_run: Path, tmp_path: Path, loaded, system) -> None:
+    run = _selected_run(office_run, tmp_path)
     K = 25
     s = run_select(run, "select_measurements", [f"select_measurements.budget={K}"])
     focused = json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())["tag_ids"]
@@ -72,8 +72,8 @@ def test_stage_outputs_and_recording(tmp_path: Path, loaded, system) -> None:
     assert steps["/select_measurements/landmarks/focused"] >= 2  # ellipsoids shrink over the replayed steps
 
 
-def test_budget_edges_and_missing_stage_one(tmp_path: Path) -> None:
-    run = copy_run(tmp_path)
+def test_budget_edges_and_missing_stage_one(office_run: Path, tmp_path: Path) -> None:
+    run = copy_run(office_run, tmp_path)
     with pytest.raises(StageError, match="focusmap select-landmarks"):
         run_select(run, "select_measurements", [])
     assert not run.stage_dir("select_measurements").exists()
@@ -90,8 +90,8 @@ def test_budget_edges_and_missing_stage_one(tmp_path: Path) -> None:
     assert s["status"] == "budget_exceeds_candidates" and s["selected"] == s["candidates"] and "all" in s["message"]
 
 
-def test_focus_all_without_stage_one(tmp_path: Path) -> None:
-    run = copy_run(tmp_path)
+def test_focus_all_without_stage_one(office_run: Path, tmp_path: Path) -> None:
+    run = copy_run(office_run, tmp_path)
     s = run_select(
         run,
         "select_measurements",
