@@ -21,14 +21,15 @@ from stages.detect.pose import (
     tag_object_points,
 )
 from stages.detect.render import TagPlacement, corners_of, look_at_tag
+from stages.ingest.artifacts import CameraModel
 
-CAMERA = {
-    "width": 640,
-    "height": 480,
-    "K": [420.0, 0, 318.3, 0, 420.8, 241.7, 0, 0, 1],
-    "distortion_model": "plumb_bob",
-    "D": [-0.12, 0.02, 0.0008, -0.0005, 0.0],
-}
+CAMERA = CameraModel(
+    width=640,
+    height=480,
+    K=[420.0, 0, 318.3, 0, 420.8, 241.7, 0, 0, 1],
+    distortion_model="plumb_bob",
+    D=[-0.12, 0.02, 0.0008, -0.0005, 0.0],
+)
 
 
 def _errors(cam: object, T_true: np.ndarray, corners: list[np.ndarray], size: float) -> list[tuple[object, np.ndarray]]:
