@@ -23,6 +23,7 @@ from gtsam.symbol_shorthand import L, X
 from stages.geometry import pose3_from_matrix, relative_position_to_bearing_range_2d
 from stages.graph.factors import SCALE_KEY, FactorRow
 from stages.graph.problem import GraphProblem
+from stages.ingest.artifacts import Extrinsics, SensorMount
 
 R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 """Columns: the optical frame's x (right), y (down), z (forward) in a x-forward, z-up body frame."""
@@ -46,7 +47,7 @@ class SyntheticRun:
 
     odometry: pa.Table
     detections: pa.Table
-    extrinsics: dict[str, object]
+    extrinsics: Extrinsics
     true_stamps_ns: np.ndarray
     true_poses: np.ndarray  # N x 3 (x, y, yaw) of base_link in world, at true_stamps_ns
     tags_world: dict[int, np.ndarray] = field(default_factory=dict)  # tag id -> T_world_tag (4x4)
@@ -210,11 +211,11 @@ def synthetic_run(
             det["decision_margin"].append(80.0)
             det["hamming"].append(0)
     detections = pa.table(det)
-    extrinsics = {
-        "base_frame": "base_link",
-        "odom_frame": "odom",
-        "sensors": {"camera": {"frame_id": "camera", "T_base_sensor": T_bc.tolist()}},
-    }
+    extrinsics = Extrinsics(
+        base_frame="base_link",
+        odom_frame="odom",
+        sensors={"camera": SensorMount(frame_id="camera", T_base_sensor=T_bc.tolist())},
+    )
     return SyntheticRun(odometry, detections, extrinsics, stamps, np.column_stack([x, y, yaw]), tags)
 
 

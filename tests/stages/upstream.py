@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict
 
+from pipeline.artifacts import StageOutput
 from pipeline.run_folder import RunFolder
 from pipeline.stage import Stage
 from stages.graph.synthetic import SyntheticRun
+from stages.ingest.artifacts import EXTRINSICS, SensorMount
 
 
 class Unconfigured(BaseModel):
@@ -28,17 +28,17 @@ def stand_in(name: str, *inputs: str) -> Stage:
 def seed_upstream(run: RunFolder, sim: SyntheticRun, scans: pa.Table | None = None) -> None:
     """Write ingest (odometry, extrinsics; with ``scans``, also them and a laser at the base origin) and detect
     (the run's detections) into ``run``, each recorded as finished."""
-    extrinsics = dict(sim.extrinsics)
+    extrinsics = sim.extrinsics
     ingest = {"odometry.parquet": sim.odometry}
     if scans is not None:
         ingest["scans.parquet"] = scans
-        laser = {"frame_id": "laser", "T_base_sensor": np.eye(4).tolist()}
-        extrinsics["sensors"] = {**extrinsics.get("sensors", {}), "laser": laser}
+        laser = SensorMount(frame_id="laser", T_base_sensor=np.eye(4).tolist())
+        extrinsics = extrinsics.model_copy(update={"sensors": {**extrinsics.sensors, "laser": laser}})
     for name, files in (("ingest", ingest), ("detect", {"detections.parquet": sim.detections})):
         d = run.stage_dir(name)
         d.mkdir()
         for fname, table in files.items():
             pq.write_table(table, d / fname)
         if name == "ingest":
-            (d / "extrinsics.json").write_text(json.dumps(extrinsics))
+            EXTRINSICS.write(StageOutput(d), extrinsics)
         run.record(name, {"fingerprint": name, "summary": {}})
