@@ -20,7 +20,7 @@ rendered from the same declarations (:func:`render_markdown`), and a test fails 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -124,12 +124,8 @@ class TableSpec:
         """A streaming writer of this schema (for tables written in batches)."""
         return pq.ParquetWriter(path, self.schema, compression="zstd")
 
-    def read(self, inp: StageInput, columns: Sequence[str] | None = None) -> pa.Table:
-        """Read the table (or some of its columns) from a finished stage, checked against the declaration.
-
-        Raises:
-            InputError: the file or a declared column is missing, or a column has another type (an old run).
-        """
+    def _checked(self, inp: StageInput, columns: Sequence[str] | None) -> tuple[Path, pa.Schema]:
+        """The file and the schema of the wanted columns, once the file is known to hold them."""
         wanted = list(columns) if columns is not None else self.names
         unknown = [c for c in wanted if c not in self.names]
         if unknown:
@@ -139,14 +135,41 @@ class TableSpec:
         missing = [c for c in wanted if c not in present.names]
         if missing:
             raise InputError(f"{inp.stage}/{self.file} lacks columns {missing}; {_rerun_hint(inp.stage)}") from None
-        table = pq.read_table(path, columns=wanted)
-        schema = pa.schema([self.schema.field(c) for c in wanted])
+        return path, pa.schema([self.schema.field(c) for c in wanted])
+
+    def _cast(self, inp: StageInput, data: pa.Table, schema: pa.Schema) -> pa.Table:
         try:
-            return table.cast(schema)
+            return data.cast(schema)
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
             raise InputError(
                 f"{inp.stage}/{self.file} has columns of other types ({err}); {_rerun_hint(inp.stage)}"
             ) from None
+
+    def read(self, inp: StageInput, columns: Sequence[str] | None = None) -> pa.Table:
+        """Read the table (or some of its columns) from a finished stage, checked against the declaration.
+
+        Raises:
+            InputError: the file or a declared column is missing, or a column has another type (an old run).
+        """
+        path, schema = self._checked(inp, columns)
+        return self._cast(inp, pq.read_table(path, columns=schema.names), schema)
+
+    def batches(self, inp: StageInput, batch_size: int, columns: Sequence[str] | None = None) -> Iterator[pa.Table]:
+        """The table in pieces of at most ``batch_size`` rows (for tables too large to hold, e.g. images), checked
+        like :meth:`read`.
+
+        Raises:
+            InputError: as :meth:`read` (before the first piece is returned).
+        """
+        path, schema = self._checked(inp, columns)
+        return (
+            self._cast(inp, pa.Table.from_batches([b]), schema)
+            for b in pq.ParquetFile(path).iter_batches(batch_size=batch_size, columns=schema.names)
+        )
+
+    def num_rows(self, inp: StageInput) -> int:
+        """How many rows the finished stage's table has (from the file's metadata; nothing is read)."""
+        return int(pq.ParquetFile(inp.file(self.file)).metadata.num_rows)
 
     def markdown(self) -> str:
         """The table's documentation: its rows and a line per column."""
@@ -192,7 +215,8 @@ class JsonSpec(Generic[M]):
         lines += ["| key | type | meaning |", "| --- | --- | --- |"]
         for name, info in self.model.model_fields.items():
             ann = getattr(info.annotation, "__name__", None) or str(info.annotation).replace("typing.", "")
-            lines.append(f"| `{name}` | {ann} | {info.description or ''} |")
+            cell = ann.replace("|", "\\|")  # a union type must not end the table cell
+            lines.append(f"| `{name}` | {cell} | {info.description or ''} |")
         return "\n".join(lines)
 
 

@@ -1,9 +1,10 @@
-"""Camera models: calibration files to ingest's ``camera.json`` dict, and that dict to a pycolmap camera.
+"""Camera models: calibration files to ingest's :class:`~stages.ingest.artifacts.CameraModel` (``camera.json``), and
+that model to a pycolmap camera.
 
-``camera.json`` (see ``stages/ingest/ARTIFACTS.md``) holds ``width``, ``height``, ``K`` (9 numbers,
-row-major), ``distortion_model`` (``plumb_bob``, ``rational_polynomial``, ``equidistant`` or ``none``),
-``D`` (coefficients as ROS gives them), ``frame_id``, ``topic`` and ``source``. Pixel coordinates follow
-ROS and OpenCV: the centre of the top-left pixel is (0, 0).
+The model holds ``width``, ``height``, ``K`` (9 numbers, row-major), ``distortion_model`` (``plumb_bob``,
+``rational_polynomial``, ``equidistant`` or ``none``), ``D`` (coefficients as ROS gives them), ``frame_id``,
+``topic``, ``tag_topic`` and ``source``. Pixel coordinates follow ROS and OpenCV: the centre of the top-left pixel
+is (0, 0).
 """
 
 from __future__ import annotations
@@ -12,13 +13,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
+from pydantic import ValidationError
 
 from pipeline.errors import InputError
+from stages.ingest.artifacts import CameraModel
 
 if TYPE_CHECKING:
     import pycolmap
-
-CameraDict = dict[str, Any]
 
 _KALIBR_DISTORTION = {
     "radtan": "plumb_bob",
@@ -30,8 +31,8 @@ _KALIBR_DISTORTION = {
 }
 
 
-def load_camera_file(path: Path, topic: str | None = None) -> CameraDict:
-    """Read a camera calibration file into the ``camera.json`` dict.
+def load_camera_file(path: Path, topic: str | None = None) -> CameraModel:
+    """Read a camera calibration file into the camera model of ``camera.json``.
 
     Two formats are understood: Kalibr / TagSLAM ``cameras.yaml`` (``cam0: {intrinsics, distortion_model,
     distortion_coeffs, resolution, rostopic, tagtopic}``) and the ROS ``camera_info`` YAML written by
@@ -72,7 +73,7 @@ def load_camera_file(path: Path, topic: str | None = None) -> CameraDict:
     return _from_kalibr(name, cam, path)
 
 
-def load_camera_files(path: Path) -> dict[str, CameraDict]:
+def load_camera_files(path: Path) -> dict[str, CameraModel]:
     """Every camera of a Kalibr/TagSLAM ``cameras.yaml`` (a camera_info file gives one), by camera name."""
     doc = yaml.safe_load(Path(path).read_text())
     if isinstance(doc, dict) and any(isinstance(v, dict) and "intrinsics" in v for v in doc.values()):
@@ -80,7 +81,17 @@ def load_camera_files(path: Path) -> dict[str, CameraDict]:
     return {"camera": load_calibration(path)}
 
 
-def _from_kalibr(name: str, cam: dict[str, Any], path: Path) -> CameraDict:
+def _model(path: Path, what: str, **fields: Any) -> CameraModel:
+    """The camera model, or an InputError that names the file when the numbers do not make one."""
+    try:
+        return CameraModel(**fields)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise InputError(f"{str(path)!r}{what}: {where}: {first['msg']}; pass a valid calibration") from None
+
+
+def _from_kalibr(name: str, cam: dict[str, Any], path: Path) -> CameraModel:
     model = str(cam.get("camera_model", "pinhole"))
     if model != "pinhole":
         raise InputError(f"{str(path)!r} {name}: camera_model {model!r} unsupported; only 'pinhole' is")
@@ -93,17 +104,19 @@ def _from_kalibr(name: str, cam: dict[str, Any], path: Path) -> CameraDict:
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"{str(path)!r} {name}: needs intrinsics [fx, fy, cx, cy] and resolution [w, h]") from err
     coeffs = [float(v) for v in cam.get("distortion_coeffs") or []]
-    return {
-        "width": width,
-        "height": height,
-        "K": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
-        "distortion_model": _KALIBR_DISTORTION[dist] if coeffs or dist == "none" else "none",
-        "D": coeffs,
-        "frame_id": str(cam.get("frame_id", name)),
-        "topic": cam.get("rostopic"),
-        "tag_topic": cam.get("tagtopic"),
-        "source": str(path),
-    }
+    return _model(
+        path,
+        f" {name}",
+        width=width,
+        height=height,
+        K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+        distortion_model=_KALIBR_DISTORTION[dist] if coeffs or dist == "none" else "none",
+        D=coeffs,
+        frame_id=str(cam.get("frame_id", name)),
+        topic=cam.get("rostopic"),
+        tag_topic=cam.get("tagtopic"),
+        source=str(path),
+    )
 
 
 def _matrix_data(value: Any) -> list[float]:
@@ -112,7 +125,7 @@ def _matrix_data(value: Any) -> list[float]:
     return [float(v) for v in (value or [])]
 
 
-def _from_camera_info(doc: dict[str, Any], path: Path) -> CameraDict:
+def _from_camera_info(doc: dict[str, Any], path: Path) -> CameraModel:
     K = _matrix_data(doc.get("camera_matrix", doc.get("K", doc.get("k"))))
     D = _matrix_data(doc.get("distortion_coefficients", doc.get("D", doc.get("d"))))
     width = int(doc.get("image_width", doc.get("width", 0)))
@@ -123,20 +136,22 @@ def _from_camera_info(doc: dict[str, Any], path: Path) -> CameraDict:
     model = {"radtan": "plumb_bob", "fisheye": "equidistant"}.get(model, model)
     if model not in ("plumb_bob", "rational_polynomial", "equidistant", "none"):
         raise InputError(f"{str(path)!r}: distortion_model {model!r} unsupported; use plumb_bob or equidistant")
-    return {
-        "width": width,
-        "height": height,
-        "K": K,
-        "distortion_model": model if any(D) or model == "none" else "none",
-        "D": D,
-        "frame_id": str(doc.get("camera_name", doc.get("frame_id", "camera"))),
-        "topic": doc.get("topic"),
-        "source": str(path),
-    }
+    return _model(
+        path,
+        "",
+        width=width,
+        height=height,
+        K=K,
+        distortion_model=model if any(D) or model == "none" else "none",
+        D=D,
+        frame_id=str(doc.get("camera_name", doc.get("frame_id", "camera"))),
+        topic=doc.get("topic"),
+        source=str(path),
+    )
 
 
-def colmap_camera(camera: CameraDict) -> pycolmap.Camera:
-    """The pycolmap camera of a ``camera.json`` dict (PINHOLE, OPENCV, FULL_OPENCV or OPENCV_FISHEYE).
+def colmap_camera(camera: CameraModel) -> pycolmap.Camera:
+    """The pycolmap camera of a camera model (PINHOLE, OPENCV, FULL_OPENCV or OPENCV_FISHEYE).
 
     The principal point is kept as given, so pixel coordinates stay in the ROS/OpenCV convention.
 
@@ -145,10 +160,10 @@ def colmap_camera(camera: CameraDict) -> pycolmap.Camera:
     """
     import pycolmap
 
-    K = [float(v) for v in camera["K"]]
+    K = camera.K
     fx, cx, fy, cy = K[0], K[2], K[4], K[5]
-    model = str(camera.get("distortion_model") or "none")
-    D = [float(v) for v in camera.get("D") or []]
+    model = camera.distortion_model or "none"
+    D = camera.D
     if model == "none" or not any(D):
         name, params = "PINHOLE", [fx, fy, cx, cy]
     elif model == "equidistant":
@@ -165,7 +180,7 @@ def colmap_camera(camera: CameraDict) -> pycolmap.Camera:
             name, params = "FULL_OPENCV", [fx, fy, cx, cy, *(D + [0.0] * 8)[:8]]
     else:
         raise InputError(f"distortion model {model!r} unsupported; use plumb_bob, rational_polynomial or equidistant")
-    return pycolmap.Camera(model=name, width=int(camera["width"]), height=int(camera["height"]), params=params)
+    return pycolmap.Camera(model=name, width=camera.width, height=camera.height, params=params)
 
 
 load_calibration = load_camera_file

@@ -1,7 +1,7 @@
 """From an image (or corners already detected) to detection rows: detect, filter, estimate the pose.
 
 Shared by the stage's worker processes, the tests and the benchmark. Covariances here are for a
-corner noise of 1 px (``pose_cov_unit``); the stage scales them once the noise is known.
+corner noise of 1 px (:attr:`TagPose.cov_unit`); the stage scales them once the noise is known.
 """
 
 from __future__ import annotations
@@ -13,13 +13,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stages.camera import CameraDict, colmap_camera
+from stages.camera import colmap_camera
 from stages.detect.backends import Detector, TagObservation, make_detector, shortest_side_px
 from stages.detect.config import DetectConfig
 from stages.detect.images import CorruptFrameError, decode_frame
-from stages.detect.pose import estimate_tag_pose
-
-Row = dict[str, Any]
+from stages.detect.pose import TagPose, estimate_tag_pose
+from stages.ingest.artifacts import CameraModel
 
 # Reasons a detection is dropped before its pose is kept (summary keys).
 DROP_REASONS = ("family", "hamming", "decision_margin", "small", "pose_failed", "reprojection")
@@ -40,11 +39,55 @@ class FrameJob:
     observations: list[TagObservation] | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class DetectionRow:
+    """One kept tag in one frame: where and what it is, and its pose with the covariance for 1 px corner noise.
+
+    The stage turns it into a row of ``detections.parquet`` once the corner noise is known
+    (:data:`stages.detect.artifacts.DETECTIONS`; the fields here carry the names of its columns).
+    """
+
+    frame: int
+    stamp_ns: int
+    camera: str
+    tag_id: int
+    family: str
+    corners: list[float]
+    """x0 y0 … x3 y3, pixels of the distorted image, OpenCV corner order."""
+    size_m: float
+    side_px: float
+    """The tag's shortest side in the image, px."""
+    decision_margin: float
+    hamming: int
+    pose: TagPose
+
+    @property
+    def T_camera_tag(self) -> list[float]:
+        """The chosen pose, 4x4 row-major."""
+        return list(self.pose.T_camera_tag.ravel().tolist())
+
+    @property
+    def alt_T_camera_tag(self) -> list[float]:
+        """The other pose of the planar ambiguity, 4x4 row-major (NaN without it)."""
+        alt = self.pose.alt_T_camera_tag
+        return list((alt if alt is not None else np.full((4, 4), np.nan)).ravel().tolist())
+
+    @property
+    def reprojection_px(self) -> float:
+        """RMS corner reprojection error of the chosen pose, px."""
+        return self.pose.reprojection_px
+
+    @property
+    def ambiguity_ratio(self) -> float:
+        """Squared corner error of the chosen pose over the other's."""
+        return self.pose.ambiguity_ratio
+
+
 @dataclass
 class BatchResult:
     """Rows of a batch of frames, the frames that did not decode, and the drop counts."""
 
-    rows: list[Row] = field(default_factory=list)
+    rows: list[DetectionRow] = field(default_factory=list)
     corrupt: list[tuple[int, str]] = field(default_factory=list)
     dropped: Counter[str] = field(default_factory=Counter)
     frames: int = 0
@@ -57,7 +100,7 @@ def observations_to_rows(
     camera: object,
     dropped: Counter[str],
     apply_quality: bool = True,
-) -> list[Row]:
+) -> list[DetectionRow]:
     """Filter observations by the settings and estimate each one's pose; one row per kept tag."""
     rows = []
     for obs in observations:
@@ -82,33 +125,20 @@ def observations_to_rows(
         if pose.reprojection_px > cfg.max_reprojection_px:
             dropped["reprojection"] += 1
             continue
-        alt = pose.alt_T_camera_tag if pose.alt_T_camera_tag is not None else np.full((4, 4), np.nan)
-        has_alt = pose.alt_cov_unit is not None
         rows.append(
-            {
-                "frame": job.frame,
-                "stamp_ns": job.stamp_ns,
-                "camera": job.camera,
-                "tag_id": obs.tag_id,
-                "family": obs.family,
-                "corners": np.asarray(obs.corners, float).ravel().tolist(),
-                "size_m": size,
-                "T_camera_tag": pose.T_camera_tag.ravel().tolist(),
-                "alt_T_camera_tag": alt.ravel().tolist(),
-                "pose_cov_unit": pose.cov_unit.ravel().tolist(),
-                "position_cov_unit": pose.position_cov_unit.ravel().tolist(),
-                "sse_px2": pose.sse_px2,
-                "scale_dir": pose.scale_dir.tolist(),
-                "alt_pose_cov_unit": pose.alt_cov_unit.ravel().tolist() if has_alt else None,
-                "alt_scale_dir": pose.alt_scale_dir.tolist() if has_alt else None,
-                "alt_offset": pose.alt_offset.tolist() if has_alt else None,
-                "alt_sse_px2": pose.alt_sse_px2,
-                "side_px": side,
-                "reprojection_px": pose.reprojection_px,
-                "ambiguity_ratio": pose.ambiguity_ratio,
-                "decision_margin": obs.decision_margin,
-                "hamming": obs.hamming,
-            }
+            DetectionRow(
+                frame=job.frame,
+                stamp_ns=job.stamp_ns,
+                camera=job.camera,
+                tag_id=obs.tag_id,
+                family=obs.family,
+                corners=np.asarray(obs.corners, float).ravel().tolist(),
+                size_m=size,
+                side_px=side,
+                decision_margin=obs.decision_margin,
+                hamming=obs.hamming,
+                pose=pose,
+            )
         )
     return rows
 
@@ -120,7 +150,7 @@ def detect_image(
     cfg: DetectConfig,
     job: FrameJob | None = None,
     dropped: Counter[str] | None = None,
-) -> list[Row]:
+) -> list[DetectionRow]:
     """Rows for the tags in one grayscale image (an image without tags gives no rows)."""
     job = job or FrameJob(frame=0, stamp_ns=0, camera="")
     return observations_to_rows(detector.detect(gray), job, cfg, camera, dropped if dropped is not None else Counter())
@@ -129,7 +159,7 @@ def detect_image(
 class FrameProcessor:
     """A detector and a camera model, built once per worker process."""
 
-    def __init__(self, cfg: DetectConfig, camera: CameraDict, with_detector: bool = True) -> None:
+    def __init__(self, cfg: DetectConfig, camera: CameraModel, with_detector: bool = True) -> None:
         self.cfg = cfg
         self.camera = colmap_camera(camera)
         self.detector = make_detector(cfg) if with_detector else None
@@ -157,7 +187,7 @@ class FrameProcessor:
 _PROCESSOR: FrameProcessor | None = None
 
 
-def init_worker(cfg_data: dict[str, Any], camera: CameraDict, with_detector: bool) -> None:
+def init_worker(cfg_data: dict[str, Any], camera: CameraModel, with_detector: bool) -> None:
     """Worker-process initializer: build the detector and camera once."""
     global _PROCESSOR
     _PROCESSOR = FrameProcessor(DetectConfig.model_validate(cfg_data), camera, with_detector)

@@ -9,65 +9,75 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 import rerun as rr
 
 from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
 from pipeline.errors import InputError, StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
-from stages.camera import CameraDict
+from stages.columns import CORNERS, FAMILY, FRAME, STAMP_NS, TAG_ID, TOPIC
+from stages.detect.artifacts import (
+    ALT_PROBABILITY,
+    ALT_T_CAMERA_TAG,
+    AMBIGUITY_RATIO,
+    AMBIGUOUS,
+    CAMERA,
+    DECISION_MARGIN,
+    DETECTIONS,
+    HAMMING,
+    POSE_COV,
+    POSITION_COV,
+    REPROJECTION_PX,
+    SIZE_M,
+    T_CAMERA_TAG,
+)
 from stages.detect.backends import TagObservation
 from stages.detect.config import DetectConfig
-from stages.detect.core import DROP_REASONS, BatchResult, FrameJob, FrameProcessor, Row, init_worker, process_in_worker
+from stages.detect.core import (
+    DROP_REASONS,
+    BatchResult,
+    DetectionRow,
+    FrameJob,
+    FrameProcessor,
+    init_worker,
+    process_in_worker,
+)
 from stages.detect.pose import pose_covariance
+from stages.ingest.artifacts import CAMERA as CAMERA_MODEL
+from stages.ingest.artifacts import (
+    DATA,
+    FORMAT,
+    FRAMES,
+    HEIGHT,
+    STEP,
+    TAG_DETECTIONS,
+    WIDTH,
+    CameraModel,
+)
 
 log = logging.getLogger(__name__)
 
 # apriltag_ros / TagSLAM publish the AprilTag library's corner order; this picks the OpenCV order from it.
 _APRILTAG_TO_OPENCV = [1, 0, 3, 2]
 
-DETECTIONS_SCHEMA = pa.schema(
-    [
-        ("frame", pa.int64()),
-        ("stamp_ns", pa.int64()),
-        ("camera", pa.string()),
-        ("tag_id", pa.int32()),
-        ("family", pa.string()),
-        ("corners", pa.list_(pa.float64(), 8)),
-        ("size_m", pa.float64()),
-        ("T_camera_tag", pa.list_(pa.float64(), 16)),
-        ("alt_T_camera_tag", pa.list_(pa.float64(), 16)),
-        ("pose_cov", pa.list_(pa.float64(), 36)),
-        ("position_cov", pa.list_(pa.float64(), 9)),
-        ("reprojection_px", pa.float64()),
-        ("ambiguity_ratio", pa.float64()),
-        ("alt_probability", pa.float64()),
-        ("ambiguous", pa.bool_()),
-        ("decision_margin", pa.float64()),
-        ("hamming", pa.int32()),
-    ]
-)
 
-
-def _frame_jobs(path: Any, batch_frames: int) -> Iterator[list[FrameJob]]:
-    columns = ["frame", "stamp_ns", "topic", "format", "width", "height", "step", "data"]
-    for batch in pq.ParquetFile(path).iter_batches(batch_size=batch_frames, columns=columns):
+def _frame_jobs(ingest: StageInput, batch_frames: int) -> Iterator[list[FrameJob]]:
+    for batch in FRAMES.batches(ingest, batch_size=batch_frames):
         d = batch.to_pydict()
         yield [
             FrameJob(
-                frame=int(d["frame"][i]),
-                stamp_ns=int(d["stamp_ns"][i]),
-                camera=str(d["topic"][i]),
-                format=str(d["format"][i]),
-                width=int(d["width"][i]),
-                height=int(d["height"][i]),
-                step=int(d["step"][i] or 0),
-                data=d["data"][i],
+                frame=int(d[FRAME][i]),
+                stamp_ns=int(d[STAMP_NS][i]),
+                camera=str(d[TOPIC][i]),
+                format=str(d[FORMAT][i]),
+                width=int(d[WIDTH][i]),
+                height=int(d[HEIGHT][i]),
+                step=int(d[STEP][i] or 0),
+                data=d[DATA][i],
             )
             for i in range(batch.num_rows)
         ]
@@ -78,16 +88,16 @@ def bag_detection_jobs(table: pa.Table, cfg: DetectConfig) -> list[FrameJob]:
     d = table.to_pydict()
     by_frame: dict[tuple[str, int], FrameJob] = {}
     for i in range(table.num_rows):
-        key = (str(d["topic"][i]), int(d["frame"][i]))
+        key = (str(d[TOPIC][i]), int(d[FRAME][i]))
         job = by_frame.setdefault(
-            key, FrameJob(frame=key[1], stamp_ns=int(d["stamp_ns"][i]), camera=key[0], observations=[])
+            key, FrameJob(frame=key[1], stamp_ns=int(d[STAMP_NS][i]), camera=key[0], observations=[])
         )
-        corners = np.asarray(d["corners"][i], float).reshape(4, 2)
+        corners = np.asarray(d[CORNERS][i], float).reshape(4, 2)
         if cfg.bag_corner_order == "apriltag":
             corners = corners[_APRILTAG_TO_OPENCV]
         assert job.observations is not None
         job.observations.append(
-            TagObservation(int(d["tag_id"][i]), str(d["family"][i] or cfg.families[0]), corners, float("nan"), 0)
+            TagObservation(int(d[TAG_ID][i]), str(d[FAMILY][i] or cfg.families[0]), corners, float("nan"), 0)
         )
     return sorted(by_frame.values(), key=lambda j: (j.stamp_ns, j.camera, j.frame))
 
@@ -118,10 +128,12 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
     """Detect tags in every ingested frame (or read the bag's detections) and write ``detections.parquet``."""
     start = time.perf_counter()
     ingest = ctx.input("ingest")
-    if not ingest.exists("camera.json"):
-        raise InputError("ingest wrote no camera.json (no camera_info in the bag); re-run ingest with --camera FILE")
-    camera: CameraDict = ingest.read_json("camera.json")
-    from_bag = ingest.exists("tag_detections.parquet")
+    if not ingest.exists(CAMERA_MODEL.file):
+        raise InputError(
+            f"ingest wrote no {CAMERA_MODEL.file} (no camera_info in the bag); re-run ingest with --camera FILE"
+        )
+    camera = CAMERA_MODEL.read(ingest)
+    from_bag = ingest.exists(TAG_DETECTIONS.file)
     _log_static(ctx.rec, camera)
     batches, total, workers = _batches(ingest, cfg, from_bag)
     found = _detect(ctx, cfg, camera, from_bag, batches, total, workers)
@@ -132,17 +144,17 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
             f"no {'/'.join(cfg.families)} tags found in {found.frames} frames ({len(found.corrupt)} corrupt) with "
             f"backend {cfg.backend}; check the families and the tag sizes, or lower min_decision_margin / min_side_px"
         )
-    ctx.output.write_table("detections.parquet", table)
+    DETECTIONS.write(ctx.output, table)
     _log_tags(ctx.rec, table, ctx.n_sigma)
     seconds = time.perf_counter() - start
-    tags = table.column("tag_id").to_numpy()
-    reproj = table.column("reprojection_px").to_numpy()
+    tags = table.column(TAG_ID).to_numpy()
+    reproj = table.column(REPROJECTION_PX).to_numpy()
     return {
         "frames": found.frames,
         "detections": table.num_rows,
         "distinct_tags": len(np.unique(tags)),
         "frames_with_tags": len(
-            set(zip(table.column("camera").to_pylist(), table.column("frame").to_pylist(), strict=True))
+            set(zip(table.column(CAMERA).to_pylist(), table.column(FRAME).to_pylist(), strict=True))
         ),
         "detector": "bag" if from_bag else cfg.backend,
         "source": "tag_detections" if from_bag else "images",
@@ -166,21 +178,20 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
 def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Iterable[list[FrameJob]], int, int]:
     """The work in batches (the bag's detections, or the frames), how many batches, and how many workers."""
     if from_bag:
-        jobs = bag_detection_jobs(ingest.read_table("tag_detections.parquet"), cfg)
+        jobs = bag_detection_jobs(TAG_DETECTIONS.read(ingest), cfg)
         return [jobs[i : i + 256] for i in range(0, len(jobs), 256)], (len(jobs) + 255) // 256, 1
-    frames_path = ingest.file("frames.parquet")
-    total_frames = pq.ParquetFile(frames_path).metadata.num_rows
+    total_frames = FRAMES.num_rows(ingest)
     if total_frames == 0:
-        raise InputError(f"no frames in {frames_path}; check the camera topic given to ingest")
+        raise InputError(f"no frames in {ingest.file(FRAMES.file)}; check the camera topic given to ingest")
     total = (total_frames + cfg.batch_frames - 1) // cfg.batch_frames
-    return _frame_jobs(frames_path, cfg.batch_frames), total, cfg.workers
+    return _frame_jobs(ingest, cfg.batch_frames), total, cfg.workers
 
 
 @dataclass
 class _Detected:
     """What every batch gave: detection rows, corrupt frames, counts of dropped detections by reason."""
 
-    rows: list[Row] = field(default_factory=list)
+    rows: list[DetectionRow] = field(default_factory=list)
     corrupt: list[tuple[int, str]] = field(default_factory=list)
     dropped: Counter[str] = field(default_factory=Counter)
     frames: int = 0
@@ -189,7 +200,7 @@ class _Detected:
 def _detect(
     ctx: StageContext,
     cfg: DetectConfig,
-    camera: CameraDict,
+    camera: CameraModel,
     from_bag: bool,
     batches: Iterable[list[FrameJob]],
     total: int,
@@ -235,7 +246,7 @@ def _band_of(side_px: float) -> int:
     return int(np.searchsorted(SIDE_BANDS_PX, side_px, side="right") - 1)
 
 
-def _corner_sigma(rows: list[Row], cfg: DetectConfig) -> tuple[list[float], str]:
+def _corner_sigma(rows: list[DetectionRow], cfg: DetectConfig) -> tuple[list[float], str]:
     """Corner noise per side band: from the settings, or pooled over the reprojection residuals.
 
     A tag's four corners give 8 residuals for 6 pose parameters, so 2 degrees of freedom. Residuals are
@@ -250,68 +261,62 @@ def _corner_sigma(rows: list[Row], cfg: DetectConfig) -> tuple[list[float], str]
     sse = np.zeros(n_bands)
     count = np.zeros(n_bands)
     for r in rows:
-        b = _band_of(r["side_px"])
-        sse[b] += r["sse_px2"]
+        b = _band_of(r.side_px)
+        sse[b] += r.pose.sse_px2
         count[b] += 1
     overall = np.sqrt(sse.sum() / (2.0 * count.sum()))
     per_band = np.where(count >= _MIN_PER_BAND, np.sqrt(sse / (2.0 * np.maximum(count, 1))), overall)
     return [float(v) for v in np.maximum(per_band, cfg.min_corner_sigma_px)], "residuals"
 
 
-def row_pose_cov(r: Row, sigma_px: float, cfg: DetectConfig) -> tuple[np.ndarray, float]:
+def row_pose_cov(r: DetectionRow, sigma_px: float, cfg: DetectConfig) -> tuple[np.ndarray, float]:
     """The 6x6 pose covariance of one detection row for corner noise ``sigma_px`` and the probability that
     the other planar solution is the true one (see ``stages.detect.pose.pose_covariance``)."""
+    pose = r.pose
     alt = None
-    if r.get("alt_pose_cov_unit") is not None:
-        alt = (
-            np.reshape(r["alt_pose_cov_unit"], (6, 6)),
-            np.asarray(r["alt_scale_dir"]),
-            np.asarray(r["alt_offset"]),
-            float(r["alt_sse_px2"]),
-        )
+    if pose.alt_cov_unit is not None:
+        assert pose.alt_scale_dir is not None and pose.alt_offset is not None
+        alt = (pose.alt_cov_unit, pose.alt_scale_dir, pose.alt_offset, float(pose.alt_sse_px2))
     return pose_covariance(
-        np.reshape(r["pose_cov_unit"], (6, 6)),
-        np.asarray(r.get("scale_dir", np.zeros(6))),
-        sigma_px,
-        cfg.corner_bias_px,
-        float(r["sse_px2"]),
-        alt,
-        cfg.ambiguity_mixture,
+        pose.cov_unit, pose.scale_dir, sigma_px, cfg.corner_bias_px, float(pose.sse_px2), alt, cfg.ambiguity_mixture
     )
 
 
-def _table(rows: list[Row], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.Table, int, int]:
-    out: dict[str, list[Any]] = {f.name: [] for f in DETECTIONS_SCHEMA}
+def _table(rows: list[DetectionRow], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.Table, int, int]:
+    """``detections.parquet``: the rows with their covariances for the corner noise of their band, the ambiguous
+    ones flagged (or dropped); how many were ambiguous and how many of those were dropped."""
+    out: list[dict[str, Any]] = []
     n_ambiguous = n_dropped = 0
     for r in rows:
-        var = sigmas[_band_of(r["side_px"])] ** 2
-        ambiguous = bool(r["ambiguity_ratio"] > cfg.max_ambiguity_ratio)
+        var = sigmas[_band_of(r.side_px)] ** 2
+        ambiguous = bool(r.ambiguity_ratio > cfg.max_ambiguity_ratio)
         n_ambiguous += ambiguous
         if ambiguous and cfg.ambiguous == "drop":
             n_dropped += 1
             continue
-        for key in (
-            "frame",
-            "stamp_ns",
-            "camera",
-            "tag_id",
-            "family",
-            "corners",
-            "size_m",
-            "T_camera_tag",
-            "alt_T_camera_tag",
-            "reprojection_px",
-            "ambiguity_ratio",
-            "decision_margin",
-            "hamming",
-        ):
-            out[key].append(r[key])
         cov, p_alt = row_pose_cov(r, float(np.sqrt(var)), cfg)
-        out["alt_probability"].append(p_alt)
-        R = np.reshape(r["T_camera_tag"], (4, 4))[:3, :3]
-        out["pose_cov"].append(cov.ravel().tolist())
-        out["position_cov"].append((R @ cov[3:, 3:] @ R.T).ravel().tolist())
-        out["ambiguous"].append(ambiguous)
+        R = r.pose.T_camera_tag[:3, :3]
+        out.append(
+            {
+                FRAME: r.frame,
+                STAMP_NS: r.stamp_ns,
+                CAMERA: r.camera,
+                TAG_ID: r.tag_id,
+                FAMILY: r.family,
+                CORNERS: r.corners,
+                SIZE_M: r.size_m,
+                T_CAMERA_TAG: r.T_camera_tag,
+                ALT_T_CAMERA_TAG: r.alt_T_camera_tag,
+                POSE_COV: cov.ravel().tolist(),
+                POSITION_COV: (R @ cov[3:, 3:] @ R.T).ravel().tolist(),
+                REPROJECTION_PX: r.reprojection_px,
+                AMBIGUITY_RATIO: r.ambiguity_ratio,
+                ALT_PROBABILITY: p_alt,
+                AMBIGUOUS: ambiguous,
+                DECISION_MARGIN: r.decision_margin,
+                HAMMING: r.hamming,
+            }
+        )
     if n_ambiguous:
         log.info(
             "%d ambiguous detections (ratio > %.2f) %s",
@@ -319,30 +324,28 @@ def _table(rows: list[Row], sigmas: list[float], cfg: DetectConfig) -> tuple[pa.
             cfg.max_ambiguity_ratio,
             "dropped" if cfg.ambiguous == "drop" else "kept, flagged",
         )
-    return pa.table(out, schema=DETECTIONS_SCHEMA), n_ambiguous, n_dropped
+    return DETECTIONS.table(out), n_ambiguous, n_dropped
 
 
-def _log_static(rec: rr.RecordingStream, camera: CameraDict) -> None:
-    K = np.asarray(camera["K"], float).reshape(3, 3)
+def _log_static(rec: rr.RecordingStream, camera: CameraModel) -> None:
+    K = np.asarray(camera.K, float).reshape(3, 3)
     rec.log(
         "/detect/camera",
-        rr.Pinhole(
-            image_from_camera=K, resolution=[camera["width"], camera["height"]], camera_xyz=rr.ViewCoordinates.RDF
-        ),
+        rr.Pinhole(image_from_camera=K, resolution=[camera.width, camera.height], camera_xyz=rr.ViewCoordinates.RDF),
         static=True,
     )
 
 
 def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResult, stride: int) -> None:
-    by_frame: dict[tuple[str, int], list[Row]] = {}
+    by_frame: dict[tuple[str, int], list[DetectionRow]] = {}
     for r in result.rows:
-        by_frame.setdefault((r["camera"], r["frame"]), []).append(r)
+        by_frame.setdefault((r.camera, r.frame), []).append(r)
     for job in jobs:
         rows = by_frame.get((job.camera, job.frame), [])
         set_stamp(rec, job.stamp_ns)
         rec.log("/detect/stats/detections", rr.Scalars([float(len(rows))]))
         if rows:
-            rec.log("/detect/stats/reprojection_px", rr.Scalars([float(np.mean([r["reprojection_px"] for r in rows]))]))
+            rec.log("/detect/stats/reprojection_px", rr.Scalars([float(np.mean([r.reprojection_px for r in rows]))]))
         if job.frame % stride:
             continue
         if job.data is not None and job.format in ("jpeg", "png"):
@@ -354,10 +357,10 @@ def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResu
             if buf.size >= job.step * job.height and job.step >= row:
                 pix = buf[: job.step * job.height].reshape(job.height, job.step)[:, :row]
                 pix = pix.reshape(job.height, job.width, ch)
-                model = "L" if ch == 1 else ("BGR" if job.format == "bgr8" else "RGB")
+                model: Literal["L", "BGR", "RGB"] = "L" if ch == 1 else ("BGR" if job.format == "bgr8" else "RGB")
                 rec.log("/detect/camera/image", rr.Image(pix if ch == 3 else pix[:, :, 0], color_model=model))
-        strips = [np.vstack([np.reshape(r["corners"], (4, 2)), np.reshape(r["corners"], (4, 2))[:1]]) for r in rows]
-        ids = np.array([r["tag_id"] for r in rows])
+        strips = [np.vstack([np.reshape(r.corners, (4, 2)), np.reshape(r.corners, (4, 2))[:1]]) for r in rows]
+        ids = np.array([r.tag_id for r in rows])
         rec.log(
             "/detect/camera/image/tags",
             rr.LineStrips2D(
@@ -371,9 +374,9 @@ def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResu
 
 def _log_tags(rec: rr.RecordingStream, table: pa.Table, n_sigma: float) -> None:
     """Tag axes and n-sigma position ellipsoids in the camera frame, per frame."""
-    d = table.select(["stamp_ns", "tag_id", "size_m", "T_camera_tag", "position_cov", "ambiguous"]).to_pydict()
+    d = table.select([STAMP_NS, TAG_ID, SIZE_M, T_CAMERA_TAG, POSITION_COV, AMBIGUOUS]).to_pydict()
     by_stamp: dict[int, list[int]] = {}
-    for i, s in enumerate(d["stamp_ns"]):
+    for i, s in enumerate(d[STAMP_NS]):
         by_stamp.setdefault(int(s), []).append(i)
     axis_colors = np.array([[230, 40, 40], [40, 200, 40], [40, 90, 230]], np.uint8)
     for stamp, idx in by_stamp.items():
@@ -381,13 +384,13 @@ def _log_tags(rec: rr.RecordingStream, table: pa.Table, n_sigma: float) -> None:
         origins, vectors, colors = [], [], []
         centers, covs, labels = [], [], []
         for i in idx:
-            T = np.reshape(d["T_camera_tag"][i], (4, 4))
+            T = np.reshape(d[T_CAMERA_TAG][i], (4, 4))
             for k in range(3):
                 origins.append(T[:3, 3])
-                vectors.append(T[:3, k] * d["size_m"][i] * 0.75)
+                vectors.append(T[:3, k] * d[SIZE_M][i] * 0.75)
                 colors.append(axis_colors[k])
             centers.append(T[:3, 3])
-            covs.append(np.reshape(d["position_cov"][i], (3, 3)))
-            labels.append(f"{d['tag_id'][i]}{' (ambiguous)' if d['ambiguous'][i] else ''}")
+            covs.append(np.reshape(d[POSITION_COV][i], (3, 3)))
+            labels.append(f"{d[TAG_ID][i]}{' (ambiguous)' if d[AMBIGUOUS][i] else ''}")
         rec.log("/detect/camera/tags/axes", rr.Arrows3D(origins=origins, vectors=vectors, colors=colors))
         rec.log("/detect/camera/tags/position_cov", ellipsoids(np.array(centers), covs, n_sigma, labels=labels))

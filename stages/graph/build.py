@@ -28,6 +28,9 @@ import pyarrow as pa
 from gtsam.symbol_shorthand import L, X
 
 from pipeline.errors import InputError, StageError
+from stages.columns import FRAME, POSITION, QUATERNION, STAMP_NS, TAG_ID
+from stages.detect.artifacts import AMBIGUOUS, CAMERA, DETECTIONS, REPROJECTION_PX, T_CAMERA_TAG
+from stages.detect.artifacts import POSE_COV as DETECTION_POSE_COV
 from stages.geometry import pose3_from_matrix
 from stages.graph.config import GraphConfig
 from stages.graph.factors import SCALE_KEY, FactorRow
@@ -35,30 +38,37 @@ from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
 from stages.graph.variables import SCALE
+from stages.ingest.artifacts import EXTRINSICS, Extrinsics
+from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
 
 __all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic"]
 
-DETECTION_COLUMNS = frozenset({"frame", "stamp_ns", "camera", "tag_id", "T_camera_tag", "pose_cov"})
+DETECTION_COLUMNS = (FRAME, STAMP_NS, CAMERA, TAG_ID, T_CAMERA_TAG, DETECTION_POSE_COV)
 """Columns of ``detections.parquet`` the graph needs."""
+DETECTION_FILTER_COLUMNS = (AMBIGUOUS, REPROJECTION_PX)
+"""Columns of ``detections.parquet`` the graph filters on (when present)."""
+ODOMETRY_COLUMNS = (STAMP_NS, *POSITION, *QUATERNION, ODOMETRY_POSE_COV)
+"""Columns of ``odometry.parquet`` the graph needs."""
 
 
-def camera_extrinsic(extrinsics: dict[str, Any] | None, camera: str) -> tuple[gtsam.Pose3, str]:
-    """``T_base_camera`` for a detection's ``camera`` value, and where it came from."""
-    sensors = (extrinsics or {}).get("sensors") or {}
+def camera_extrinsic(extrinsics: Extrinsics | None, camera: str) -> tuple[gtsam.Pose3, str]:
+    """``T_base_camera`` for a detection's ``camera`` value (a sensor role, else a sensor's frame id, else the
+    ``camera`` role), and where it came from."""
+    sensors = extrinsics.sensors if extrinsics is not None else {}
     entry = sensors.get(camera)
     if entry is None:
-        entry = next((s for s in sensors.values() if s and s.get("frame_id") == camera), None)
-    if entry is None and "camera" in sensors:
-        entry = sensors["camera"]
-    if entry is None or entry.get("T_base_sensor") is None:
-        return gtsam.Pose3(), "identity (no base-to-camera transform in extrinsics.json)"
-    return pose3_from_matrix(entry["T_base_sensor"]), "extrinsics.json"
+        entry = next((s for s in sensors.values() if s.frame_id == camera), None)
+    if entry is None:
+        entry = sensors.get("camera")
+    if entry is None:
+        return gtsam.Pose3(), f"identity (no base-to-camera transform in {EXTRINSICS.file})"
+    return pose3_from_matrix(entry.T_base_sensor), EXTRINSICS.file
 
 
 def build_problem(
     detections: pa.Table,
     odometry: pa.Table | None,
-    extrinsics: dict[str, Any] | None,
+    extrinsics: Extrinsics | None,
     cfg: GraphConfig,
 ) -> GraphProblem:
     """The full graph of a run: keyframes, factors and initial values (see the module docstring).
@@ -69,7 +79,7 @@ def build_problem(
     """
     model = graph_model(cfg.model)
     det, usable, info = _usable_detections(detections, cfg)
-    stamps = np.asarray(det["stamp_ns"], dtype=np.int64)
+    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)
     odom = Odometry.from_table(odometry)
     path = _keyframe_path(np.unique(stamps[usable]), odom, cfg, info)
     rows = _prior_rows(model, cfg, path.pose_keys[0])
@@ -103,26 +113,29 @@ def _usable_detections(
     detections: pa.Table, cfg: GraphConfig
 ) -> tuple[dict[str, list[Any]], np.ndarray, dict[str, Any]]:
     """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
-    if missing := DETECTION_COLUMNS - set(detections.column_names):
-        raise InputError(f"detections.parquet lacks columns {sorted(missing)}; re-run 'focusmap detect'")
-    det = detections.to_pydict()
+    if missing := sorted(set(DETECTION_COLUMNS) - set(detections.column_names)):
+        raise InputError(f"{DETECTIONS.file} lacks columns {missing}; re-run 'focusmap detect'")
+    det = detections.select(
+        [c for c in (*DETECTION_COLUMNS, *DETECTION_FILTER_COLUMNS) if c in detections.column_names]
+    )
+    det = det.to_pydict()
     n_det = detections.num_rows
     keep = np.ones(n_det, dtype=bool)
     info: dict[str, Any] = {"detections": n_det}
-    if cfg.drop_ambiguous and "ambiguous" in det:
-        amb = np.array([bool(a) for a in det["ambiguous"]], dtype=bool)
+    if cfg.drop_ambiguous and AMBIGUOUS in det:
+        amb = np.array([bool(a) for a in det[AMBIGUOUS]], dtype=bool)
         info["dropped_ambiguous"] = int((amb & keep).sum())
         keep &= ~amb
-    if "reprojection_px" in det:
-        rep = np.asarray(det["reprojection_px"], dtype=float)
+    if REPROJECTION_PX in det:
+        rep = np.asarray(det[REPROJECTION_PX], dtype=float)
         bad = ~(rep <= cfg.max_reprojection_px)
         info["dropped_reprojection"] = int((bad & keep).sum())
         keep &= ~bad
-    counts = Counter(int(t) for t, k in zip(det["tag_id"], keep, strict=True) if k)
+    counts = Counter(int(t) for t, k in zip(det[TAG_ID], keep, strict=True) if k)
     rare = sorted(t for t, c in counts.items() if c < cfg.min_tag_observations)
     info["tags_dropped_few_observations"] = rare
     info["tags_seen_once"] = sorted(t for t, c in counts.items() if c == 1)
-    keep &= ~np.isin(np.asarray(det["tag_id"], dtype=np.int64), rare)
+    keep &= ~np.isin(np.asarray(det[TAG_ID], dtype=np.int64), rare)
     if not keep.any():
         raise StageError(
             f"no usable tag detections among {n_det} (ambiguous, reprojection above {cfg.max_reprojection_px} px, "
@@ -267,7 +280,7 @@ def _tag_rows(
     order: np.ndarray,
     path: _KeyframePath,
     scale_keys: tuple[int, ...],
-    extrinsics: dict[str, Any] | None,
+    extrinsics: Extrinsics | None,
     info: dict[str, Any],
 ) -> _TagSightings:
     """One tag row per usable detection, in ``order`` (time order), from the keyframe of its frame."""
@@ -278,16 +291,16 @@ def _tag_rows(
     out = _TagSightings()
     dropped_close = 0
     for r in order:
-        cam = str(det["camera"][r])
+        cam = str(det[CAMERA][r])
         if cam not in extrinsic_cache:
             extrinsic_cache[cam] = camera_extrinsic(extrinsics, cam)
-        T_base_tag = extrinsic_cache[cam][0].compose(pose3_from_matrix(det["T_camera_tag"][r]))
-        cov6 = cfg.tag_covariance_scale * np.asarray(det["pose_cov"][r], dtype=float).reshape(6, 6) + floor
+        T_base_tag = extrinsic_cache[cam][0].compose(pose3_from_matrix(det[T_CAMERA_TAG][r]))
+        cov6 = cfg.tag_covariance_scale * np.asarray(det[DETECTION_POSE_COV][r], dtype=float).reshape(6, 6) + floor
         meas = model.tag_measurement(T_base_tag, cov6)
         if meas is None:
             dropped_close += 1
             continue
-        tag, stamp = int(det["tag_id"][r]), int(det["stamp_ns"][r])
+        tag, stamp = int(det[TAG_ID][r]), int(det[STAMP_NS][r])
         k = kf_index[stamp]
         keys = (path.pose_keys[k], int(L(tag)), *scale_keys)
         row = FactorRow(
@@ -299,7 +312,7 @@ def _tag_rows(
             cfg.robust_kernel,
             robust_k,
             tag_id=tag,
-            frame=int(det["frame"][r]),
+            frame=int(det[FRAME][r]),
             stamp_ns=stamp,
         )
         out.add(row, k, tag, meas.relative, meas.height)

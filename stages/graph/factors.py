@@ -36,6 +36,22 @@ import numpy as np
 import pyarrow as pa
 
 from stages.geometry import pose3_from_vector
+from stages.graph.artifacts import (
+    DIM,
+    FACTOR_COVARIANCE,
+    FACTOR_FRAME,
+    FACTOR_STAMP_NS,
+    FACTOR_TAG_ID,
+    FACTORS,
+    INDEX,
+    KEY_NAMES,
+    KEYS,
+    KIND,
+    MEASUREMENT,
+    ROBUST,
+    ROBUST_K,
+    TYPE,
+)
 
 KINDS = ("prior", "odometry", "loop", "motion_prior", "tag", "scale_prior")
 """Factor kinds: ``tag`` rows are the landmark measurements (the candidates of the selection stages);
@@ -240,65 +256,46 @@ def key_name(key: int) -> str:
     return str(int(key))
 
 
-FACTOR_SCHEMA = pa.schema(
-    [
-        ("index", pa.int64()),
-        ("kind", pa.string()),
-        ("type", pa.string()),
-        ("keys", pa.list_(pa.uint64())),
-        ("key_names", pa.list_(pa.string())),
-        ("measurement", pa.list_(pa.float64())),
-        ("covariance", pa.list_(pa.float64())),
-        ("dim", pa.int32()),
-        ("robust", pa.string()),
-        ("robust_k", pa.float64()),
-        ("tag_id", pa.int64()),
-        ("frame", pa.int64()),
-        ("stamp_ns", pa.int64()),
-    ]
-)
-
-
 def rows_to_table(rows: Sequence[FactorRow]) -> pa.Table:
-    """``factors.parquet``: one row per factor, ``index`` = position in the graph."""
-    return pa.table(
+    """``factors.parquet`` (:data:`stages.graph.artifacts.FACTORS`): one row per factor, ``index`` = position in the
+    graph."""
+    return FACTORS.table(
         {
-            "index": np.arange(len(rows), dtype=np.int64),
-            "kind": [r.kind for r in rows],
-            "type": [r.type for r in rows],
-            "keys": [[int(k) for k in r.keys] for r in rows],
-            "key_names": [[key_name(k) for k in r.keys] for r in rows],
-            "measurement": [np.asarray(r.measurement, dtype=float).tolist() for r in rows],
-            "covariance": [np.asarray(r.covariance, dtype=float).ravel().tolist() for r in rows],
-            "dim": np.array([r.dim for r in rows], dtype=np.int32),
-            "robust": [r.robust for r in rows],
-            "robust_k": np.array([r.robust_k for r in rows], dtype=float),
-            "tag_id": pa.array([r.tag_id for r in rows], type=pa.int64()),
-            "frame": pa.array([r.frame for r in rows], type=pa.int64()),
-            "stamp_ns": pa.array([r.stamp_ns for r in rows], type=pa.int64()),
-        },
-        schema=FACTOR_SCHEMA,
+            INDEX: np.arange(len(rows), dtype=np.int64),
+            KIND: [r.kind for r in rows],
+            TYPE: [r.type for r in rows],
+            KEYS: [[int(k) for k in r.keys] for r in rows],
+            KEY_NAMES: [[key_name(k) for k in r.keys] for r in rows],
+            MEASUREMENT: [np.asarray(r.measurement, dtype=float).tolist() for r in rows],
+            FACTOR_COVARIANCE: [np.asarray(r.covariance, dtype=float).ravel().tolist() for r in rows],
+            DIM: np.array([r.dim for r in rows], dtype=np.int32),
+            ROBUST: [r.robust for r in rows],
+            ROBUST_K: np.array([r.robust_k for r in rows], dtype=float),
+            FACTOR_TAG_ID: [r.tag_id for r in rows],
+            FACTOR_FRAME: [r.frame for r in rows],
+            FACTOR_STAMP_NS: [r.stamp_ns for r in rows],
+        }
     )
 
 
 def table_to_rows(table: pa.Table) -> list[FactorRow]:
     """Inverse of :func:`rows_to_table` (rows in ``index`` order)."""
-    cols = table.sort_by("index").to_pydict()
+    cols = table.sort_by(INDEX).to_pydict()
     rows = []
     for i in range(table.num_rows):
-        d = int(cols["dim"][i])
+        d = int(cols[DIM][i])
         rows.append(
             FactorRow(
-                kind=cols["kind"][i],
-                type=cols["type"][i],
-                keys=tuple(int(k) for k in cols["keys"][i]),
-                measurement=np.asarray(cols["measurement"][i], dtype=float),
-                covariance=np.asarray(cols["covariance"][i], dtype=float).reshape(d, d),
-                robust=cols["robust"][i],
-                robust_k=float(cols["robust_k"][i]),
-                tag_id=cols["tag_id"][i],
-                frame=cols["frame"][i],
-                stamp_ns=cols["stamp_ns"][i],
+                kind=cols[KIND][i],
+                type=cols[TYPE][i],
+                keys=tuple(int(k) for k in cols[KEYS][i]),
+                measurement=np.asarray(cols[MEASUREMENT][i], dtype=float),
+                covariance=np.asarray(cols[FACTOR_COVARIANCE][i], dtype=float).reshape(d, d),
+                robust=cols[ROBUST][i],
+                robust_k=float(cols[ROBUST_K][i]),
+                tag_id=cols[FACTOR_TAG_ID][i],
+                frame=cols[FACTOR_FRAME][i],
+                stamp_ns=cols[FACTOR_STAMP_NS][i],
             )
         )
     return rows

@@ -18,6 +18,18 @@ import pyarrow as pa
 
 from pipeline.artifacts import StageInput
 from pipeline.errors import InputError
+from stages.columns import TAG_ID
+from stages.graph.artifacts import (
+    FACTORS,
+    LANDMARK_KEY,
+    LANDMARKS,
+    POSE_KEY,
+    POSE_STAMP_NS,
+    POSES,
+    VALUES,
+    MarginalArrays,
+    ValueArrays,
+)
 from stages.graph.factors import make_factor, table_to_rows
 from stages.graph.models import model_of_poses
 from stages.graph.problem import GraphProblem, arrays_to_values
@@ -49,29 +61,33 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
     """Rebuild the graph stage's factor graph and solution from its artifacts.
 
     Raises:
-        InputError: an artifact is missing or inconsistent (re-run ``focusmap graph``).
+        InputError: an artifact is missing, lacks a declared column or is inconsistent (the message names the stage
+            to re-run: ``graph``, or ``optimize`` for its reduced graph).
     """
-    factors = graph_input.read_table("factors.parquet")
+    factors = FACTORS.read(graph_input)
     rows = table_to_rows(factors)
-    vals = graph_input.read_npz("values.npz")
-    margs = graph_input.read_npz("marginals.npz")
-    poses = graph_input.read_table("poses.parquet", columns=["key", "stamp_ns"]).to_pydict()
-    lms = graph_input.read_table("landmarks.parquet", columns=["tag_id", "key"]).to_pydict()
-    keys = [int(k) for k in vals["keys"]]
-    types = [str(t) for t in vals["types"]]
+    vals = ValueArrays.read(graph_input)
+    margs = MarginalArrays.read(graph_input)
+    poses = POSES.read(graph_input, columns=[POSE_KEY, POSE_STAMP_NS]).to_pydict()
+    lms = LANDMARKS.read(graph_input, columns=[TAG_ID, LANDMARK_KEY]).to_pydict()
+    keys = [int(k) for k in vals.keys]
+    types = [str(t) for t in vals.types]
     var_types = dict(zip(keys, types, strict=True))
-    values = arrays_to_values(vals["keys"], vals["types"], vals["optimised"])
-    initial = arrays_to_values(vals["keys"], vals["types"], vals["initial"])
+    values = arrays_to_values(vals.keys, vals.types, vals.optimised)
+    initial = arrays_to_values(vals.keys, vals.types, vals.initial)
     graph = gtsam.NonlinearFactorGraph()
     for i, row in enumerate(rows):
         for k in row.keys:
             if k not in var_types:
-                raise InputError(f"graph factor {i} refers to key {k} missing from values.npz; re-run 'focusmap graph'")
+                raise InputError(
+                    f"{graph_input.stage} factor {i} refers to key {k} missing from {VALUES.file}; "
+                    f"re-run 'focusmap {graph_input.stage}'"
+                )
         graph.add(make_factor(row))
     marginals = {
-        int(k): np.asarray(c[:d, :d]) for k, d, c in zip(margs["keys"], margs["dims"], margs["covariance"], strict=True)
+        int(k): np.asarray(c[:d, :d]) for k, d, c in zip(margs.keys, margs.dims, margs.covariance, strict=True)
     }
-    pose_keys = [int(k) for k in poses["key"]]
+    pose_keys = [int(k) for k in poses[POSE_KEY]]
     model = model_of_poses(var_types.get(pose_keys[0], ""))
     return LoadedGraph(
         graph=graph,
@@ -80,8 +96,8 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
         factors=factors,
         rows=rows,
         pose_keys=pose_keys,
-        pose_stamps_ns=[int(s) for s in poses["stamp_ns"]],
-        landmark_keys={int(t): int(k) for t, k in zip(lms["tag_id"], lms["key"], strict=True)},
+        pose_stamps_ns=[int(s) for s in poses[POSE_STAMP_NS]],
+        landmark_keys={int(t): int(k) for t, k in zip(lms[TAG_ID], lms[LANDMARK_KEY], strict=True)},
         var_types=var_types,
         model=model.name,
         marginals=marginals,

@@ -16,9 +16,11 @@ import gtsam
 import numpy as np
 import pyarrow as pa
 
+from stages.columns import POSITION, QUATERNION, STAMP_NS
 from stages.geometry import interpolate_pose3, pose3_from_xyz_quat, ros_pose_cov_to_gtsam, rotate_covariance
 from stages.graph.config import GraphConfig
 from stages.graph.models import GraphModel
+from stages.ingest.artifacts import POSE_COV
 
 ODOMETRY_MIN_EIG_RATIO = 1e-3
 """Smallest eigenvalue of an odometry covariance taken from the messages, as a fraction of its largest."""
@@ -40,18 +42,13 @@ class Odometry:
         if table is None or table.num_rows == 0:
             return None
         cols = table.to_pydict()
-        order = np.argsort(np.asarray(cols["stamp_ns"], dtype=np.int64), kind="stable")
-        stamps = np.asarray(cols["stamp_ns"], dtype=np.int64)[order]
+        order = np.argsort(np.asarray(cols[STAMP_NS], dtype=np.int64), kind="stable")
+        stamps = np.asarray(cols[STAMP_NS], dtype=np.int64)[order]
         keep = np.concatenate([[True], np.diff(stamps) > 0])
         order, stamps = order[keep], stamps[keep]
-        poses = [
-            pose3_from_xyz_quat(
-                [cols["x"][i], cols["y"][i], cols["z"][i]], [cols["qx"][i], cols["qy"][i], cols["qz"][i], cols["qw"][i]]
-            )
-            for i in order
-        ]
-        if "pose_cov" in cols:
-            cov = np.array([ros_pose_cov_to_gtsam(cols["pose_cov"][i] or np.zeros(36)) for i in order])
+        poses = [pose3_from_xyz_quat([cols[c][i] for c in POSITION], [cols[c][i] for c in QUATERNION]) for i in order]
+        if POSE_COV in cols:
+            cov = np.array([ros_pose_cov_to_gtsam(cols[POSE_COV][i] or np.zeros(36)) for i in order])
         else:
             cov = np.zeros((len(order), 6, 6))
         return cls(stamps, poses, cov)

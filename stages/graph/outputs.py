@@ -1,8 +1,8 @@
 """Write the graph stage's artifacts and its Rerun recording (shared by the stage and ``import_graph``).
 
-Artifacts in ``graph/`` (schemas in ``docs/graph.md``): ``factors.parquet``, ``values.npz``,
-``marginals.npz``, ``poses.parquet``, ``landmarks.parquet``, ``trajectory.tum``,
-``dead_reckoning.tum``, ``graph.g2o`` (and ``summary.json``, written by the runner).
+Artifacts in ``graph/`` (declared in :mod:`stages.graph.artifacts`): ``factors.parquet``, ``values.npz``,
+``marginals.npz``, ``poses.parquet``, ``landmarks.parquet``, ``trajectory.tum``, ``dead_reckoning.tum``,
+``graph.g2o`` (and ``summary.json``, written by the runner).
 """
 
 from __future__ import annotations
@@ -17,7 +17,23 @@ import rerun as rr
 
 from pipeline.artifacts import StageOutput
 from pipeline.recording import ellipses_2d, ellipsoids, set_stamp
+from stages.columns import POSITION, QUATERNION, YAW
 from stages.geometry import pose3_to_vector
+from stages.graph.artifacts import (
+    DEAD_RECKONING,
+    FACTORS,
+    G2O,
+    INDEX,
+    LANDMARKS,
+    POSE_KEY,
+    POSE_STAMP_NS,
+    POSES,
+    POSITION_COV,
+    TANGENT_COVARIANCE,
+    TRAJECTORY,
+    MarginalArrays,
+    ValueArrays,
+)
 from stages.graph.factors import rows_to_table
 from stages.graph.g2o import write_g2o
 from stages.graph.problem import GraphProblem, values_to_arrays
@@ -57,11 +73,11 @@ def write_artifacts(
     out: StageOutput, problem: GraphProblem, solution: Solution, marginals: dict[int, np.ndarray]
 ) -> dict[str, Any]:
     """Write every artifact; return the headline numbers for the summary."""
-    out.write_table("factors.parquet", rows_to_table(problem.rows))
+    FACTORS.write(out, rows_to_table(problem.rows))
     _write_values(out, problem, solution, marginals)
     _write_poses(out, problem, solution, marginals)
-    out.write_table("landmarks.parquet", landmarks_table(problem, solution.values, marginals))
-    out.write_text("graph.g2o", write_g2o(problem, solution.values))
+    LANDMARKS.write(out, landmarks_table(problem, solution.values, marginals))
+    out.write_text(G2O.file, write_g2o(problem, solution.values))
     kinds = Counter(r.kind for r in problem.rows)
     return {
         "tag_scale": _tag_scale(problem, solution, marginals),
@@ -85,18 +101,17 @@ def _write_values(
     """``values.npz`` (initial and optimised vectors) and ``marginals.npz`` (covariances padded to 6x6)."""
     keys = list(problem.var_types)
     types = np.array([problem.var_types[k] for k in keys])
-    out.write_npz(
-        "values.npz",
+    ValueArrays(
         keys=np.array(keys, dtype=np.uint64),
         types=types,
         initial=values_to_arrays(problem.initial, problem.var_types, keys),
         optimised=values_to_arrays(solution.values, problem.var_types, keys),
-    )
+    ).write(out)
     cov_pad = np.zeros((len(keys), 6, 6))
     dims = np.array([problem.kind(k).dim for k in keys], dtype=np.int32)
     for i, k in enumerate(keys):
         cov_pad[i, : dims[i], : dims[i]] = marginals[k]
-    out.write_npz("marginals.npz", keys=np.array(keys, dtype=np.uint64), types=types, dims=dims, covariance=cov_pad)
+    MarginalArrays(keys=np.array(keys, dtype=np.uint64), types=types, dims=dims, covariance=cov_pad).write(out)
 
 
 def _write_poses(out: StageOutput, problem: GraphProblem, solution: Solution, marginals: dict[int, np.ndarray]) -> None:
@@ -105,54 +120,34 @@ def _write_poses(out: StageOutput, problem: GraphProblem, solution: Solution, ma
     poses3 = problem.pose3s(solution.values)
     vec = np.array([pose3_to_vector(p) for p in poses3]).reshape(-1, 7)
     pos_cov = [kind.position_cov(kind.read(solution.values, k), marginals[k]) for k in problem.pose_keys]
-    out.write_table(
-        "poses.parquet",
+    POSES.write(
+        out,
         {
-            "index": np.arange(len(problem.pose_keys), dtype=np.int64),
-            "key": np.array(problem.pose_keys, dtype=np.uint64),
-            "stamp_ns": np.array(problem.pose_stamps_ns, dtype=np.int64),
-            **{c: vec[:, i] for i, c in enumerate(("x", "y", "z", "qx", "qy", "qz", "qw"))},
-            "yaw": np.array([p.rotation().yaw() for p in poses3]),
-            "covariance": [marginals[k].ravel().tolist() for k in problem.pose_keys],
-            "position_cov": [c.ravel().tolist() for c in pos_cov],
+            INDEX: np.arange(len(problem.pose_keys), dtype=np.int64),
+            POSE_KEY: np.array(problem.pose_keys, dtype=np.uint64),
+            POSE_STAMP_NS: np.array(problem.pose_stamps_ns, dtype=np.int64),
+            **{c: vec[:, i] for i, c in enumerate((*POSITION, *QUATERNION))},
+            YAW: np.array([p.rotation().yaw() for p in poses3]),
+            TANGENT_COVARIANCE: [marginals[k].ravel().tolist() for k in problem.pose_keys],
+            POSITION_COV: [c.ravel().tolist() for c in pos_cov],
         },
     )
-    out.write_text("trajectory.tum", tum_text(problem.pose_stamps_ns, poses3))
-    out.write_text("dead_reckoning.tum", tum_text(problem.pose_stamps_ns, problem.pose3s(problem.initial)))
-
-
-LANDMARKS_SCHEMA = pa.schema(
-    [
-        ("tag_id", pa.int64()),
-        ("key", pa.uint64()),
-        ("x", pa.float64()),
-        ("y", pa.float64()),
-        ("z", pa.float64()),
-        ("qx", pa.float64()),
-        ("qy", pa.float64()),
-        ("qz", pa.float64()),
-        ("qw", pa.float64()),
-        ("position_cov", pa.list_(pa.float64())),
-        ("covariance", pa.list_(pa.float64())),
-        ("type", pa.string()),
-        ("n_observations", pa.int64()),
-    ]
-)
-"""``landmarks.parquet``: one row per landmark; ``qx..qw`` are null for point landmarks."""
+    out.write_text(TRAJECTORY.file, tum_text(problem.pose_stamps_ns, poses3))
+    out.write_text(DEAD_RECKONING.file, tum_text(problem.pose_stamps_ns, problem.pose3s(problem.initial)))
 
 
 def landmarks_table(problem: GraphProblem, values: gtsam.Values, marginals: dict[int, np.ndarray]) -> pa.Table:
-    """``landmarks.parquet`` at ``values`` (see :data:`LANDMARKS_SCHEMA`)."""
+    """``landmarks.parquet`` at ``values`` (see :data:`stages.graph.artifacts.LANDMARKS`)."""
     n_obs = Counter(r.tag_id for r in problem.rows if r.kind == "tag")
-    cols: dict[str, list[Any]] = {f.name: [] for f in LANDMARKS_SCHEMA}
+    cols: dict[str, list[Any]] = {name: [] for name in LANDMARKS.names}
     for tag, key in problem.landmark_keys.items():
         kind = problem.kind(key)
         xyz, pc = landmark_position(problem, values, tag, marginals[key])
         q = kind.vector(values, key)[3:7].tolist() if kind.is_pose else [None] * 4
         row = (tag, key, *xyz.tolist(), *q, pc.ravel().tolist(), marginals[key].ravel().tolist(), kind.name)
-        for name, val in zip(LANDMARKS_SCHEMA.names, (*row, int(n_obs.get(tag, 0))), strict=True):
+        for name, val in zip(LANDMARKS.names, (*row, int(n_obs.get(tag, 0))), strict=True):
             cols[name].append(val)
-    return pa.table(cols, schema=LANDMARKS_SCHEMA)
+    return LANDMARKS.table(cols)
 
 
 def _tag_scale(problem: GraphProblem, solution: Solution, marginals: dict[int, np.ndarray]) -> dict[str, float] | None:

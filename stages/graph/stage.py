@@ -6,10 +6,12 @@ import time
 from typing import Any
 
 from pipeline.context import StageContext
-from stages.graph.build import build_problem
+from stages.detect.artifacts import DETECTIONS
+from stages.graph.build import DETECTION_COLUMNS, DETECTION_FILTER_COLUMNS, ODOMETRY_COLUMNS, build_problem
 from stages.graph.config import GRAPH_SOURCE, GraphConfig
 from stages.graph.problem import GraphProblem
 from stages.graph.solve_all import solve_and_write
+from stages.ingest.artifacts import EXTRINSICS, ODOMETRY
 
 
 def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:
@@ -19,9 +21,9 @@ def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:
         problem, cfg = _from_file(ctx, cfg)
     else:
         ingest = ctx.input("ingest")
-        odometry = ingest.read_table("odometry.parquet") if ingest.exists("odometry.parquet") else None
-        extrinsics = ingest.read_json("extrinsics.json") if ingest.exists("extrinsics.json") else None
-        detections = ctx.input("detect").read_table("detections.parquet")
+        odometry = ODOMETRY.read(ingest, columns=ODOMETRY_COLUMNS) if ingest.exists(ODOMETRY.file) else None
+        extrinsics = EXTRINSICS.read(ingest) if ingest.exists(EXTRINSICS.file) else None
+        detections = DETECTIONS.read(ctx.input("detect"), columns=(*DETECTION_COLUMNS, *DETECTION_FILTER_COLUMNS))
         problem = build_problem(detections, odometry, extrinsics, cfg)
     build_s = time.perf_counter() - t0
     summary = solve_and_write(problem, cfg, ctx.output, ctx.rec, ctx.n_sigma)

@@ -1,4 +1,4 @@
-"""Stage ``ingest``: read a recording into the run folder (see ``ARTIFACTS.md`` for what it writes)."""
+"""Stage ``ingest``: read a recording into the run folder (what it writes: :mod:`stages.ingest.artifacts`)."""
 
 from __future__ import annotations
 

@@ -25,7 +25,8 @@ def _f64(name: str, doc: str) -> Column:
 FORMAT = Column(
     "format",
     pa.string(),
-    "`jpeg`/`png` for compressed images (kept as their bytes), else the raw encoding (`mono8`, `bgr8`, …)",
+    "`jpeg`/`png` for compressed images (kept as their bytes), else the raw encoding (`mono8`, `bgr8`, `rgb8`, "
+    "`mono16`, …)",
 )
 WIDTH = Column("width", pa.int32(), "image width, px (0 for compressed images)")
 HEIGHT = Column("height", pa.int32(), "image height, px (0 for compressed images)")
@@ -44,11 +45,12 @@ VELOCITY = tuple(
 )
 POSE_COV = Column("pose_cov", pa.list_(_F64, 36), "6x6 row-major, ROS order x y z roll pitch yaw")
 TWIST_COV = Column("twist_cov", pa.list_(_F64, 36), "6x6 row-major, ROS order vx vy vz wx wy wz")
+ODOMETRY_FRAME_ID = Column(FRAME_ID, FRAME_ID.type, "the odometry frame (the pose's parent)")
 CHILD_FRAME_ID = Column("child_frame_id", pa.string(), "the robot's base frame")
 ODOMETRY: Final = TableSpec(
     "odometry.parquet",
     "one row per odometry message: the base's pose in the odometry frame, its twist and covariances",
-    [STAMP_NS, X, Y, Z, *QUATERNION, *VELOCITY, POSE_COV, TWIST_COV, FRAME_ID, CHILD_FRAME_ID],
+    [STAMP_NS, X, Y, Z, *QUATERNION, *VELOCITY, POSE_COV, TWIST_COV, ODOMETRY_FRAME_ID, CHILD_FRAME_ID],
 )
 
 # scans.parquet -----------------------------------------------------------------------------------------
@@ -58,17 +60,24 @@ ANGLE_INCREMENT = _f64("angle_increment", "angle between ranges, rad")
 RANGE_MIN = _f64("range_min", "shortest valid range, m")
 RANGE_MAX = _f64("range_max", "longest valid range, m")
 RANGES = Column("ranges", pa.list_(pa.float32()), "ranges, m (inf/nan as recorded)")
+SCAN_FRAME_ID = Column(FRAME_ID, FRAME_ID.type, "the laser's frame")
 SCANS: Final = TableSpec(
     "scans.parquet",
     "one row per laser scan",
-    [STAMP_NS, FRAME_ID, ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX, RANGES],
+    [STAMP_NS, SCAN_FRAME_ID, ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX, RANGES],
 )
 
 # tag_detections.parquet --------------------------------------------------------------------------------
+BAG_CORNERS = Column(
+    CORNERS,
+    CORNERS.type,
+    "x0 y0 … x3 y3, pixels, in the order the bag gives them (detect's `bag_corner_order` says which order that is)",
+)
 TAG_DETECTIONS: Final = TableSpec(
     "tag_detections.parquet",
-    "one row per AprilTag detection the bag itself holds (apriltag_msgs); corners in the OpenCV order",
-    [FRAME, STAMP_NS, TOPIC, TAG_ID, FAMILY, CORNERS],
+    "one row per AprilTag detection the bag itself holds (apriltag_msgs), when it holds them; `frame` counts the "
+    "detection messages of the topic, `topic` is the detections topic",
+    [FRAME, STAMP_NS, TOPIC, TAG_ID, FAMILY, BAG_CORNERS],
     optional=True,
 )
 
@@ -116,12 +125,18 @@ class Extrinsics(BaseModel):
     )
 
 
-EXTRINSICS: Final = JsonSpec("extrinsics.json", "the robot's frames and where its sensors sit", Extrinsics)
+EXTRINSICS: Final = JsonSpec(
+    "extrinsics.json",
+    "the robot's frames and where its sensors sit, from the static transforms (`/tf_static`)",
+    Extrinsics,
+)
 
 
-# summary.json ------------------------------------------------------------------------------------------
 ARTIFACTS: Final = ArtifactSet(
     "ingest",
-    "What the recording holds, in tables a stage can read in one go.",
+    "What the recording holds, in tables a stage can read in one go; later stages never open the bag again. "
+    "All stamps are nanoseconds of the bag clock (the message header stamp; the bag's log time where the header "
+    "stamp is zero). The stage's `summary.json` counts `frames`, `odometry`, `scans` and `tag_detections` and gives "
+    "`duration_s`, `start_ns`, `topics` (role to topic), `reader` (`rosbags` or `mcap`) and `format`.",
     [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, EXTRINSICS],
 )

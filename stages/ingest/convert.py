@@ -12,6 +12,25 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import InputError
+from stages.columns import FRAME_ID, POSITION, QUATERNION, STAMP_NS
+from stages.ingest.artifacts import (
+    ANGLE_INCREMENT,
+    ANGLE_MAX,
+    ANGLE_MIN,
+    CHILD_FRAME_ID,
+    DATA,
+    FORMAT,
+    HEIGHT,
+    POSE_COV,
+    RANGE_MAX,
+    RANGE_MIN,
+    RANGES,
+    STEP,
+    TWIST_COV,
+    VELOCITY,
+    WIDTH,
+    CameraModel,
+)
 
 
 def get(msg: Any, *names: str, default: Any = None) -> Any:
@@ -48,22 +67,23 @@ def as_bytes(data: Any) -> bytes:
 
 
 def image_row(msg: Any, compressed: bool) -> dict[str, Any]:
-    """The stored form of an image: compressed bytes as they are, raw pixels with their encoding."""
+    """The stored form of an image (the image columns of ``frames.parquet``): compressed bytes as they are, raw
+    pixels with their encoding."""
     if compressed:
         fmt = str(get(msg, "format", default="")).lower()
         kind = "png" if "png" in fmt else "jpeg" if ("jpeg" in fmt or "jpg" in fmt) else fmt or "jpeg"
-        return {"format": kind, "width": 0, "height": 0, "step": 0, "data": as_bytes(msg.data)}
+        return {FORMAT: kind, WIDTH: 0, HEIGHT: 0, STEP: 0, DATA: as_bytes(msg.data)}
     return {
-        "format": str(msg.encoding),
-        "width": int(msg.width),
-        "height": int(msg.height),
-        "step": int(msg.step),
-        "data": as_bytes(msg.data),
+        FORMAT: str(msg.encoding),
+        WIDTH: int(msg.width),
+        HEIGHT: int(msg.height),
+        STEP: int(msg.step),
+        DATA: as_bytes(msg.data),
     }
 
 
-def camera_from_info(msg: Any, topic: str) -> dict[str, Any]:
-    """``camera.json`` from a CameraInfo message.
+def camera_from_info(msg: Any, topic: str) -> CameraModel:
+    """The camera model (``camera.json``) of a CameraInfo message.
 
     Raises:
         InputError: when the message holds no calibration (zero focal length or image size).
@@ -83,57 +103,48 @@ def camera_from_info(msg: Any, topic: str) -> dict[str, Any]:
     model = str(get(msg, "distortion_model", default="") or ("plumb_bob" if D else "none"))
     if not any(D):
         model = "none" if not D else model
-    return {
-        "width": width,
-        "height": height,
-        "K": K,
-        "distortion_model": model,
-        "D": D,
-        "frame_id": frame_id(msg),
-        "topic": topic,
-        "source": "camera_info",
-    }
+    return CameraModel(
+        width=width,
+        height=height,
+        K=K,
+        distortion_model=model,
+        D=D,
+        frame_id=frame_id(msg),
+        topic=topic,
+        source="camera_info",
+    )
 
 
 def odometry_row(msg: Any, stamp: int) -> dict[str, Any]:
-    """One odometry sample: pose, twist and their covariances (ROS order x y z roll pitch yaw)."""
+    """One odometry sample (a row of ``odometry.parquet``): pose, twist and their covariances (ROS order x y z roll
+    pitch yaw)."""
     p = msg.pose.pose.position
     q = msg.pose.pose.orientation
     v = msg.twist.twist.linear
     w = msg.twist.twist.angular
     return {
-        "stamp_ns": stamp,
-        "x": float(p.x),
-        "y": float(p.y),
-        "z": float(p.z),
-        "qx": float(q.x),
-        "qy": float(q.y),
-        "qz": float(q.z),
-        "qw": float(q.w),
-        "vx": float(v.x),
-        "vy": float(v.y),
-        "vz": float(v.z),
-        "wx": float(w.x),
-        "wy": float(w.y),
-        "wz": float(w.z),
-        "pose_cov": [float(c) for c in np.asarray(msg.pose.covariance, dtype=float).ravel()],
-        "twist_cov": [float(c) for c in np.asarray(msg.twist.covariance, dtype=float).ravel()],
-        "frame_id": frame_id(msg),
-        "child_frame_id": str(get(msg, "child_frame_id", default="")).lstrip("/"),
+        STAMP_NS: stamp,
+        **{c: float(value) for c, value in zip(POSITION, (p.x, p.y, p.z), strict=True)},
+        **{c: float(value) for c, value in zip(QUATERNION, (q.x, q.y, q.z, q.w), strict=True)},
+        **{c: float(value) for c, value in zip(VELOCITY, (v.x, v.y, v.z, w.x, w.y, w.z), strict=True)},
+        POSE_COV: [float(c) for c in np.asarray(msg.pose.covariance, dtype=float).ravel()],
+        TWIST_COV: [float(c) for c in np.asarray(msg.twist.covariance, dtype=float).ravel()],
+        FRAME_ID: frame_id(msg),
+        CHILD_FRAME_ID: str(get(msg, "child_frame_id", default="")).lstrip("/"),
     }
 
 
 def scan_row(msg: Any, stamp: int) -> dict[str, Any]:
-    """One laser scan."""
+    """One laser scan (a row of ``scans.parquet``)."""
     return {
-        "stamp_ns": stamp,
-        "frame_id": frame_id(msg),
-        "angle_min": float(msg.angle_min),
-        "angle_max": float(msg.angle_max),
-        "angle_increment": float(msg.angle_increment),
-        "range_min": float(msg.range_min),
-        "range_max": float(msg.range_max),
-        "ranges": np.asarray(msg.ranges, dtype=np.float32),
+        STAMP_NS: stamp,
+        FRAME_ID: frame_id(msg),
+        ANGLE_MIN: float(msg.angle_min),
+        ANGLE_MAX: float(msg.angle_max),
+        ANGLE_INCREMENT: float(msg.angle_increment),
+        RANGE_MIN: float(msg.range_min),
+        RANGE_MAX: float(msg.range_max),
+        RANGES: np.asarray(msg.ranges, dtype=np.float32),
     }
 
 

@@ -5,36 +5,55 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import pyarrow.parquet as pq
+import pyarrow as pa
 import rerun as rr
 
+from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
 from pipeline.recording import set_stamp
+from stages.columns import POSITION, QUATERNION, STAMP_NS
+from stages.ingest.artifacts import (
+    ANGLE_INCREMENT,
+    ANGLE_MIN,
+    DATA,
+    FORMAT,
+    FRAMES,
+    HEIGHT,
+    ODOMETRY,
+    RANGE_MAX,
+    RANGE_MIN,
+    RANGES,
+    SCANS,
+    STEP,
+    WIDTH,
+    CameraModel,
+    Extrinsics,
+)
 
 
-def _pose_matrices(odom: Any) -> tuple[np.ndarray, np.ndarray]:
+def _pose_matrices(odom: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     """4x4 odometry poses and their unit quaternions (x, y, z, w, as ROS and Rerun order them), vectorised."""
     from scipy.spatial.transform import Rotation
 
-    quats = np.column_stack([odom.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")])
+    quats = np.column_stack([odom.column(c).to_numpy() for c in QUATERNION])
     quats[np.linalg.norm(quats, axis=1) == 0] = [0.0, 0.0, 0.0, 1.0]
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     T = np.tile(np.eye(4), (odom.num_rows, 1, 1))
     T[:, :3, :3] = Rotation.from_quat(quats).as_matrix()
-    T[:, :3, 3] = np.column_stack([odom.column(c).to_numpy() for c in ("x", "y", "z")])
+    T[:, :3, 3] = np.column_stack([odom.column(c).to_numpy() for c in POSITION])
     return T, quats
 
 
-def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any]) -> None:
-    """Log the ingested data to the stage's recording."""
+def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -> None:
+    """Log the ingested data (read back from the stage's output) to the stage's recording."""
     rec = ctx.rec
-    out = ctx.output.path
+    written = StageInput("ingest", ctx.output.path)
     rr_cfg = ctx.settings.rerun
     rec.log("/ingest/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
-    odom = pq.read_table(out / "odometry.parquet")
+    odom = ODOMETRY.read(written, columns=[STAMP_NS, *POSITION, *QUATERNION])
     poses, quats = _pose_matrices(odom) if odom.num_rows else (np.zeros((0, 4, 4)), np.zeros((0, 4)))
-    stamps = odom.column("stamp_ns").to_numpy() if odom.num_rows else np.zeros(0, dtype=np.int64)
+    stamps = odom.column(STAMP_NS).to_numpy() if odom.num_rows else np.zeros(0, dtype=np.int64)
     if len(poses):
         rec.log("/ingest/world/odometry/path", rr.LineStrips3D([poses[:, :3, 3]], colors=[[90, 160, 255]]), static=True)
         rec.send_columns(
@@ -44,17 +63,18 @@ def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any
         )
         rec.log("/ingest/world/odometry/base", rr.TransformAxes3D(0.3), static=True)
 
-    scans = pq.read_table(out / "scans.parquet")
+    scans = SCANS.read(written)
     if scans.num_rows and len(poses):
-        T_base_laser = np.asarray(sensors.get("laser", {}).get("T_base_sensor", np.eye(4)))
-        s_stamps = scans.column("stamp_ns").to_numpy()
-        meta = {c: scans.column(c).to_numpy() for c in ("angle_min", "angle_increment", "range_min", "range_max")}
-        ranges = scans.column("ranges")
+        laser = extrinsics.sensors.get("laser")
+        T_base_laser = np.asarray(laser.T_base_sensor) if laser is not None else np.eye(4)
+        s_stamps = scans.column(STAMP_NS).to_numpy()
+        meta = {c: scans.column(c).to_numpy() for c in (ANGLE_MIN, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX)}
+        ranges = scans.column(RANGES)
         cloud = []
         for i in range(0, scans.num_rows, rr_cfg.scan_stride):
             r = ranges[i].values.to_numpy(zero_copy_only=False).astype(float)
-            a = meta["angle_min"][i] + meta["angle_increment"][i] * np.arange(len(r))
-            ok = np.isfinite(r) & (r >= meta["range_min"][i]) & (r <= meta["range_max"][i])
+            a = meta[ANGLE_MIN][i] + meta[ANGLE_INCREMENT][i] * np.arange(len(r))
+            ok = np.isfinite(r) & (r >= meta[RANGE_MIN][i]) & (r <= meta[RANGE_MAX][i])
             pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
             j = int(np.clip(np.searchsorted(stamps, s_stamps[i]), 0, len(stamps) - 1))
             world = (poses[j] @ T_base_laser @ pts.T).T[:, :3]
@@ -68,30 +88,24 @@ def log_ingest(ctx: StageContext, camera: dict[str, Any], sensors: dict[str, Any
             static=True,
         )
 
-    K = np.asarray(camera["K"], dtype=float).reshape(3, 3)
-    rec.log(
-        "/ingest/camera", rr.Pinhole(image_from_camera=K, resolution=[camera["width"], camera["height"]]), static=True
-    )
-    frames_path = out / "frames.parquet"
-    pf = pq.ParquetFile(frames_path)
-    if pf.metadata.num_rows == 0:
-        return
+    K = np.asarray(camera.K, dtype=float).reshape(3, 3)
+    rec.log("/ingest/camera", rr.Pinhole(image_from_camera=K, resolution=[camera.width, camera.height]), static=True)
     k = 0
-    for batch in pf.iter_batches(batch_size=64):
+    for batch in FRAMES.batches(written, batch_size=64):
         for row in batch.to_pylist():
             if k % rr_cfg.image_stride == 0:
-                set_stamp(rec, row["stamp_ns"])
+                set_stamp(rec, row[STAMP_NS])
                 rec.log("/ingest/camera/image", image_archetype(row))
             k += 1
 
 
 def image_archetype(row: dict[str, Any]) -> Any:
     """A Rerun image for a frames.parquet row: compressed bytes as they are, raw pixels with their layout."""
-    fmt = row["format"]
+    fmt = row[FORMAT]
     if fmt in ("jpeg", "png"):
-        return rr.EncodedImage(contents=row["data"], media_type="image/jpeg" if fmt == "jpeg" else "image/png")
-    h, w, step = row["height"], row["width"], row["step"]
-    buf = np.frombuffer(row["data"], dtype=np.uint8)
+        return rr.EncodedImage(contents=row[DATA], media_type="image/jpeg" if fmt == "jpeg" else "image/png")
+    h, w, step = row[HEIGHT], row[WIDTH], row[STEP]
+    buf = np.frombuffer(row[DATA], dtype=np.uint8)
     if fmt in ("mono8", "8UC1"):
         return rr.Image(buf.reshape(h, step)[:, :w], color_model="L")
     if fmt in ("mono16", "16UC1"):

@@ -1,7 +1,7 @@
 """Ingest: read a recording once and keep what the later stages need, so they never open the bag again.
 
 Reads camera frames, camera model, odometry, laser scans, static extrinsics and, when the bag holds
-them, AprilTag detections. Writes the artifacts described in ``stages/ingest/ARTIFACTS.md``.
+them, AprilTag detections. Writes the artifacts declared in :mod:`stages.ingest.artifacts`.
 """
 
 from __future__ import annotations
@@ -12,104 +12,53 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 from pipeline.artifacts import StageOutput
 from pipeline.context import StageContext
+from pipeline.contracts import TableSpec
 from pipeline.errors import InputError
+from stages.columns import CORNERS, FAMILY, FRAME, FRAME_ID, STAMP_NS, TAG_ID, TOPIC
 from stages.ingest import convert
+from stages.ingest.artifacts import (
+    CAMERA,
+    CHILD_FRAME_ID,
+    EXTRINSICS,
+    FRAMES,
+    ODOMETRY,
+    SCANS,
+    TAG_DETECTIONS,
+    CameraModel,
+    Extrinsics,
+    SensorMount,
+)
 from stages.ingest.bags import RawMessage, Recording
 from stages.ingest.config import IngestConfig
 from stages.ingest.record import log_ingest
 from stages.ingest.topics import ROLES, resolve_topic
 
 
-def _frames_schema() -> pa.Schema:
-    return pa.schema(
-        [
-            ("frame", pa.int64()),
-            ("stamp_ns", pa.int64()),
-            ("topic", pa.string()),
-            ("format", pa.string()),
-            ("width", pa.int32()),
-            ("height", pa.int32()),
-            ("step", pa.int32()),
-            ("data", pa.binary()),
-        ]
-    )
-
-
-def _odometry_schema() -> pa.Schema:
-    cols = [("stamp_ns", pa.int64())] + [
-        (c, pa.float64()) for c in ("x", "y", "z", "qx", "qy", "qz", "qw", "vx", "vy", "vz", "wx", "wy", "wz")
-    ]
-    cols += [
-        ("pose_cov", pa.list_(pa.float64(), 36)),
-        ("twist_cov", pa.list_(pa.float64(), 36)),
-        ("frame_id", pa.string()),
-        ("child_frame_id", pa.string()),
-    ]
-    return pa.schema(cols)
-
-
-def _scans_schema() -> pa.Schema:
-    return pa.schema(
-        [
-            ("stamp_ns", pa.int64()),
-            ("frame_id", pa.string()),
-            ("angle_min", pa.float64()),
-            ("angle_max", pa.float64()),
-            ("angle_increment", pa.float64()),
-            ("range_min", pa.float64()),
-            ("range_max", pa.float64()),
-            ("ranges", pa.list_(pa.float32())),
-        ]
-    )
-
-
-def _detections_schema() -> pa.Schema:
-    return pa.schema(
-        [
-            ("frame", pa.int64()),
-            ("stamp_ns", pa.int64()),
-            ("topic", pa.string()),
-            ("tag_id", pa.int64()),
-            ("family", pa.string()),
-            ("corners", pa.list_(pa.float64(), 8)),
-        ]
-    )
-
-
 def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[str, Any]]:
     """Rows of an apriltag_msgs ApriltagArrayStamped (ROS 1) or AprilTagDetectionArray (ROS 2)."""
-    rows = []
+    rows: list[dict[str, Any]] = []
     for det in convert.get(msg, "apriltags", "detections", default=[]):
         corners = [float(v) for c in det.corners for v in (c.x, c.y)]
         family = str(convert.get(det, "family", default="") or "tag36h11")
         if family and not family.startswith("tag"):
             family = f"tag{family}"
         rows.append(
-            {
-                "frame": frame,
-                "stamp_ns": stamp,
-                "topic": topic,
-                "tag_id": int(det.id),
-                "family": family,
-                "corners": corners[:8],
-            }
+            {FRAME: frame, STAMP_NS: stamp, TOPIC: topic, TAG_ID: int(det.id), FAMILY: family, CORNERS: corners[:8]}
         )
     return rows
 
 
 class _TableWriter:
-    """Stream rows to a Parquet file in row groups, so long recordings do not fill memory."""
+    """Stream rows of a declared table to its file in row groups, so long recordings do not fill memory."""
 
-    def __init__(self, path: Path, schema: pa.Schema, batch: int = 256) -> None:
-        self.path, self.schema, self.batch = path, schema, batch
+    def __init__(self, out: StageOutput, spec: TableSpec, batch: int = 256) -> None:
+        self.spec, self.batch = spec, batch
         self.rows: list[dict[str, Any]] = []
         self.count = 0
-        self.writer = pq.ParquetWriter(path, schema, compression="zstd")
+        self.writer = spec.writer(out.file(spec.file))
 
     def add(self, row: dict[str, Any]) -> None:
         self.rows.append(row)
@@ -119,7 +68,7 @@ class _TableWriter:
 
     def flush(self) -> None:
         if self.rows:
-            self.writer.write_table(pa.Table.from_pylist(self.rows, schema=self.schema))
+            self.writer.write_table(self.spec.table(self.rows))
             self.rows = []
 
     def close(self) -> None:
@@ -127,7 +76,7 @@ class _TableWriter:
         self.writer.close()
 
 
-def _load_camera_file(path: str) -> dict[str, Any]:
+def _load_camera_file(path: str) -> CameraModel:
     from stages.camera import load_camera_file
 
     return load_camera_file(Path(path))
@@ -147,8 +96,7 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         reading.close()
         bag = {"reader": rec.reader, "format": rec.format, "storage": rec.storage}
         bag_start, bag_end, salvaged = rec.start_ns, rec.end_ns, rec.salvaged
-    camera = _check_read(plan, reading, cfg)
-    sensors, notes = _write_calibration(ctx.output, reading, camera)
+    camera, extrinsics, notes = _write_calibration(ctx.output, reading, _check_read(plan, reading, cfg))
     summary = {
         "frames": reading.frames.count,
         "tag_detections": reading.dets.count if reading.dets else 0,
@@ -158,13 +106,13 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         "start_ns": bag_start,
         "topics": {k: v for k, v in plan.topics.items() if v},
         **bag,
-        "camera": {k: camera[k] for k in ("width", "height", "distortion_model", "frame_id", "source")},
+        "camera": camera.model_dump(include={"width", "height", "distortion_model", "frame_id", "source"}),
         "notes": notes,
         "read_seconds": round(time.perf_counter() - started, 3),
     }
     if salvaged is not None:
         summary["salvaged"] = salvaged
-    log_ingest(ctx, camera, sensors)
+    log_ingest(ctx, camera, extrinsics)
     return summary
 
 
@@ -174,7 +122,7 @@ class _Plan:
 
     topics: dict[str, str | None]
     use_detections: bool
-    camera: dict[str, Any] | None
+    camera: CameraModel | None
     """The calibration from ``camera_file``; None: from the first CameraInfo message in the window."""
     start_ns: int
     end_ns: int | None
@@ -201,7 +149,7 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
     use_detections = bool(topics["detections"] is not None and (topics["image"] is None or cfg.detections_topic))
     if use_detections:
         topics["image"] = None if not cfg.image_topic else topics["image"]
-    camera: dict[str, Any] | None = _load_camera_file(cfg.camera_file) if cfg.camera_file else None
+    camera = _load_camera_file(cfg.camera_file) if cfg.camera_file else None
     if camera is None and topics["camera_info"] is None:
         raise InputError(
             f"{rec.path.name} has no CameraInfo topic; pass the calibration with --camera FILE "
@@ -219,20 +167,17 @@ class _Reading:
 
     def __init__(self, out: StageOutput, plan: _Plan, frame_stride: int = 1) -> None:
         self.out, self.plan, self.frame_stride = out, plan, frame_stride
-        self.frames = _TableWriter(out.file("frames.parquet"), _frames_schema())
-        self.odom = _TableWriter(out.file("odometry.parquet"), _odometry_schema(), batch=4096)
-        self.scans = _TableWriter(out.file("scans.parquet"), _scans_schema(), batch=1024)
-        self.dets = (
-            _TableWriter(out.file("tag_detections.parquet"), _detections_schema(), batch=4096)
-            if plan.use_detections
-            else None
-        )
+        self.frames = _TableWriter(out, FRAMES)
+        self.odom = _TableWriter(out, ODOMETRY, batch=4096)
+        self.scans = _TableWriter(out, SCANS, batch=1024)
+        self.dets = _TableWriter(out, TAG_DETECTIONS, batch=4096) if plan.use_detections else None
         self.edges: list[tuple[str, str, np.ndarray]] = []
         self.frame_index: dict[str, int] = {}
         self.camera = plan.camera
         self.image_frame_id = ""
         self.base_frame = ""
         self.odom_frame = ""
+        self.scan_frame = ""
 
     def add(self, raw: RawMessage) -> None:
         """Take one message: a static transform, a camera frame (or its detections), or a sensor message."""
@@ -255,7 +200,7 @@ class _Reading:
         self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
         if raw.topic == self.plan.topics["image"]:
             row = convert.image_row(msg, compressed=raw.type.endswith("CompressedImage"))
-            self.frames.add({"frame": index, "stamp_ns": stamp, "topic": raw.topic, **row})
+            self.frames.add({FRAME: index, STAMP_NS: stamp, TOPIC: raw.topic, **row})
         else:
             assert self.dets is not None
             for r in _detection_rows(msg, index, stamp, raw.topic):
@@ -271,18 +216,21 @@ class _Reading:
             self.camera = convert.camera_from_info(msg, raw.topic)
         elif raw.topic == topics["odometry"]:
             row = convert.odometry_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
-            self.base_frame = self.base_frame or row["child_frame_id"]
-            self.odom_frame = self.odom_frame or row["frame_id"]
+            self.base_frame = self.base_frame or row[CHILD_FRAME_ID]
+            self.odom_frame = self.odom_frame or row[FRAME_ID]
             self.odom.add(row)
         elif raw.topic == topics["scan"]:
-            self.scans.add(convert.scan_row(msg, convert.stamp_ns(msg, raw.log_time_ns)))
+            row = convert.scan_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
+            if self.scans.count == 0:
+                self.scan_frame = row[FRAME_ID]  # the laser's frame is that of the first scan
+            self.scans.add(row)
 
     def close(self) -> None:
         for w in (self.frames, self.odom, self.scans, *([self.dets] if self.dets else [])):
             w.close()
 
 
-def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> dict[str, Any]:
+def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> CameraModel:
     """The camera calibration; fail when the window held no camera frame or no calibration."""
     topics = plan.topics
     if reading.frames.count == 0 and (
@@ -297,17 +245,16 @@ def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> dict[str, 
     return reading.camera
 
 
-def _write_calibration(out: StageOutput, reading: _Reading, camera: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+def _write_calibration(
+    out: StageOutput, reading: _Reading, camera: CameraModel
+) -> tuple[CameraModel, Extrinsics, list[str]]:
     """``camera.json`` and ``extrinsics.json`` (base to camera and laser from the static transforms)."""
-    camera_frame = camera.get("frame_id") or reading.image_frame_id
-    camera["frame_id"] = camera_frame
+    camera_frame = camera.frame_id or reading.image_frame_id
+    camera = camera.model_copy(update={"frame_id": camera_frame})
     base = reading.base_frame or camera_frame
-    sensors: dict[str, Any] = {}
+    sensors: dict[str, SensorMount] = {}
     notes: list[str] = []
-    scan_frame = ""
-    if reading.scans.count:
-        scan_frame = str(pq.read_table(out.file("scans.parquet"), columns=["frame_id"]).column(0)[0])
-    for role, frame in (("camera", camera_frame), ("laser", scan_frame)):
+    for role, frame in (("camera", camera_frame), ("laser", reading.scan_frame)):
         if not frame:
             continue
         T = convert.chain(reading.edges, base, frame)
@@ -315,9 +262,10 @@ def _write_calibration(out: StageOutput, reading: _Reading, camera: dict[str, An
         if T is None:
             notes.append(f"no static transform from {base!r} to {role} frame {frame!r}; identity assumed")
             T = np.eye(4)
-        sensors[role] = {"frame_id": frame, "T_base_sensor": T.tolist(), "assumed": assumed}
-    out.write_json("camera.json", camera)
-    out.write_json("extrinsics.json", {"base_frame": base, "odom_frame": reading.odom_frame, "sensors": sensors})
+        sensors[role] = SensorMount(frame_id=frame, T_base_sensor=T.tolist(), assumed=assumed)
+    extrinsics = Extrinsics(base_frame=base, odom_frame=reading.odom_frame, sensors=sensors)
+    CAMERA.write(out, camera)
+    EXTRINSICS.write(out, extrinsics)
     if reading.dets is None:
-        out.file("tag_detections.parquet").unlink(missing_ok=True)
-    return sensors, notes
+        out.file(TAG_DETECTIONS.file).unlink(missing_ok=True)
+    return camera, extrinsics, notes

@@ -13,6 +13,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from pipeline.artifacts import StageInput
+from stages.graph.artifacts import LANDMARKS
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution
@@ -39,7 +40,7 @@ def read_reduced(inp: StageInput, full: LoadedGraph, focused_tag_ids: Iterable[i
         pose_keys=red.pose_keys,
         pose_stamps_ns=red.pose_stamps_ns,
         landmark_keys=red.landmark_keys,
-        landmark_heights=landmark_heights(inp.read_table("landmarks.parquet")),
+        landmark_heights=landmark_heights(LANDMARKS.read(inp)),
     )
     solution = Solution(
         values=red.values,

@@ -11,6 +11,7 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids, set_stamp
+from stages.graph.artifacts import LANDMARKS
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.outputs import write_artifacts
 from stages.navigation.truth import MapTruth, load_truth
@@ -48,7 +49,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
         loaded,
         focused.tag_ids,
         selection.choice.factor_indices,
-        landmark_heights(graph_in.read_table("landmarks.parquet")),
+        landmark_heights(LANDMARKS.read(graph_in)),
         cfg.initialise_from,
         cfg.max_iterations,
         cfg.relative_error_tol,

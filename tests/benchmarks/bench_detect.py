@@ -29,8 +29,9 @@ sys.path.insert(0, str(ROOT))
 from stages.camera import colmap_camera  # noqa: E402
 from stages.detect.backends import make_detector, shortest_side_px  # noqa: E402
 from stages.detect.config import DetectConfig  # noqa: E402
-from stages.detect.core import FrameJob, FrameProcessor  # noqa: E402
+from stages.detect.core import DetectionRow, FrameJob, FrameProcessor  # noqa: E402
 from stages.detect.stage import _corner_sigma  # noqa: E402
+from stages.ingest.artifacts import CameraModel  # noqa: E402
 from tests.fixtures.tag_render import TagPlacement, look_at_tag, render_frame  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
@@ -50,7 +51,7 @@ TAG_SIZE_M = 0.16
 BANDS_M = [(0, 1), (1, 2), (2, 3), (3, 5), (5, 100)]
 
 
-def sample_recording(bag: Path = SAMPLE_BAG) -> tuple[list[np.ndarray], list[dict[str, Any]], dict[str, Any]]:
+def sample_recording(bag: Path = SAMPLE_BAG) -> tuple[list[np.ndarray], list[dict[str, Any]], CameraModel]:
     """Frames (decoded once), per-frame ground truth and the camera (from camera_info) of a committed bag."""
     import json
 
@@ -72,7 +73,7 @@ def sample_recording(bag: Path = SAMPLE_BAG) -> tuple[list[np.ndarray], list[dic
     return frames, truth, camera
 
 
-def simulated(seed: int) -> tuple[list[np.ndarray], list[dict[str, Any]], dict[str, Any]]:
+def simulated(seed: int) -> tuple[list[np.ndarray], list[dict[str, Any]], CameraModel]:
     """Frames, per-frame ground truth and the camera of a simulated office run of another seed."""
     from sample_data.simulate import SimConfig, decode_image, image_topic, simulate
 
@@ -80,7 +81,7 @@ def simulated(seed: int) -> tuple[list[np.ndarray], list[dict[str, Any]], dict[s
     rec = simulate(cfg)
     topic = image_topic(cfg)
     frames = [decode_image(m.payload) for m in rec.messages if m.topic == topic]
-    return frames, rec.ground_truth["frames"], rec.ground_truth["camera"]
+    return frames, rec.ground_truth["frames"], CameraModel.model_validate(rec.ground_truth["camera"])
 
 
 def rms(values: list[float]) -> float:
@@ -89,14 +90,14 @@ def rms(values: list[float]) -> float:
 
 
 def run_variant(
-    cfg: DetectConfig, frames: list[np.ndarray], truth: list[dict[str, Any]], camera: dict[str, Any]
-) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]], dict[str, Any]]:
+    cfg: DetectConfig, frames: list[np.ndarray], truth: list[dict[str, Any]], camera: CameraModel
+) -> tuple[list[tuple[DetectionRow, dict[str, Any]]], list[DetectionRow], dict[str, Any]]:
     """Rows matched to ground truth, all rows, and recall / corner RMS / false ids of one detector setting."""
     from stages.detect.core import detect_image
 
     proc = FrameProcessor(cfg, camera)
     assert proc.detector is not None
-    rows: list[dict[str, Any]] = []
+    rows: list[DetectionRow] = []
     matched = []
     n_truth = hits = false = 0
     sq: list[float] = []
@@ -104,8 +105,8 @@ def run_variant(
         found = detect_image(img, proc.detector, proc.camera, cfg, FrameJob(i, 0, "cam"))
         rows += found
         ids = {t["id"]: t for t in gt["visible_tags"]}
-        by_id = {r["tag_id"]: r for r in found}
-        false += sum(1 for r in found if r["tag_id"] not in ids)
+        by_id = {r.tag_id: r for r in found}
+        false += sum(1 for r in found if r.tag_id not in ids)
         for tid, t in ids.items():
             c = np.reshape(t["corners_px"], (4, 2))
             if shortest_side_px(c) < 15:
@@ -113,9 +114,9 @@ def run_variant(
             n_truth += 1
             if tid in by_id:
                 hits += 1
-                d = np.reshape(by_id[tid]["corners"], (4, 2)) - c
+                d = np.reshape(by_id[tid].corners, (4, 2)) - c
                 sq += list(np.sum(d**2, axis=1))
-        matched += [(r, ids[r["tag_id"]]) for r in found if r["tag_id"] in ids]
+        matched += [(r, ids[r.tag_id]) for r in found if r.tag_id in ids]
     stats = {
         "hits": hits,
         "n": n_truth,
@@ -126,7 +127,7 @@ def run_variant(
 
 
 def nees_per_band(
-    matched: list[tuple[dict[str, Any], dict[str, Any]]], rows: list[dict[str, Any]], cfg: DetectConfig
+    matched: list[tuple[DetectionRow, dict[str, Any]]], rows: list[DetectionRow], cfg: DetectConfig
 ) -> tuple[list[str], float, float]:
     """NEES/6 of the reported pose covariance against ground truth, per distance band and overall."""
     import gtsam
@@ -137,9 +138,7 @@ def nees_per_band(
     nees, dist = [], []
     for r, t in matched:
         cov, _ = row_pose_cov(r, sigma, cfg)
-        xi = gtsam.Pose3(np.reshape(r["T_camera_tag"], (4, 4))).localCoordinates(
-            gtsam.Pose3(np.array(t["T_camera_tag"]))
-        )
+        xi = gtsam.Pose3(r.pose.T_camera_tag).localCoordinates(gtsam.Pose3(np.array(t["T_camera_tag"])))
         nees.append(float(xi @ np.linalg.solve(cov, xi)) / 6)
         dist.append(float(np.linalg.norm(np.array(t["T_camera_tag"])[:3, 3])))
     nees_a, dist_a = np.array(nees), np.array(dist)
@@ -150,7 +149,7 @@ def nees_per_band(
     return cells, float(nees_a.mean()), sigma
 
 
-def radial_bias(matched: list[tuple[dict[str, Any], dict[str, Any]]], rows: list[dict[str, Any]]) -> tuple[float, ...]:
+def radial_bias(matched: list[tuple[DetectionRow, dict[str, Any]]], rows: list[DetectionRow]) -> tuple[float, ...]:
     """Moment fit of ``corner_bias_px``: mean outward corner error per tag vs the white-noise prediction.
 
     The common outward displacement of a tag's four corners (along their diagonals) has variance
@@ -158,17 +157,17 @@ def radial_bias(matched: list[tuple[dict[str, Any], dict[str, Any]]], rows: list
     """
     from stages.detect.pose import scale_mode
 
-    sigma2 = sum(r["sse_px2"] for r in rows) / (2 * len(rows))
+    sigma2 = sum(r.pose.sse_px2 for r in rows) / (2 * len(rows))
     rb = []
     for r, t in matched:
         g = np.reshape(t["corners_px"], (4, 2))
-        e = np.reshape(r["corners"], (4, 2)) - g
+        e = np.reshape(r.corners, (4, 2)) - g
         rb.append(float(np.sum(e * scale_mode(g).reshape(4, 2), axis=1).mean()))
     mean_sq = float(np.mean(np.square(rb)))
     return float(np.mean(rb)), mean_sq, sigma2 / 4, float(np.sqrt(max(0.0, mean_sq - sigma2 / 4)))
 
 
-def bench_sim(frames: list[np.ndarray], truth: list[dict[str, Any]], camera: dict[str, Any], label: str) -> None:
+def bench_sim(frames: list[np.ndarray], truth: list[dict[str, Any]], camera: CameraModel, label: str) -> None:
     """Recall, corner RMS and false ids per detector setting; NEES per distance band of the default."""
     print(f"\n## {label}: {len(frames)} frames (recall over tags fully in view, shortest side >= 15 px)")
     print("| detector | recall | corner RMS px | ids not listed as fully visible |")
@@ -238,7 +237,7 @@ def bench_photos() -> None:
 _WORKER: dict[str, Any] = {}
 
 
-def _init_speed(sets: dict[str, tuple[list[np.ndarray], dict[str, Any]]]) -> None:
+def _init_speed(sets: dict[str, tuple[list[np.ndarray], CameraModel]]) -> None:
     """Worker initializer: the frames (decoded once, sent once) and a processor per (setting, set)."""
     _WORKER["sets"] = sets
     _WORKER["procs"] = {}
@@ -279,16 +278,16 @@ def _fps(pool: ProcessPoolExecutor | None, variant: str, set_name: str, n: int, 
     return n / (time.perf_counter() - t0)
 
 
-def synthetic_frames(width: int, height: int, n: int) -> tuple[list[np.ndarray], dict[str, Any]]:
+def synthetic_frames(width: int, height: int, n: int) -> tuple[list[np.ndarray], CameraModel]:
     """``n`` rendered frames of 4 tags at 0.8-3 m, size ``width`` x ``height`` (flat background, noise 2)."""
     f = 0.65 * width
-    camera = {
-        "width": width,
-        "height": height,
-        "K": [f, 0, width / 2, 0, f, height / 2, 0, 0, 1],
-        "distortion_model": "plumb_bob",
-        "D": [-0.06, 0.012, 0.0006, -0.0004, 0.0],
-    }
+    camera = CameraModel(
+        width=width,
+        height=height,
+        K=[f, 0, width / 2, 0, f, height / 2, 0, 0, 1],
+        distortion_model="plumb_bob",
+        D=[-0.06, 0.012, 0.0006, -0.0004, 0.0],
+    )
     cam = colmap_camera(camera)
     rng = np.random.default_rng(0)
     frames = []
@@ -312,7 +311,7 @@ def synthetic_frames(width: int, height: int, n: int) -> tuple[list[np.ndarray],
     return frames, camera
 
 
-def photo_frames(n: int) -> tuple[list[np.ndarray], dict[str, Any]] | None:
+def photo_frames(n: int) -> tuple[list[np.ndarray], CameraModel] | None:
     """The real photos and apriltag-multi images (cycled to ``n`` frames; a nominal camera for the pose)."""
     paths = sorted((SHARED / "apriltag-photos").glob("*.jpg")) + sorted((SHARED / "apriltag-multi").glob("*.png"))
     imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths]
@@ -322,11 +321,11 @@ def photo_frames(n: int) -> tuple[list[np.ndarray], dict[str, Any]] | None:
     h = min(i.shape[0] for i in imgs)
     w = min(i.shape[1] for i in imgs)
     imgs = [np.ascontiguousarray(i[:h, :w]) for i in imgs]
-    camera = {"width": w, "height": h, "K": [w, 0, w / 2, 0, w, h / 2, 0, 0, 1], "distortion_model": "none", "D": []}
+    camera = CameraModel(width=w, height=h, K=[w, 0, w / 2, 0, w, h / 2, 0, 0, 1], distortion_model="none", D=[])
     return [imgs[k % len(imgs)] for k in range(n)], camera
 
 
-def bench_speed(sim_frames: list[np.ndarray], sim_camera: dict[str, Any], n: int, repeats: int) -> None:
+def bench_speed(sim_frames: list[np.ndarray], sim_camera: CameraModel, n: int, repeats: int) -> None:
     """Frames per second, one process and two, per setting and frame set, interleaved; ratios to the reference.
 
     Frames are decoded once and sent to the workers once (the initializer); pool start-up and the first
@@ -336,7 +335,7 @@ def bench_speed(sim_frames: list[np.ndarray], sim_camera: dict[str, Any], n: int
     import os
 
     step = max(1, len(sim_frames) // n)
-    sets: dict[str, tuple[list[np.ndarray], dict[str, Any]]] = {
+    sets: dict[str, tuple[list[np.ndarray], CameraModel]] = {
         f"sample {sim_frames[0].shape[1]}x{sim_frames[0].shape[0]}": (sim_frames[::step][:n], sim_camera),
         "640x480": synthetic_frames(640, 480, n),
         "1280x720": synthetic_frames(1280, 720, n),

@@ -427,6 +427,7 @@ def diagnose(args: argparse.Namespace) -> None:
     import pyarrow.parquet as pq
 
     from stages.graph.config import GraphConfig
+    from stages.ingest.artifacts import Extrinsics
 
     work = Path(args.work)
     cfg0 = GraphConfig(model="planar")
@@ -439,7 +440,7 @@ def diagnose(args: argparse.Namespace) -> None:
         truth = _truth_tables(gt)[0]
         detections = pq.read_table(run / "detect" / "detections.parquet")
         odometry = pq.read_table(run / "ingest" / "odometry.parquet")
-        extrinsics = json.loads((run / "ingest" / "extrinsics.json").read_text())
+        extrinsics = Extrinsics.model_validate_json((run / "ingest" / "extrinsics.json").read_text())
         de = _depth_errors(detections.to_pydict(), truth)
         k = -float(np.mean(de["rel_depth"]))
         print(f"\n## {name}: {len(de['i'])} detections matched, mean relative depth error {-100 * k:+.3f} %")

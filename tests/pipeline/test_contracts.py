@@ -21,6 +21,7 @@ SPEC = TableSpec("t.parquet", "a test table", [A, B])
 class Doc(BaseModel):
     n: int
     name: str = "x"
+    note: str | None = None
 
 
 DOC = JsonSpec("doc.json", "a test document", Doc)
@@ -70,5 +71,18 @@ def test_json_round_trip_and_validation(tmp_path: Path) -> None:
 
 def test_markdown_lists_every_column_and_key() -> None:
     text = ArtifactSet("demo", "Test stage.", [SPEC, DOC]).markdown()
-    for needle in ("`t.parquet`", "| `a` | int64 | an integer |", "| `b` | 2 × float64 | a pair |", "| `n` | int |"):
+    needles = ("`t.parquet`", "| `a` | int64 | an integer |", "| `b` | 2 × float64 | a pair |", "| `n` | int |")
+    assert "| `note` | str \\| None |" in text
+    for needle in needles:
         assert needle in text
+
+
+def test_a_table_read_in_batches_is_checked_and_cast(tmp_path: Path) -> None:
+    SPEC.write(StageOutput(tmp_path), {"a": [1, 2, 3], "b": [[1.0, 2.0]] * 3})
+    inp = StageInput("demo", tmp_path)
+    pieces = list(SPEC.batches(inp, batch_size=2, columns=[A]))
+    assert [p.column(A).to_pylist() for p in pieces] == [[1, 2], [3]]
+    assert SPEC.num_rows(inp) == 3
+    pq.write_table(pa.table({"a": [1]}), tmp_path / "t.parquet")
+    with pytest.raises(InputError, match=r"lacks columns \['b'\]"):
+        SPEC.batches(inp, batch_size=2)

@@ -3,7 +3,6 @@ and its covariance (Monte Carlo), calibration files, and the stage on a run fold
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from pathlib import Path
 
@@ -14,35 +13,38 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.config import load_settings
+from pipeline.errors import InputError
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
 from stages import REGISTRY
 from stages.camera import colmap_camera, load_camera_file
+from stages.detect.artifacts import DETECTIONS
 from stages.detect.backends import make_detector, shortest_side_px
 from stages.detect.config import DetectConfig
 from stages.detect.core import detect_image
 from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import estimate_tag_pose
+from stages.ingest.artifacts import CameraModel
 from tests.fixtures.shared_data import need_shared
 from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag, render_frame
 
 BACKENDS = ("apriltag3", "opencv")
 
 
-def _camera(model: str = "plumb_bob", width: int = 640, height: int = 480) -> dict:
+def _camera(model: str = "plumb_bob", width: int = 640, height: int = 480) -> CameraModel:
     D = {"none": [], "plumb_bob": [-0.12, 0.02, 0.0008, -0.0005, 0.0], "equidistant": [-0.02, 0.015, -0.009, 0.0017]}[
         model
     ]
     f = 420.0 if model != "equidistant" else 300.0
-    return {
-        "width": width,
-        "height": height,
-        "K": [f, 0, 318.3, 0, f * 1.002, 241.7, 0, 0, 1],
-        "distortion_model": model,
-        "D": D,
-        "frame_id": "cam",
-        "topic": "/cam",
-    }
+    return CameraModel(
+        width=width,
+        height=height,
+        K=[f, 0, 318.3, 0, f * 1.002, 241.7, 0, 0, 1],
+        distortion_model=model,
+        D=D,
+        frame_id="cam",
+        topic="/cam",
+    )
 
 
 # --------------------------------------------------------------------------- frames
@@ -224,13 +226,13 @@ def test_position_cov_is_the_translation_block_in_the_camera_frame() -> None:
 def test_kalibr_cameras_yaml_both_lens_models() -> None:
     folder = need_shared("tagslam-test")
     fish = load_camera_file(folder / "test_1" / "cameras.yaml")
-    assert fish["distortion_model"] == "equidistant" and fish["width"] == 1280 and len(fish["D"]) == 4
+    assert fish.distortion_model == "equidistant" and fish.width == 1280 and len(fish.D) == 4
     assert colmap_camera(fish).model_name == "OPENCV_FISHEYE"
     radtan = load_camera_file(folder / "test_10" / "cameras.yaml")
-    assert radtan["distortion_model"] == "plumb_bob" and len(radtan["D"]) == 5
+    assert radtan.distortion_model == "plumb_bob" and len(radtan.D) == 5
     assert colmap_camera(radtan).model_name == "FULL_OPENCV"
     second = load_camera_file(folder / "test_21" / "cameras.yaml", topic="/t265/fisheye2/tags")
-    assert second["K"][0] == pytest.approx(286.80)
+    assert second.K[0] == pytest.approx(286.80)
 
 
 def test_camera_info_yaml(tmp_path: Path) -> None:
@@ -242,14 +244,21 @@ def test_camera_info_yaml(tmp_path: Path) -> None:
         "distortion_coefficients: {rows: 1, cols: 5, data: [-0.1, 0.01, 0.001, 0.0, 0.0]}\n"
     )
     cam = load_camera_file(path)
-    assert cam["K"][4] == 401 and cam["distortion_model"] == "plumb_bob" and cam["frame_id"] == "front"
+    assert cam.K[4] == 401 and cam.distortion_model == "plumb_bob" and cam.frame_id == "front"
     assert colmap_camera(cam).model_name == "OPENCV"
+
+
+def test_a_calibration_that_is_no_camera_names_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "cameras.yaml"
+    path.write_text("cam0:\n  intrinsics: [400, 401, 320, 240]\n  resolution: [0, 480]\n  distortion_model: none\n")
+    with pytest.raises(InputError, match=r"cameras\.yaml' cam0: width: .*greater than 0"):
+        load_camera_file(path)
 
 
 # --------------------------------------------------------------------------- the stage on a run folder
 
 
-def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: dict, w: int, h: int) -> RunFolder:
+def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: CameraModel, w: int, h: int) -> RunFolder:
     """A run whose ingest stage 'finished' with the given frames (format, bytes) and camera."""
     run = RunFolder.create(tmp_path / "run", None)
     folder = run.stage_dir("ingest")
@@ -270,14 +279,14 @@ def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: dict, w:
         ),
         folder / "frames.parquet",
     )
-    (folder / "camera.json").write_text(json.dumps(camera))
+    (folder / "camera.json").write_text(camera.model_dump_json())
     run.record("ingest", {"fingerprint": "test", "summary": {}})
     return run
 
 
 def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) -> None:
-    cam_dict = _camera()
-    cam = colmap_camera(cam_dict)
+    camera = _camera()
+    cam = colmap_camera(camera)
     tags = [
         TagPlacement(4, "tag36h11", 0.1, look_at_tag(0.7, 20, 0, 0, (-0.1, 0))),
         TagPlacement(9, "tag36h11", 0.1, look_at_tag(0.9, -25, 10, 0, (0.15, 0.05))),
@@ -287,7 +296,7 @@ def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) 
         img = render_frame(cam, tags if k != 2 else [], noise_sigma=2.0, rng=np.random.default_rng(k))
         jobs.append(("png", cv2.imencode(".png", img)[1].tobytes()))
     jobs.append(("jpeg", b"\xff\xd8 not a jpeg"))
-    run = _fake_ingest(tmp_path, jobs, cam_dict, 640, 480)
+    run = _fake_ingest(tmp_path, jobs, camera, 640, 480)
     settings = load_settings(
         REGISTRY.models(), None, ["detect.tag_size_m=0.1", "detect.workers=2", "detect.batch_frames=2"]
     )
@@ -297,23 +306,7 @@ def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) 
     table = pq.read_table(run.stage_dir("detect") / "detections.parquet")
     assert table.num_rows == 6 and summary["detections"] == 6 and summary["distinct_tags"] == 2
     assert 2 not in table.column("frame").to_pylist()
-    assert {f.name for f in table.schema} >= {
-        "frame",
-        "stamp_ns",
-        "camera",
-        "tag_id",
-        "family",
-        "corners",
-        "size_m",
-        "T_camera_tag",
-        "pose_cov",
-        "position_cov",
-        "reprojection_px",
-        "ambiguity_ratio",
-        "ambiguous",
-        "decision_margin",
-        "hamming",
-    }
+    assert table.schema.equals(DETECTIONS.schema)
     rows = table.to_pylist()
     truth = {t.tag_id: t for t in tags}
     for r in rows:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import Counter
 from pathlib import Path
@@ -14,6 +15,7 @@ from gtsam.symbol_shorthand import L, X
 
 from pipeline.artifacts import StageInput
 from pipeline.config import load_settings
+from pipeline.contracts import TableSpec
 from pipeline.errors import InputError, StageError
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
@@ -26,6 +28,7 @@ from stages.geometry import (
     relative_position_to_bearing_range_2d,
 )
 from stages.graph import GraphConfig, build_reduced, import_graph, load_graph
+from stages.graph.artifacts import ARTIFACTS as GRAPH_ARTIFACTS
 from stages.graph.build import build_problem
 from stages.graph.factors import SCALE_KEY, FactorRow, build_graph
 from stages.graph.g2o import read_graph_file, write_g2o
@@ -329,18 +332,10 @@ def _stage_run(tmp_path: Path, sim, overrides: list[str] = ()) -> RunFolder:
 def test_stage_end_to_end_and_reload(tmp_path: Path, sim) -> None:
     run = _stage_run(tmp_path, sim)
     out = run.stage_dir("graph")
-    for f in (
-        "factors.parquet",
-        "values.npz",
-        "marginals.npz",
-        "poses.parquet",
-        "landmarks.parquet",
-        "trajectory.tum",
-        "dead_reckoning.tum",
-        "graph.g2o",
-        "summary.json",
-    ):
-        assert (out / f).is_file(), f
+    assert {p.name for p in out.iterdir()} == {spec.file for spec in GRAPH_ARTIFACTS.specs} | {"summary.json"}
+    for spec in GRAPH_ARTIFACTS.specs:
+        if isinstance(spec, TableSpec):
+            assert pq.read_schema(out / spec.file).equals(spec.schema), spec.file
     summary = json.loads((out / "summary.json").read_text())
     factors = pq.read_table(out / "factors.parquet").to_pydict()
     assert len(factors["index"]) == summary["factors"]
@@ -386,3 +381,28 @@ def test_stage_failure_leaves_no_artifacts(tmp_path: Path, sim) -> None:
         _stage_run(tmp_path, sim, ["graph.max_reprojection_px=0.1"])
     run = RunFolder(tmp_path / "run")
     assert run.stage_entry("graph") is None and not run.stage_dir("graph").exists()
+
+
+def test_an_old_detections_table_names_detect_to_rerun(tmp_path: Path, sim) -> None:
+    old = dataclasses.replace(sim, detections=sim.detections.drop_columns(["pose_cov"]))
+    with pytest.raises(
+        InputError, match=r"detect/detections\.parquet lacks columns \['pose_cov'\]; re-run 'focusmap detect"
+    ):
+        _stage_run(tmp_path, old)
+
+
+def test_an_old_graph_folder_names_the_stage_to_rerun(tmp_path: Path, sim) -> None:
+    out = _stage_run(tmp_path, sim).stage_dir("graph")
+    factors = pq.read_table(out / "factors.parquet")
+    pq.write_table(factors.drop_columns(["robust_k"]), out / "factors.parquet")
+    with pytest.raises(
+        InputError, match=r"graph/factors\.parquet lacks columns \['robust_k'\]; re-run 'focusmap graph"
+    ):
+        load_graph(StageInput("graph", out))
+    pq.write_table(factors, out / "factors.parquet")
+    with np.load(out / "values.npz") as arrays:
+        kept = {k: arrays[k] for k in arrays.files if k != "initial"}
+    np.savez(out / "values.npz", **kept)
+    old_arrays = r"optimize/values\.npz lacks arrays \['initial'\]; re-run 'focusmap optimize RUN --force'"
+    with pytest.raises(InputError, match=old_arrays):
+        load_graph(StageInput("optimize", out))  # optimize's reduced graph is read the same way

@@ -9,12 +9,15 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from pipeline.artifacts import StageInput
 from pipeline.config import load_settings
+from pipeline.contracts import TableSpec
 from pipeline.errors import InputError
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
 from sample_data.simulate import SimConfig, simulate, write_bag
 from stages import REGISTRY
+from stages.ingest.artifacts import ARTIFACTS, CAMERA, EXTRINSICS, CameraModel
 
 FORMATS = {"ros1": "bag.bag", "ros2-sqlite": "bag_sqlite", "ros2-mcap": "bag_mcap", "mcap": "bag.mcap"}
 
@@ -64,6 +67,21 @@ def test_round_trip_counts_images_odometry_camera(fmt: str, bags, recording, tmp
     assert np.allclose(ext["sensors"]["camera"]["T_base_sensor"], gt["T_base_camera"], atol=1e-9)
     assert np.allclose(ext["sensors"]["laser"]["T_base_sensor"], gt["T_base_laser"], atol=1e-9)
     assert summary["reader"] == ("mcap" if fmt == "mcap" else "rosbags")
+
+
+def test_every_artifact_is_declared_and_written_as_declared(bags, tmp_path: Path) -> None:
+    out = _ingest(bags["ros1"], tmp_path).stage_dir("ingest")
+    written = {p.name for p in out.iterdir()} - {"summary.json"}
+    declared = {spec.file: spec for spec in ARTIFACTS.specs}
+    assert written <= set(declared)
+    assert {f for f, spec in declared.items() if not spec.optional} <= written
+    for name in written:
+        if isinstance(spec := declared[name], TableSpec):
+            assert pq.read_schema(out / name).equals(spec.schema), name
+    done = StageInput("ingest", out)
+    assert isinstance(CAMERA.read(done), CameraModel) and CAMERA.read(done).width > 0
+    mounts = EXTRINSICS.read(done).sensors
+    assert set(mounts) == {"camera", "laser"} and not mounts["laser"].assumed
 
 
 def test_window_and_stride_keep_frame_indices(bags, recording, tmp_path: Path) -> None:
