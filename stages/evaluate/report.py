@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from stages.evaluate.analysis import CHI2_2_95
-from stages.evaluate.cases import WHY_COLUMNS, CaseResult, EvalInputs
+from stages.evaluate.artifacts import ORACLE_ERROR_ALL_M, WHY_COLUMNS
+from stages.evaluate.cases import CaseResult, EvalInputs
 
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("label", "case", "{}"),
@@ -338,7 +339,7 @@ def why_findings(inputs: EvalInputs, results: Sequence[CaseResult]) -> dict[str,
             k: row.get(k)
             for k in (
                 "focused_error_m",
-                *(c for c in WHY_COLUMNS if c != "oracle_error_all_m"),
+                *(c for c in WHY_COLUMNS if c != ORACLE_ERROR_ALL_M),
                 "risk_margin_sigmas",
                 "margin_sigmas",
                 "tight_margin_m",

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pipeline.errors import StageError
+from stages.columns import TAG_ID, Z
 from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
@@ -245,7 +246,8 @@ def solve_settings(cfg: object) -> dict[str, object]:
 def landmark_heights(graph_landmarks: object) -> dict[int, tuple[float, float]]:
     """Tag id to (z, var z) from the graph's ``landmarks.parquet`` (planar graphs keep the height aside)."""
     cols = graph_landmarks.to_pydict()  # type: ignore[attr-defined]
+    # TODO(merge): graph's POSITION_COV column once stages.graph.artifacts declares it
     return {
         int(t): (float(z), float(pc[8]) if pc and len(pc) == 9 else 0.0)
-        for t, z, pc in zip(cols["tag_id"], cols["z"], cols["position_cov"], strict=True)
+        for t, z, pc in zip(cols[TAG_ID], cols[Z], cols["position_cov"], strict=True)
     }
