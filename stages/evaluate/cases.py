@@ -296,7 +296,11 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
             f"the nominal path passes {clearance:.3f} m from an obstacle ({obstacles.kind}), inside the robot radius "
             f"{radius} m, so every trial would collide; lower evaluate.robot_radius_m below {clearance:.2f}"
         )
-    obs = [(r.stamp_ns, r.tag_id) for r in loaded.rows if r.kind == "tag" and r.stamp_ns is not None]
+    obs = [
+        (r.stamp_ns, r.tag_id)
+        for r in loaded.rows
+        if r.kind == "tag" and r.stamp_ns is not None and r.tag_id is not None
+    ]
     vis = visibility_schedule(path.stamps_ns, [o[0] for o in obs], [o[1] for o in obs], cfg.visibility_window_s)
     truth_lm, _ = inputs.reference_positions(optimal)
     gains = lqr_gains(path, params.Wx, params.Wu)
@@ -366,10 +370,9 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         selected = [i for i in loaded.tag_factor_indices.tolist() if loaded.rows[i].tag_id in set(tags)]
         ms_seconds = 0.0
     else:
-        focus = "all" if case.landmark_strategy == "all" else "selected"
-        cfg = inputs.sm_cfg.model_copy(
-            update={"strategy": case.measurement_strategy, "budget": inputs.K, "focus": focus, "seed": inputs.cfg.seed}
-        )
+        ms_focus = "all" if case.landmark_strategy == "all" else "selected"
+        update = {"strategy": case.measurement_strategy, "budget": inputs.K, "focus": ms_focus, "seed": inputs.cfg.seed}
+        cfg = inputs.sm_cfg.model_copy(update=update)
         measurement = inputs.upstream_measurements(cfg, tags)
         if measurement is not None:
             reused.append("measurements")
@@ -502,7 +505,7 @@ def _why_columns(
     inputs: EvalInputs, reduced: ReducedMap, selected: Sequence[int], reference: dict[int, FloatArray], focus: set[int]
 ) -> dict[str, float]:
     """NEES of the focused landmarks, the kept measurements at the truth, and the oracle re-solve's errors."""
-    out = dict.fromkeys((*art.WHY_COLUMNS, *art.MARGIN_COLUMNS), float("nan"))
+    out: dict[str, float] = dict.fromkeys((*art.WHY_COLUMNS, *art.MARGIN_COLUMNS), float("nan"))
     truth = inputs.truth
     if truth is None or inputs.loaded.model != "planar":
         return out

@@ -158,8 +158,5 @@ def log_recording(rec: rr.RecordingStream, inputs: EvalInputs, results: list[Any
         if r.navigation is not None:
             strips = [np.column_stack([s, np.zeros(len(s))]) for s in r.navigation.sample_paths]
             rec.log(f"{base}/trials", rr.LineStrips3D(strips, colors=[[255, 150, 0]], radii=0.01), static=True)
-        rec.log(
-            f"{base}/metrics",
-            rr.AnyValues(**{k: v for k, v in r.row.items() if isinstance(v, (int, float))}),
-            static=True,
-        )
+        metrics: dict[str, Any] = {str(k): v for k, v in r.row.items() if isinstance(v, (int, float))}
+        rec.log(f"{base}/metrics", rr.AnyValues(**metrics), static=True)
