@@ -45,6 +45,8 @@ import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 
+from stages.columns import STAMP_NS, TAG_ID
+from stages.detect.artifacts import DETECTIONS
 from stages.estimation.collision import (
     collision_risk,
     dead_reckoning_covariances,
@@ -52,6 +54,7 @@ from stages.estimation.collision import (
     measurement_information,
     stabilised_covariances,
 )
+from stages.ingest.artifacts import EXTRINSICS, SCANS
 
 if TYPE_CHECKING:
     import gtsam
@@ -264,7 +267,7 @@ def scan_clearance(
     points = np.full((T, 2), np.nan)
     if scans.num_rows == 0 or T == 0:
         return clearance, normals, points
-    s_stamps = np.asarray(scans.column("stamp_ns").to_numpy(), dtype=np.int64)
+    s_stamps = np.asarray(scans.column(STAMP_NS).to_numpy(), dtype=np.int64)
     order = np.argsort(s_stamps, kind="stable")
     s_sorted = s_stamps[order]
     nearest = order[_nearest_index(s_sorted, np.asarray(stamps_ns, dtype=np.int64))]
@@ -318,8 +321,8 @@ def path_geometry(
         if r.kind == "tag" and r.tag_id is not None and r.keys and r.keys[0] in index_of_key
     ]
     if detections is not None and detections.num_rows and len(stamps):
-        d_st = np.asarray(detections.column("stamp_ns").to_numpy(), dtype=np.int64)
-        d_tag = np.asarray(detections.column("tag_id").to_numpy(), dtype=np.int64)
+        d_st = np.asarray(detections.column(STAMP_NS).to_numpy(), dtype=np.int64)
+        d_tag = np.asarray(detections.column(TAG_ID).to_numpy(), dtype=np.int64)
         k = _nearest_index(stamps, d_st)
         near = np.abs(stamps[k] - d_st) <= params.visibility_window_s * 1e9
         obs += [(int(a), int(b)) for a, b in zip(k[near], d_tag[near], strict=True)]
@@ -430,18 +433,18 @@ def read_path_inputs(ctx: StageContext) -> PathInputs:
     note = ""
     if ctx.has_input("ingest"):
         ingest = ctx.input("ingest")
-        if ingest.exists("scans.parquet"):
-            scans = ingest.read_table("scans.parquet")
+        if ingest.exists(SCANS.file):
+            scans = SCANS.read(ingest)
             if scans.num_rows == 0:
                 note = "ingest found no laser scans in the recording"
         else:
             note = "ingest wrote no scans.parquet (the recording has no LaserScan topic)"
-        if ingest.exists("extrinsics.json"):
-            laser = ingest.read_json("extrinsics.json").get("sensors", {}).get("laser")
+        if ingest.exists(EXTRINSICS.file):
+            laser = EXTRINSICS.read(ingest).sensors.get("laser")
             if laser is not None:
-                T_base_laser = np.asarray(laser["T_base_sensor"], dtype=float)
+                T_base_laser = np.asarray(laser.T_base_sensor, dtype=float)
     else:
         note = "the run has no ingest stage (a graph from 'focusmap import-graph')"
-    if ctx.has_input("detect") and ctx.input("detect").exists("detections.parquet"):
-        detections = ctx.input("detect").read_table("detections.parquet", columns=["stamp_ns", "tag_id"])
+    if ctx.has_input("detect") and ctx.input("detect").exists(DETECTIONS.file):
+        detections = DETECTIONS.read(ctx.input("detect"), columns=[STAMP_NS, TAG_ID])
     return PathInputs(scans, T_base_laser, detections, note)
