@@ -31,7 +31,8 @@ API (call from any stage, no run folder needed beyond the inputs)::
     geometry = path_geometry(loaded, scans, T_base_laser, detections, params)   # once per run
     lmap = LandmarkMap.from_graph(loaded)                                          # or the reduced graph's map
     risk = path_risk(geometry, lmap, focused_tag_ids, params)                      # PathRisk
-    table = risk_table(geometry, risk_all, risk_focused)                           # risk.parquet
+
+select_landmarks' ``risk.parquet`` is :func:`stages.select_landmarks.artifacts.risk_table` of two ``PathRisk``.
 """
 
 from __future__ import annotations
@@ -419,33 +420,6 @@ def path_risk(
     sigma = dead_reckoning_covariances(sig, localised, geometry.Q, params.cap_steps)
     p, maha = _risk_of(geometry, sigma, params)
     return PathRisk(sigma, localised, p, maha)
-
-
-def risk_table(geometry: PathGeometry, risk_all: PathRisk, risk_focused: PathRisk, z: float = 0.0) -> pa.Table:
-    """``risk.parquet``: one row per keyframe (schema in ``docs/select.md``)."""
-    T = len(geometry.stamps_ns)
-    return pa.table(
-        {
-            "stamp_ns": pa.array(geometry.stamps_ns, pa.int64()),
-            "x": geometry.poses[:, 0],
-            "y": geometry.poses[:, 1],
-            "z": np.full(T, z),
-            "yaw": geometry.poses[:, 2],
-            "sigma_star": pa.array([s[:2, :2].ravel().tolist() for s in risk_focused.sigma], pa.list_(pa.float64())),
-            "sigma_star_all": pa.array([s[:2, :2].ravel().tolist() for s in risk_all.sigma], pa.list_(pa.float64())),
-            "localised": risk_focused.localised,
-            "clearance_m": geometry.clearance_m,
-            "normal_x": geometry.normals[:, 0],
-            "normal_y": geometry.normals[:, 1],
-            "obstacle_x": geometry.obstacles[:, 0],
-            "obstacle_y": geometry.obstacles[:, 1],
-            "n_visible": geometry.visible.sum(axis=1).astype(np.int64),
-            "p_collision_all": risk_all.p_collision,
-            "p_collision_focused": risk_focused.p_collision,
-            "mahalanobis_all": risk_all.mahalanobis,
-            "mahalanobis_focused": risk_focused.mahalanobis,
-        }
-    )
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,8 @@ import numpy.typing as npt
 import pyarrow as pa
 
 from pipeline.errors import ConfigError, StageError
+from stages.columns import STAMP_NS, TAG_ID, X, Y
+from stages.evaluate import artifacts as art
 from stages.evaluate.analysis import (
     MeasurementConsistency,
     NavigationMargin,
@@ -294,7 +296,11 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
             f"the nominal path passes {clearance:.3f} m from an obstacle ({obstacles.kind}), inside the robot radius "
             f"{radius} m, so every trial would collide; lower evaluate.robot_radius_m below {clearance:.2f}"
         )
-    obs = [(r.stamp_ns, r.tag_id) for r in loaded.rows if r.kind == "tag" and r.stamp_ns is not None]
+    obs = [
+        (r.stamp_ns, r.tag_id)
+        for r in loaded.rows
+        if r.kind == "tag" and r.stamp_ns is not None and r.tag_id is not None
+    ]
     vis = visibility_schedule(path.stamps_ns, [o[0] for o in obs], [o[1] for o in obs], cfg.visibility_window_s)
     truth_lm, _ = inputs.reference_positions(optimal)
     gains = lqr_gains(path, params.Wx, params.Wu)
@@ -364,10 +370,9 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         selected = [i for i in loaded.tag_factor_indices.tolist() if loaded.rows[i].tag_id in set(tags)]
         ms_seconds = 0.0
     else:
-        focus = "all" if case.landmark_strategy == "all" else "selected"
-        cfg = inputs.sm_cfg.model_copy(
-            update={"strategy": case.measurement_strategy, "budget": inputs.K, "focus": focus, "seed": inputs.cfg.seed}
-        )
+        ms_focus = "all" if case.landmark_strategy == "all" else "selected"
+        update = {"strategy": case.measurement_strategy, "budget": inputs.K, "focus": ms_focus, "seed": inputs.cfg.seed}
+        cfg = inputs.sm_cfg.model_copy(update=update)
         measurement = inputs.upstream_measurements(cfg, tags)
         if measurement is not None:
             reused.append("measurements")
@@ -385,51 +390,42 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
     risk = path_risk(inputs.landmarks.geometry, reduced.landmark_map, reduced.observed_tag_ids, inputs.risk_params)
     size = map_size(loaded, reduced)
     observed = set(reduced.observed_tag_ids)
+    nan = float("nan")
     row: dict[str, Any] = {
-        "case": case.name,
-        "label": TABLE_I_LABELS.get(case.name, case.name),
-        "landmark_strategy": case.landmark_strategy,
-        "measurement_strategy": case.measurement_strategy,
-        "landmark_budget": inputs.alpha if case.landmark_strategy != "all" else len(loaded.landmark_keys),
-        "measurement_budget": inputs.K if case.measurement_strategy != "all" else None,
-        "observed_landmarks": len(observed),
-        "focused_landmarks": len(focus & observed),
-        "measurements": reduced.n_measurements,
-        "focused_entropy": reduced.focused_entropy,
-        "focused_entropy_observed": reduced.focused_entropy_observed,
-        "error_all_m": mean_or_nan(errs.values()),
-        "focused_error_m": mean_or_nan(v for t, v in errs.items() if t in focus),
-        "error_reference": ref_name,
-        "max_collision_probability": risk.max,
-        "mean_collision_probability": risk.mean,
-        "collision_rate": float("nan"),
-        "collision_ci_low": float("nan"),
-        "collision_ci_high": float("nan"),
-        "collisions": 0,
-        "trials": 0,
-        "rms_tracking_error_m": float("nan"),
-        "rms_estimation_error_m": float("nan"),
-        "landmark_selection_s": lm_seconds,
-        "measurement_selection_s": ms_seconds,
-        "selection_s": lm_seconds + ms_seconds,
-        "optimise_s": float(sum(reduced.timing_s.values())),
-        "map_bytes": int(size["map_bytes"]) + int(size["measurement_bytes"]),
-        "bytes_fraction": float(size["bytes_fraction"]),
-        "status": measurement.message if measurement is not None else "",
+        art.CASE: case.name,
+        art.LABEL: TABLE_I_LABELS.get(case.name, case.name),
+        art.LANDMARK_STRATEGY: case.landmark_strategy,
+        art.MEASUREMENT_STRATEGY: case.measurement_strategy,
+        art.LANDMARK_BUDGET: inputs.alpha if case.landmark_strategy != "all" else len(loaded.landmark_keys),
+        art.MEASUREMENT_BUDGET: inputs.K if case.measurement_strategy != "all" else None,
+        art.OBSERVED_LANDMARKS: len(observed),
+        art.FOCUSED_LANDMARKS: len(focus & observed),
+        art.MEASUREMENTS: reduced.n_measurements,
+        art.FOCUSED_ENTROPY: reduced.focused_entropy,
+        art.FOCUSED_ENTROPY_OBSERVED: reduced.focused_entropy_observed,
+        art.ERROR_ALL_M: mean_or_nan(errs.values()),
+        art.FOCUSED_ERROR_M: mean_or_nan(v for t, v in errs.items() if t in focus),
+        art.ERROR_REFERENCE: ref_name,
+        art.MAX_COLLISION_PROBABILITY: risk.max,
+        art.MEAN_COLLISION_PROBABILITY: risk.mean,
+        art.COLLISION_RATE: nan,
+        art.COLLISION_CI_LOW: nan,
+        art.COLLISION_CI_HIGH: nan,
+        art.COLLISIONS: 0,
+        art.TRIALS: 0,
+        art.RMS_TRACKING_ERROR_M: nan,
+        art.RMS_ESTIMATION_ERROR_M: nan,
+        art.LANDMARK_SELECTION_S: lm_seconds,
+        art.MEASUREMENT_SELECTION_S: ms_seconds,
+        art.SELECTION_S: lm_seconds + ms_seconds,
+        art.OPTIMISE_S: float(sum(reduced.timing_s.values())),
+        art.MAP_BYTES: int(size["map_bytes"]) + int(size["measurement_bytes"]),
+        art.BYTES_FRACTION: float(size["bytes_fraction"]),
+        art.STATUS: measurement.message if measurement is not None else "",
     }
     row.update(_why_columns(inputs, reduced, selected, reference, focus))
-    row.update(
-        dict.fromkeys(
-            (
-                "collision_rate_aligned",
-                "collision_ci_low_aligned",
-                "collision_ci_high_aligned",
-                "rms_tracking_error_aligned_m",
-            ),
-            float("nan"),
-        )
-    )
-    row["risk_margin_sigmas"] = _margin_sigmas(risk.max)
+    row.update(dict.fromkeys(art.ALIGNED_COLUMNS, nan))
+    row[art.RISK_MARGIN_SIGMAS] = _margin_sigmas(risk.max)
     result = CaseResult(case, tags, measurement, reduced, risk, None, row, reused=reused)
     navigate(inputs, result)
     return result
@@ -473,42 +469,27 @@ def navigate(inputs: EvalInputs, result: CaseResult) -> None:
             )
             result.row.update(
                 {
-                    "collision_rate_aligned": al.collision_rate,
-                    "collision_ci_low_aligned": al.ci_low,
-                    "collision_ci_high_aligned": al.ci_high,
-                    "rms_tracking_error_aligned_m": al.rms_tracking_error_m,
+                    art.COLLISION_RATE_ALIGNED: al.collision_rate,
+                    art.COLLISION_CI_LOW_ALIGNED: al.ci_low,
+                    art.COLLISION_CI_HIGH_ALIGNED: al.ci_high,
+                    art.RMS_TRACKING_ERROR_ALIGNED_M: al.rms_tracking_error_m,
                 }
             )
     result.row.update(
         {
-            "collision_rate": nav.collision_rate,
-            "collision_ci_low": nav.ci_low,
-            "collision_ci_high": nav.ci_high,
-            "collisions": nav.collisions,
-            "trials": nav.trials,
-            "rms_tracking_error_m": nav.rms_tracking_error_m,
-            "rms_estimation_error_m": nav.rms_estimation_error_m,
+            art.COLLISION_RATE: nav.collision_rate,
+            art.COLLISION_CI_LOW: nav.ci_low,
+            art.COLLISION_CI_HIGH: nav.ci_high,
+            art.COLLISIONS: nav.collisions,
+            art.TRIALS: nav.trials,
+            art.RMS_TRACKING_ERROR_M: nav.rms_tracking_error_m,
+            art.RMS_ESTIMATION_ERROR_M: nav.rms_estimation_error_m,
         }
     )
     if setup.margin_m is not None and len(nav.step_rms_deviation_m) == len(setup.margin_m):
         margin = NavigationMargin(setup.margin_m, nav.step_rms_deviation_m, nav.step_ekf_sigma_m)
         result.margin = margin
         result.row.update(margin.summary())
-
-
-WHY_COLUMNS = (
-    "focused_error_aligned_m",
-    "focused_sigma_m",
-    "focused_nees",
-    "focused_outside_95",
-    "kept_tag_nees",
-    "kept_range_bias_m",
-    "oracle_focused_error_m",
-    "oracle_focused_error_aligned_m",
-    "oracle_focused_nees",
-    "oracle_error_all_m",
-)
-"""Columns of the consistency analysis (NaN without a ground truth)."""
 
 
 def _margin_sigmas(p: float) -> float:
@@ -524,22 +505,20 @@ def _why_columns(
     inputs: EvalInputs, reduced: ReducedMap, selected: Sequence[int], reference: dict[int, FloatArray], focus: set[int]
 ) -> dict[str, float]:
     """NEES of the focused landmarks, the kept measurements at the truth, and the oracle re-solve's errors."""
-    out = dict.fromkeys(WHY_COLUMNS, float("nan"))
-    out.update({"tight_margin_m": float("nan"), "tight_deviation_m": float("nan"), "tight_ekf_sigma_m": float("nan")})
-    out.update({"margin_sigmas": float("nan"), "min_margin_m": float("nan")})
+    out: dict[str, float] = dict.fromkeys((*art.WHY_COLUMNS, *art.MARGIN_COLUMNS), float("nan"))
     truth = inputs.truth
     if truth is None or inputs.loaded.model != "planar":
         return out
     lm = reduced.landmark_map
     lc = landmark_consistency(lm.tag_ids, lm.positions, lm.covariances, reference, focus)
-    out["focused_error_aligned_m"] = aligned_error(lm.tag_ids, lm.positions, reference, focus)
-    out.update(
-        {"focused_sigma_m": lc.mean_sigma_m, "focused_nees": lc.mean_nees, "focused_outside_95": lc.share_outside_95}
-    )
+    out[art.FOCUSED_ERROR_ALIGNED_M] = aligned_error(lm.tag_ids, lm.positions, reference, focus)
+    out[art.FOCUSED_SIGMA_M] = lc.mean_sigma_m
+    out[art.FOCUSED_NEES] = lc.mean_nees
+    out[art.FOCUSED_OUTSIDE_95] = lc.share_outside_95
     kept = [i for i in reduced.full_index.tolist() if inputs.loaded.rows[i].kind == "tag"]
     mc = measurement_consistency(inputs.loaded, truth, kept).get("tag")
     if mc is not None:
-        out.update({"kept_tag_nees": mc.mean_nees, "kept_range_bias_m": float(mc.mean_residual[1])})
+        out.update({art.KEPT_TAG_NEES: mc.mean_nees, art.KEPT_RANGE_BIAS_M: float(mc.mean_residual[1])})
     if inputs.cfg.oracle_measurements and kept:
         oracle = solve_reduced(
             inputs.loaded,
@@ -555,10 +534,10 @@ def _why_columns(
         errs = landmark_errors(olm, reference)
         out.update(
             {
-                "oracle_focused_error_m": oc.mean_error_m,
-                "oracle_focused_nees": oc.mean_nees,
-                "oracle_focused_error_aligned_m": aligned_error(olm.tag_ids, olm.positions, reference, focus),
-                "oracle_error_all_m": mean_or_nan(errs.values()),
+                art.ORACLE_FOCUSED_ERROR_M: oc.mean_error_m,
+                art.ORACLE_FOCUSED_NEES: oc.mean_nees,
+                art.ORACLE_FOCUSED_ERROR_ALIGNED_M: aligned_error(olm.tag_ids, olm.positions, reference, focus),
+                art.ORACLE_ERROR_ALL_M: mean_or_nan(errs.values()),
             }
         )
     return out
@@ -581,55 +560,48 @@ def run_all(inputs: EvalInputs, todo: Sequence[Case], progress: Any = None) -> l
 
 
 def cases_table(results: Sequence[CaseResult]) -> pa.Table:
-    """``cases.parquet``: one row per case."""
-    rows = [r.row for r in results]
-    cols = {k: [row[k] for row in rows] for k in rows[0]}
-    schema_types = {"measurement_budget": pa.int64()}
-    return pa.table({k: pa.array(v, type=schema_types.get(k)) for k, v in cols.items()})
+    """:data:`~stages.evaluate.artifacts.CASES`: one row per case."""
+    return art.CASES.table([r.row for r in results])
 
 
 def map_rows(results: Sequence[CaseResult]) -> pa.Table:
-    """``maps.parquet``: per case, every landmark of its map with its covariance."""
-    out: dict[str, list[Any]] = {k: [] for k in ("case", "tag_id", "x", "y", "covariance", "focused")}
+    """:data:`~stages.evaluate.artifacts.MAPS`: per case, every landmark of its map with its covariance."""
+    out: dict[str, list[Any]] = {c: [] for c in art.MAPS.names}
     for r in results:
         lm: LandmarkMap = r.reduced.landmark_map
         focus = set(r.landmark_tag_ids)
         for t, p, c in zip(lm.tag_ids.tolist(), lm.positions, lm.covariances, strict=True):
-            out["case"].append(r.case.name)
-            out["tag_id"].append(int(t))
-            out["x"].append(float(p[0]))
-            out["y"].append(float(p[1]))
-            out["covariance"].append(np.asarray(c).ravel().tolist())
-            out["focused"].append(int(t) in focus)
-    return pa.table(out)
+            out[art.CASE].append(r.case.name)
+            out[TAG_ID].append(int(t))
+            out[X].append(float(p[0]))
+            out[Y].append(float(p[1]))
+            out[art.COVARIANCE].append(np.asarray(c).ravel().tolist())
+            out[art.IN_CASE_FOCUS].append(int(t) in focus)
+    return art.MAPS.table(out)
 
 
 def risk_rows(inputs: EvalInputs, results: Sequence[CaseResult]) -> pa.Table:
-    """``path_risk.parquet``: per case and keyframe, the collision probability with the case's map."""
+    """:data:`~stages.evaluate.artifacts.PATH_RISK`: per case and keyframe, the collision probability with its map."""
     stamps = inputs.landmarks.geometry.stamps_ns
-    return pa.table(
+    return art.PATH_RISK.table(
         {
-            "case": [r.case.name for r in results for _ in stamps],
-            "stamp_ns": np.concatenate([stamps for _ in results]).astype(np.int64),
-            "p_collision": np.concatenate([r.risk.p_collision for r in results]),
+            art.CASE: [r.case.name for r in results for _ in stamps],
+            STAMP_NS: np.concatenate([stamps for _ in results]).astype(np.int64),
+            art.P_COLLISION: np.concatenate([r.risk.p_collision for r in results]),
         }
     )
 
 
 def greedy_rows(results: Sequence[CaseResult]) -> pa.Table:
-    """``greedy.parquet``: the focused entropy after each greedy pick (information cases)."""
-    out: dict[str, list[Any]] = {"case": [], "step": [], "entropy": []}
+    """:data:`~stages.evaluate.artifacts.GREEDY`: the focused entropy after each greedy pick (information cases)."""
+    out: dict[str, list[Any]] = {c: [] for c in art.GREEDY.names}
     for r in results:
-        steps = r.measurement.entropy_per_step() if r.measurement is not None else None
+        if r.measurement is None:
+            continue
+        steps = r.measurement.entropy_per_step()
         if steps is None:
             continue
-        out["case"] += [r.case.name] * (len(steps) + 1)
-        out["step"] += list(range(len(steps) + 1))
-        out["entropy"] += [float(r.measurement.entropy_before), *[float(s) for s in steps]]
-    return pa.table(
-        {
-            "case": pa.array(out["case"], pa.string()),
-            "step": pa.array(out["step"], pa.int64()),
-            "entropy": pa.array(out["entropy"], pa.float64()),
-        }
-    )
+        out[art.CASE] += [r.case.name] * (len(steps) + 1)
+        out[art.STEP] += list(range(len(steps) + 1))
+        out[art.ENTROPY] += [float(r.measurement.entropy_before), *[float(s) for s in steps]]
+    return art.GREEDY.table(out)

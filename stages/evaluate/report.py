@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from stages.evaluate.analysis import CHI2_2_95
-from stages.evaluate.cases import WHY_COLUMNS, CaseResult, EvalInputs
+from stages.evaluate.artifacts import LABEL, ORACLE_ERROR_ALL_M, WHY_COLUMNS
+from stages.evaluate.cases import CaseResult, EvalInputs
 
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("label", "case", "{}"),
@@ -338,7 +339,7 @@ def why_findings(inputs: EvalInputs, results: Sequence[CaseResult]) -> dict[str,
             k: row.get(k)
             for k in (
                 "focused_error_m",
-                *(c for c in WHY_COLUMNS if c != "oracle_error_all_m"),
+                *(c for c in WHY_COLUMNS if c != ORACLE_ERROR_ALL_M),
                 "risk_margin_sigmas",
                 "margin_sigmas",
                 "tight_margin_m",
@@ -532,7 +533,7 @@ def _margin_lines(inputs: EvalInputs, results: Sequence[CaseResult]) -> list[str
 def margin_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path) -> str | None:
     """``margin.png``: clearance − radius along the path against 3 × the trials' RMS deviation, per case."""
     nav = inputs.navigation
-    have = [r for r in results if r.margin is not None]
+    have = [(r, r.margin) for r in results if r.margin is not None]
     if nav is None or not have:
         return None
     import matplotlib
@@ -542,9 +543,9 @@ def margin_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Pa
 
     t = (nav.path.stamps_ns - nav.path.stamps_ns[0]) / 1e9
     fig, ax = plt.subplots(figsize=(10, 3.8))
-    ax.semilogy(t, np.maximum(have[0].margin.margin_m, 1e-4), color="k", lw=1.5, label="clearance − radius")
-    for r in have:
-        ax.semilogy(t, 3 * r.margin.deviation_m, lw=0.8, label=f"3 × RMS dev. {r.row['label']}")
+    ax.semilogy(t, np.maximum(have[0][1].margin_m, 1e-4), color="k", lw=1.5, label="clearance − radius")
+    for r, margin in have:
+        ax.semilogy(t, 3 * margin.deviation_m, lw=0.8, label=f"3 × RMS dev. {r.row[LABEL]}")
     ax.set_ylim(bottom=1e-2)
     ax.set_xlabel("time along the path (s)")
     ax.set_ylabel("m")

@@ -10,6 +10,7 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids
+from stages.evaluate import artifacts as art
 from stages.evaluate.cases import (
     EvalInputs,
     Upstream,
@@ -28,18 +29,36 @@ from stages.navigation.truth import load_truth
 from stages.optimize import OptimizeConfig, ReducedMap, landmark_heights, read_reduced, solve_settings
 from stages.risk import read_path_inputs
 from stages.select_landmarks import LandmarkInputs
-from stages.select_landmarks.artifacts import read_focused
-from stages.select_measurements.artifacts import read_selection
+from stages.select_landmarks.artifacts import FOCUSED
+from stages.select_measurements.artifacts import SELECTION
 
 ENTITY = "/evaluate"
+HEADLINE = (
+    art.CASE,
+    art.FOCUSED_ENTROPY,
+    art.FOCUSED_ERROR_M,
+    art.MAX_COLLISION_PROBABILITY,
+    art.COLLISION_RATE,
+    art.COLLISION_CI_LOW,
+    art.COLLISION_CI_HIGH,
+)
+"""The columns of the headline case in the summary (what ``focusmap run`` prints last)."""
+PER_CASE = (
+    art.FOCUSED_ENTROPY,
+    art.FOCUSED_ERROR_M,
+    art.ERROR_ALL_M,
+    art.MAX_COLLISION_PROBABILITY,
+    art.COLLISION_RATE,
+)
+"""The columns of every case in the summary's ``table``."""
 
 
 def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
     t0 = time.perf_counter()
     # α, K, the strategies and the risk model are what the selection stages used, read from their artifacts
-    focused = read_focused(ctx.input("select_landmarks"))
-    selection = read_selection(ctx.input("select_measurements"))
+    focused = FOCUSED.read(ctx.input("select_landmarks"))
+    selection = SELECTION.read(ctx.input("select_measurements"))
     sl_cfg, sm_cfg = focused.settings, selection.settings
     loaded = load_graph(ctx.input("graph"))
     read = read_path_inputs(ctx)  # once, for the landmark inputs and the navigation's occupancy grid
@@ -57,15 +76,15 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         cfg=cfg,
         scans=scans,
         T_base_laser=T_base_laser,
-        upstream=Upstream(focused, selection.choice, _optimized(ctx, loaded, focused.tag_ids)),
+        upstream=Upstream(focused, selection, _optimized(ctx, loaded, focused.tag_ids)),
     )
     todo = cases(cfg)
     results = run_all(inputs, todo, ctx.progress)
     out = ctx.output
-    out.write_table("cases.parquet", cases_table(results))
-    out.write_table("maps.parquet", map_rows(results))
-    out.write_table("path_risk.parquet", risk_rows(inputs, results))
-    out.write_table("greedy.parquet", greedy_rows(results))
+    art.CASES.write(out, cases_table(results))
+    art.MAPS.write(out, map_rows(results))
+    art.PATH_RISK.write(out, risk_rows(inputs, results))
+    art.GREEDY.write(out, greedy_rows(results))
     notes: list[str] = []
     if not landmarks.geometry.has_laser:
         notes.append(
@@ -74,8 +93,8 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         )
     images = figures(inputs, results, out.path, ctx.n_sigma) if cfg.plots else []
     md = markdown_report(inputs, results, images, notes)
-    out.write_text("report.md", md)
-    out.write_text("report.html", html_report(md, out.path))
+    out.write_text(art.REPORT_MD.file, md)
+    out.write_text(art.REPORT_HTML.file, html_report(md, out.path))
     log_recording(ctx.rec, inputs, results, ctx.n_sigma)
     by_case = {r.case.name: r.row for r in results}
     head = by_case.get("focus_info", results[0].row)
@@ -84,38 +103,15 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         "alpha": inputs.alpha,
         "K": inputs.K,
         "focused_tag_ids": inputs.focus,
-        "reference": results[0].row["error_reference"],
+        "reference": results[0].row[art.ERROR_REFERENCE],
         "walls": inputs.navigation.obstacles.kind if inputs.navigation is not None else None,
         "trials": cfg.trials,
-        "headline": {
-            k: head[k]
-            for k in (
-                "case",
-                "focused_entropy",
-                "focused_error_m",
-                "max_collision_probability",
-                "collision_rate",
-                "collision_ci_low",
-                "collision_ci_high",
-            )
-        },
-        "table": {
-            name: {
-                k: row[k]
-                for k in (
-                    "focused_entropy",
-                    "focused_error_m",
-                    "error_all_m",
-                    "max_collision_probability",
-                    "collision_rate",
-                )
-            }
-            for name, row in by_case.items()
-        },
+        "headline": {str(k): head[k] for k in HEADLINE},
+        "table": {name: {str(k): row[k] for k in PER_CASE} for name, row in by_case.items()},
         "expectation": expectation_checks(results),
         "regime": cfg.regime,
         "why": why_findings(inputs, results),
-        "report": str(ctx.run.stage_dir("evaluate") / "report.html"),
+        "report": str(ctx.run.stage_dir("evaluate") / art.REPORT_HTML.file),
         "from_upstream": {r.case.name: r.reused for r in results if r.reused},
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
     }
@@ -163,8 +159,5 @@ def log_recording(rec: rr.RecordingStream, inputs: EvalInputs, results: list[Any
         if r.navigation is not None:
             strips = [np.column_stack([s, np.zeros(len(s))]) for s in r.navigation.sample_paths]
             rec.log(f"{base}/trials", rr.LineStrips3D(strips, colors=[[255, 150, 0]], radii=0.01), static=True)
-        rec.log(
-            f"{base}/metrics",
-            rr.AnyValues(**{k: v for k, v in r.row.items() if isinstance(v, (int, float))}),
-            static=True,
-        )
+        metrics: dict[str, Any] = {str(k): v for k, v in r.row.items() if isinstance(v, (int, float))}
+        rec.log(f"{base}/metrics", rr.AnyValues(**metrics), static=True)

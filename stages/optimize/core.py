@@ -25,9 +25,12 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 import numpy.typing as npt
+import pyarrow as pa
 
 from pipeline.errors import StageError
+from stages.columns import TAG_ID, Z
 from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
+from stages.graph.artifacts import POSITION_COV
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.problem import GraphProblem
@@ -242,10 +245,10 @@ def solve_settings(cfg: object) -> dict[str, object]:
     }
 
 
-def landmark_heights(graph_landmarks: object) -> dict[int, tuple[float, float]]:
+def landmark_heights(graph_landmarks: pa.Table) -> dict[int, tuple[float, float]]:
     """Tag id to (z, var z) from the graph's ``landmarks.parquet`` (planar graphs keep the height aside)."""
-    cols = graph_landmarks.to_pydict()  # type: ignore[attr-defined]
+    cols = graph_landmarks.to_pydict()
     return {
         int(t): (float(z), float(pc[8]) if pc and len(pc) == 9 else 0.0)
-        for t, z, pc in zip(cols["tag_id"], cols["z"], cols["position_cov"], strict=True)
+        for t, z, pc in zip(cols[TAG_ID], cols[Z], cols[POSITION_COV], strict=True)
     }

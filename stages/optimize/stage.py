@@ -11,10 +11,26 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids, set_stamp
+from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
 from stages.graph.artifacts import LANDMARKS
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.outputs import write_artifacts
 from stages.navigation.truth import MapTruth, load_truth
+from stages.optimize.artifacts import (
+    ERROR_VS_FULL_M,
+    ERROR_VS_TRUTH_M,
+    FULL_INDEX,
+    INDEX,
+    IS_FOCUSED,
+    KEPT,
+    LANDMARK_ERRORS,
+    MAHALANOBIS,
+    N_MEASUREMENTS,
+    P_COLLISION,
+    P_COLLISION_FULL,
+    RISK,
+    SIGMA_M,
+)
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
@@ -26,8 +42,8 @@ from stages.optimize.core import (
     solve_settings,
 )
 from stages.risk import LandmarkMap, PathGeometry, PathRisk, RiskParams, path_geometry, path_risk, read_path_inputs
-from stages.select_landmarks.artifacts import read_focused
-from stages.select_measurements.artifacts import read_selection
+from stages.select_landmarks.artifacts import CLEARANCE_M, FOCUSED, LOCALISED, SIGMA_STAR, xy_blocks
+from stages.select_measurements.artifacts import SELECTION
 
 ENTITY = "/optimize"
 
@@ -43,12 +59,12 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     graph_in = ctx.input("graph")
     loaded = load_graph(graph_in)
-    focused = read_focused(ctx.input("select_landmarks"))
-    selection = read_selection(ctx.input("select_measurements"))
+    focused = FOCUSED.read(ctx.input("select_landmarks"))
+    selection = SELECTION.read(ctx.input("select_measurements"))
     reduced = solve_reduced(
         loaded,
         focused.tag_ids,
-        selection.choice.factor_indices,
+        selection.factor_indices,
         landmark_heights(LANDMARKS.read(graph_in)),
         cfg.initialise_from,
         cfg.max_iterations,
@@ -56,20 +72,17 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
         cfg.unobserved_sigma_m,
     )
     summary = write_artifacts(ctx.output, reduced.problem, reduced.solution, reduced.marginals)
-    ctx.output.write_table(
-        "kept.parquet",
-        {"index": np.arange(len(reduced.full_index), dtype=np.int64), "full_index": reduced.full_index},
-    )
+    KEPT.write(ctx.output, {INDEX: np.arange(len(reduced.full_index)), FULL_INDEX: reduced.full_index})
     full_map = LandmarkMap.from_graph(loaded)
     truth = load_truth(ctx, loaded)
     lm_table, errors = error_table(reduced, full_map, truth)
-    ctx.output.write_table("landmark_errors.parquet", lm_table)
+    LANDMARK_ERRORS.write(ctx.output, lm_table)
 
     params = focused.risk_params  # the risk model of the landmark selection, so the figures compare
     geometry = load_geometry(ctx, loaded, params)
     risk_reduced = path_risk(geometry, reduced.landmark_map, reduced.focused_observed, params)
     risk_full = path_risk(geometry, full_map, full_map.tag_ids.tolist(), params)
-    ctx.output.write_table("risk.parquet", risk_rows(geometry, risk_reduced, risk_full))
+    RISK.write(ctx.output, risk_rows(geometry, risk_reduced, risk_full))
     size = map_size(loaded, reduced)
     log_recording(
         ctx.rec, loaded, reduced, full_map, truth, geometry, risk_reduced, ctx.n_sigma, cfg.pose_ellipse_stride
@@ -79,8 +92,8 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
         {
             "focused_strategy": focused.strategy,
             "alpha": focused.budget,
-            "measurement_strategy": selection.choice.strategy,
-            "K": selection.choice.budget,
+            "measurement_strategy": selection.strategy,
+            "K": selection.budget,
             "focused_landmarks": len(reduced.focused_tag_ids),
             "focused_observed": len(reduced.focused_observed),
             "observed_landmarks": len(reduced.observed_tag_ids),
@@ -118,16 +131,16 @@ def error_table(
     for r in reduced.problem.rows:
         if r.kind == "tag" and r.tag_id is not None:
             n_meas[int(r.tag_id)] = n_meas.get(int(r.tag_id), 0) + 1
-    table = pa.table(
+    table = LANDMARK_ERRORS.table(
         {
-            "tag_id": pa.array(tags, pa.int64()),
-            "focused": [t in focused for t in tags],
-            "n_measurements": pa.array([n_meas.get(t, 0) for t in tags], pa.int64()),
-            "x": lmap.positions[:, 0],
-            "y": lmap.positions[:, 1],
-            "sigma_m": np.sqrt(np.trace(lmap.covariances, axis1=1, axis2=2)),
-            "error_vs_full_m": [vs_full.get(t, float("nan")) for t in tags],
-            "error_vs_truth_m": [vs_truth.get(t, float("nan")) for t in tags],
+            TAG_ID: tags,
+            IS_FOCUSED: [t in focused for t in tags],
+            N_MEASUREMENTS: [n_meas.get(t, 0) for t in tags],
+            X: lmap.positions[:, 0],
+            Y: lmap.positions[:, 1],
+            SIGMA_M: np.sqrt(np.trace(lmap.covariances, axis1=1, axis2=2)),
+            ERROR_VS_FULL_M: [vs_full.get(t, float("nan")) for t in tags],
+            ERROR_VS_TRUTH_M: [vs_truth.get(t, float("nan")) for t in tags],
         }
     )
     ref = vs_truth if truth is not None else vs_full
@@ -145,18 +158,18 @@ def error_table(
 
 def risk_rows(geometry: PathGeometry, reduced: PathRisk, full: PathRisk) -> pa.Table:
     """``risk.parquet``: per keyframe, Σ* (x, y block) and collision probability with the reduced and full maps."""
-    return pa.table(
+    return RISK.table(
         {
-            "stamp_ns": pa.array(geometry.stamps_ns, pa.int64()),
-            "x": geometry.poses[:, 0],
-            "y": geometry.poses[:, 1],
-            "yaw": geometry.poses[:, 2],
-            "clearance_m": geometry.clearance_m,
-            "localised": reduced.localised,
-            "sigma_star": pa.array([s[:2, :2].ravel().tolist() for s in reduced.sigma], pa.list_(pa.float64())),
-            "p_collision": reduced.p_collision,
-            "mahalanobis": reduced.mahalanobis,
-            "p_collision_full": full.p_collision,
+            STAMP_NS: geometry.stamps_ns,
+            X: geometry.poses[:, 0],
+            Y: geometry.poses[:, 1],
+            YAW: geometry.poses[:, 2],
+            CLEARANCE_M: geometry.clearance_m,
+            LOCALISED: reduced.localised,
+            SIGMA_STAR: xy_blocks(reduced.sigma),
+            P_COLLISION: reduced.p_collision,
+            MAHALANOBIS: reduced.mahalanobis,
+            P_COLLISION_FULL: full.p_collision,
         }
     )
 

@@ -1,7 +1,7 @@
 """Stage ``select_landmarks`` (stage one of focused inference): keep the landmarks that matter for the task.
 
 Reads ``graph`` (required), ``ingest`` (laser scans, extrinsics) and ``detect`` (detections) when present;
-writes ``focused.json`` and ``risk.parquet`` (schemas in ``docs/select.md``).
+writes ``focused.json`` and ``risk.parquet`` (schemas in ``docs/artifacts.md``).
 
 Public API (no run folder needed):
     LandmarkInputs.load(ctx, cfg) / LandmarkInputs.from_pieces(loaded, scans, T_base_laser, detections, cfg)

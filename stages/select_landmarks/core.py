@@ -175,18 +175,6 @@ class LandmarkChoice:
     """Risk with the selected landmarks."""
     extra: dict[str, Any] = field(default_factory=dict)
 
-    def focused_json(self) -> dict[str, Any]:
-        """The content of ``focused.json`` (NaN and inf scores become null)."""
-        return {
-            "strategy": self.strategy,
-            "budget": self.budget,
-            "tag_ids": [int(t) for t in self.tag_ids],
-            "scores": [float(s) if np.isfinite(s) else None for s in self.scores],
-            "status": self.status,
-            "message": self.message,
-            "n_landmarks": self.n_landmarks,
-        }
-
 
 def collision_greedy(geo: PathGeometry, lm: LandmarkMap, budget: int, params: RiskParams) -> LandmarkSelection:
     """Mu et al. Alg. 2 (:func:`stages.estimation.collision.select_collision`) on a run's keyframes and landmark map.

@@ -9,8 +9,8 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipses_2d, ellipsoids, set_stamp, set_step
-from stages.risk import path_risk, risk_table
-from stages.select_landmarks.artifacts import write_focused
+from stages.risk import path_risk
+from stages.select_landmarks.artifacts import FOCUSED, RISK, FocusedLandmarks, risk_table
 from stages.select_landmarks.config import SelectLandmarksConfig
 from stages.select_landmarks.core import LandmarkChoice, LandmarkInputs, choose
 
@@ -33,9 +33,9 @@ def run(ctx: StageContext, cfg: SelectLandmarksConfig) -> dict[str, Any]:
     inputs = LandmarkInputs.load(ctx, cfg)
     choice = choose(inputs, cfg)
     assert choice.risk_all is not None and choice.risk_focused is not None and choice.risk_none is not None
-    write_focused(ctx.output, choice, cfg, inputs.geometry)
+    FOCUSED.write(ctx.output, FocusedLandmarks.of(choice, cfg, inputs.geometry))
     z = float(np.median(inputs.landmarks.heights)) if len(inputs.landmarks.heights) else 0.0
-    ctx.output.write_table("risk.parquet", risk_table(inputs.geometry, choice.risk_all, choice.risk_focused, 0.0))
+    RISK.write(ctx.output, risk_table(inputs.geometry, choice.risk_all, choice.risk_focused, 0.0))
     log_recording(ctx, inputs, choice, cfg, z)
     summary: dict[str, Any] = {
         "strategy": choice.strategy,

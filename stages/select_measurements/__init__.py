@@ -1,7 +1,7 @@
 """Stage ``select_measurements`` (stage two of focused inference): keep the tag measurements that matter.
 
 Reads ``graph`` and ``select_landmarks`` (``focused.json``; not needed with ``focus: all``); writes
-``selected.parquet`` (schema in ``docs/select.md``). All odometry and priors are always kept.
+``selected.parquet`` (schema in ``docs/artifacts.md``). All odometry and priors are always kept.
 
 Public API (no run folder needed):
     linear_system(loaded) -> LinearSystem

@@ -1,46 +1,79 @@
-"""``selection.json``: the kept measurements with everything later stages need to know about how they were chosen.
+"""What select_measurements writes into ``RUN/select_measurements/``: the kept measurements and how they were chosen.
 
-``selected.parquet`` lists the kept tag measurements (one row per pick); ``selection.json`` holds the whole
-:class:`~stages.select_measurements.core.MeasurementChoice` (strategy, budget K, focus, the focused landmarks,
-the picks and gains, the candidates, the entropy before and after) and the select_measurements settings that
-made it. Optimize and evaluate read K, the focus and the strategy from here, never from the settings section.
+``selected.parquet`` (:data:`SELECTED`) lists the kept tag measurements, one row per pick; ``selection.json``
+(:data:`SELECTION`) holds the whole :class:`~stages.select_measurements.core.MeasurementChoice` and the
+select_measurements settings that made it. optimize and evaluate read K, the focus and the strategy from here,
+never from the settings section.
+
+```python
+SELECTION.write(ctx.output, SelectedMeasurements.of(choice, cfg))
+selection = SELECTION.read(ctx.input("select_measurements"))   # a MeasurementChoice with .settings
+```
 """
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Final
 
-from pipeline.artifacts import StageInput, StageOutput
-from pipeline.errors import InputError
+import numpy as np
+import pyarrow as pa
+from pydantic import Field
+
+from pipeline.contracts import ArtifactSet, Column, JsonSpec, TableSpec
+from stages.columns import STAMP_NS, TAG_ID
 from stages.select_measurements.config import SelectMeasurementsConfig
 from stages.select_measurements.core import MeasurementChoice
 
-SELECTION_FILE = "selection.json"
+if TYPE_CHECKING:
+    from stages.graph.load import LoadedGraph
 
 
-@dataclass(frozen=True)
-class SelectedMeasurements:
+# selection.json ----------------------------------------------------------------------------------------
+class SelectedMeasurements(MeasurementChoice):
     """What select_measurements chose, and with which settings."""
 
-    choice: MeasurementChoice
-    settings: SelectMeasurementsConfig
+    settings: SelectMeasurementsConfig = Field(
+        description="the select_measurements settings that made the selection (later stages read K here)"
+    )
+
+    @classmethod
+    def of(cls, choice: MeasurementChoice, cfg: SelectMeasurementsConfig) -> SelectedMeasurements:
+        """The record of ``choice`` made with ``cfg``."""
+        return cls(**dict(choice), settings=cfg)
 
 
-def write_selection(out: StageOutput, choice: MeasurementChoice, cfg: SelectMeasurementsConfig) -> None:
-    """Write ``selection.json``."""
-    doc: dict[str, Any] = dataclasses.asdict(choice)
-    doc["settings"] = cfg.model_dump(mode="json")
-    out.write_json(SELECTION_FILE, doc)
+SELECTION: Final = JsonSpec(
+    "selection.json", "the whole measurement choice and the settings that made it", SelectedMeasurements
+)
 
 
-def read_selection(inp: StageInput) -> SelectedMeasurements:
-    """Read ``selection.json`` of a finished select_measurements stage."""
-    if not inp.exists(SELECTION_FILE):
-        raise InputError(f"{inp.path} has no {SELECTION_FILE}; re-run 'focusmap select-measurements'")
-    doc = inp.read_json(SELECTION_FILE)
-    settings = SelectMeasurementsConfig.model_validate(doc.pop("settings"))
-    names = {f.name for f in dataclasses.fields(MeasurementChoice)}
-    choice = MeasurementChoice(**{k: v for k, v in doc.items() if k in names})
-    return SelectedMeasurements(choice, settings)
+# selected.parquet --------------------------------------------------------------------------------------
+FACTOR_INDEX = Column("factor_index", pa.int64(), "the kept factor: its row of `graph/factors.parquet`")
+STEP = Column("step", pa.int64(), "pick order, from 0")
+GAIN = Column("gain", pa.float64(), "entropy reduction (information, nats), sampling probability (leverage), else NaN")
+SELECTED: Final = TableSpec(
+    "selected.parquet",
+    "one row per kept tag measurement, in pick order",
+    [FACTOR_INDEX, STEP, GAIN, TAG_ID, STAMP_NS],
+)
+
+
+def selected_table(choice: MeasurementChoice, loaded: LoadedGraph) -> pa.Table:
+    """:data:`SELECTED` of a choice on the full graph ``loaded`` (tag and stamp of each kept factor)."""
+    rows = [loaded.rows[i] for i in choice.factor_indices]
+    return SELECTED.table(
+        {
+            FACTOR_INDEX: choice.factor_indices,
+            STEP: np.arange(len(choice.factor_indices)),
+            GAIN: choice.gains,
+            TAG_ID: [r.tag_id for r in rows],
+            STAMP_NS: [r.stamp_ns for r in rows],
+        }
+    )
+
+
+ARTIFACTS: Final = ArtifactSet(
+    "select_measurements",
+    "Stage two of focused inference: the tag measurements of the focused landmarks worth keeping.",
+    [SELECTED, SELECTION],
+)

@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.errors import StageError
 from stages.estimation.gaussian import entropy_from_logdet
@@ -49,30 +49,31 @@ def linear_system(loaded: LoadedGraph) -> LinearSystem:
     return LinearSystem.from_gtsam(loaded.graph, loaded.values, is_landmark=landmark_keys.__contains__)
 
 
-@dataclass
-class MeasurementChoice:
-    """The result of one measurement selection."""
+class MeasurementChoice(BaseModel):
+    """The result of one measurement selection (the content of ``selection.json`` but its ``settings``)."""
 
-    strategy: str
-    budget: int
-    focus: str
-    focused_tag_ids: list[int]
-    factor_indices: list[int]
-    """Kept tag-measurement factors (indices into the graph's factors), in pick order."""
-    gains: list[float]
-    """Entropy reduction of each pick (information, nats), sampling probability (leverage), else NaN."""
-    status: str
-    """ok | budget_zero | budget_exceeds_candidates | no_candidates."""
-    message: str
-    n_candidates: int
-    candidates: list[int]
-    """Candidate factor indices, in time order."""
-    entropy_before: float
-    """Entropy (nats) of the focused landmarks with odometry, priors and the weak landmark prior only."""
-    entropy_after: float
-    """The same with the kept measurements added."""
-    seconds: float
-    stats: dict[str, float] = field(default_factory=dict)
+    model_config = ConfigDict(extra="forbid")
+
+    strategy: str = Field(description="the measurement-selection strategy that ran")
+    budget: int = Field(description="K, the measurement budget as run (`all`: the number of candidates)")
+    focus: str = Field(description="`selected` (the focused landmarks of select_landmarks) or `all`")
+    focused_tag_ids: list[int] = Field(description="the landmarks whose measurements were candidates")
+    factor_indices: list[int] = Field(
+        description="kept tag-measurement factors (rows of `graph/factors.parquet`), in pick order"
+    )
+    gains: list[float] = Field(
+        description="per pick: entropy reduction (information, nats), sampling probability (leverage), else NaN"
+    )
+    status: str = Field(description="`ok`, `budget_zero`, `budget_exceeds_candidates` or `no_candidates`")
+    message: str = Field(description="the status in words")
+    n_candidates: int = Field(description="candidate measurements (the tag factors of the focused landmarks)")
+    candidates: list[int] = Field(description="candidate factor indices, in time order")
+    entropy_before: float = Field(
+        description="entropy (nats) of the focused landmarks with odometry, priors and the weak landmark prior only"
+    )
+    entropy_after: float = Field(description="the same with the kept measurements added")
+    seconds: float = Field(description="time the selection took, s")
+    stats: dict[str, float] = Field(default_factory=dict, description="the strategy's counters and timings")
 
     def keep_factor_indices(self, loaded: LoadedGraph) -> list[int]:
         """Every factor of the reduced graph: all non-tag factors plus the kept measurements (sorted)."""

@@ -5,14 +5,13 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pyarrow as pa
 import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import ellipsoids, set_step
-from stages.select_landmarks.artifacts import read_focused
-from stages.select_measurements.artifacts import write_selection
+from stages.select_landmarks.artifacts import FOCUSED as FOCUSED_JSON
+from stages.select_measurements.artifacts import SELECTED, SELECTION, SelectedMeasurements, selected_table
 from stages.select_measurements.config import SelectMeasurementsConfig
 from stages.select_measurements.core import (
     MeasurementChoice,
@@ -41,7 +40,7 @@ def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig) -> list[int]
             f"no focused landmarks: select_landmarks has not run in {str(ctx.run.path)!r}; run "
             f"'focusmap select-landmarks {ctx.run.path}' first (or --set select_measurements.focus=all)"
         )
-    return read_focused(ctx.input("select_landmarks")).tag_ids
+    return FOCUSED_JSON.read(ctx.input("select_landmarks")).tag_ids
 
 
 def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
@@ -52,20 +51,8 @@ def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
     loaded = load_graph(ctx.input("graph"))
     system = linear_system(loaded)
     choice = choose(loaded, tags, cfg, system)
-    rows = [loaded.rows[i] for i in choice.factor_indices]
-    ctx.output.write_table(
-        "selected.parquet",
-        pa.table(
-            {
-                "factor_index": pa.array(choice.factor_indices, pa.int64()),
-                "step": pa.array(np.arange(len(choice.factor_indices)), pa.int64()),
-                "gain": pa.array(choice.gains, pa.float64()),
-                "tag_id": pa.array([r.tag_id for r in rows], pa.int64()),
-                "stamp_ns": pa.array([r.stamp_ns for r in rows], pa.int64()),
-            }
-        ),
-    )
-    write_selection(ctx.output, choice, cfg)
+    SELECTED.write(ctx.output, selected_table(choice, loaded))
+    SELECTION.write(ctx.output, SelectedMeasurements.of(choice, cfg))
     log_recording(ctx, loaded, system, choice, cfg)
     summary = summary_of(choice)
     summary["factors_kept"] = len(choice.keep_factor_indices(loaded))

@@ -22,7 +22,7 @@ from stages import evaluate as evaluate_stage
 from stages import graph as graph_stage
 from stages import optimize as optimize_stage
 from stages import select_landmarks, select_measurements
-from stages.select_landmarks.artifacts import read_focused
+from stages.select_landmarks.artifacts import FOCUSED
 from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
 from tests.fixtures.upstream import seed_upstream, stand_in
@@ -110,7 +110,7 @@ def test_robot_radius_reaches_optimize_and_evaluate(make_run) -> None:
     # a robot almost as wide as the path's clearance: collisions become likely
     radius = round(summary(run, "select_landmarks")["min_clearance_m"] - 0.05, 3)
     assert run_all(run, f"select_landmarks.robot_radius_m={radius}") == AFTER_SELECT_LANDMARKS
-    focused = read_focused(StageInput("select_landmarks", run.stage_dir("select_landmarks")))
+    focused = FOCUSED.read(StageInput("select_landmarks", run.stage_dir("select_landmarks")))
     assert focused.risk_params.robot_radius_m == radius
     # optimize and evaluate recomputed the risk with the new radius, taken from select_landmarks' artifact
     p_after = summary(run, "optimize")["max_collision_probability"]

@@ -126,3 +126,25 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
     paths = {c.entity_path for c in RrdReader(evaluated.rrd_path("evaluate")).stream()}
     for case, _, _ in TABLE_I:
         assert f"/evaluate/cases/{case}/landmarks" in paths
+
+
+def test_the_downstream_stages_write_what_they_declare(evaluated) -> None:
+    """Every file of select_*/optimize/evaluate is declared, every required one written, and each reads back."""
+    from pipeline.artifacts import StageInput
+    from pipeline.contracts import JsonSpec, TableSpec
+    from stages.contracts import artifact_sets
+
+    sets = {s.stage: s for s in artifact_sets()}
+    for stage in ("select_landmarks", "select_measurements", "optimize", "evaluate"):
+        folder = evaluated.stage_dir(stage)
+        written = {p.name for p in folder.iterdir()} - {"summary.json"}
+        declared = {spec.file for spec in sets[stage].specs}
+        required = {spec.file for spec in sets[stage].specs if not spec.optional}
+        assert written <= declared, f"{stage} writes undeclared files {sorted(written - declared)}"
+        assert required <= written, f"{stage} lacks {sorted(required - written)}"
+        inp = StageInput(stage, folder)
+        for spec in sets[stage].specs:
+            if isinstance(spec, TableSpec):
+                assert spec.read(inp).schema == spec.schema
+            elif isinstance(spec, JsonSpec):
+                assert isinstance(spec.read(inp), spec.model)

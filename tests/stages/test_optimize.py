@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -51,38 +49,48 @@ def make_graph_run(tmp_path: Path, sim: SyntheticRun, truth: bool = True) -> tup
 
 def write_selection(run: RunFolder, tag_ids: list[int], factor_indices: list[int], tag: str = "a") -> None:
     """Stand-ins for the two selection stages' artifacts (``focused.json``, ``selected.parquet``, ``selection.json``)
-    as their writers lay them out, with default settings."""
+    written through their declarations, with default settings."""
     from stages.select_landmarks import SelectLandmarksConfig
-    from stages.select_measurements import MeasurementChoice, SelectMeasurementsConfig
-    from stages.select_measurements.artifacts import write_selection as write_choice
+    from stages.select_landmarks.artifacts import FOCUSED, FocusedLandmarks, RiskNoise
+    from stages.select_measurements import SelectMeasurementsConfig
+    from stages.select_measurements.artifacts import SELECTED, SELECTION, SelectedMeasurements
 
     for name in ("select_landmarks", "select_measurements"):
         d = run.stage_dir(name)
         d.mkdir(exist_ok=True)
-    focused = {
-        "strategy": "test",
-        "budget": len(tag_ids),
-        "tag_ids": tag_ids,
-        "scores": [0.0] * len(tag_ids),
-        "status": "ok",
-        "message": "",
-        "n_landmarks": len(tag_ids),
-        "settings": SelectLandmarksConfig().model_dump(mode="json"),
-    }
-    (run.stage_dir("select_landmarks") / "focused.json").write_text(json.dumps(focused))
-    pq.write_table(
-        pa.table(
-            {
-                "factor_index": pa.array(factor_indices, pa.int64()),
-                "step": pa.array(range(len(factor_indices)), pa.int64()),
-                "gain": pa.array([np.nan] * len(factor_indices), pa.float64()),
-            }
-        ),
-        run.stage_dir("select_measurements") / "selected.parquet",
-    )
     n = len(factor_indices)
-    choice = MeasurementChoice("test", n, "selected", tag_ids, factor_indices, [np.nan] * n, "ok", "", n, [], 0, 0, 0)
-    write_choice(StageOutput(run.stage_dir("select_measurements")), choice, SelectMeasurementsConfig())
+    focused = FocusedLandmarks(
+        strategy="test",
+        budget=len(tag_ids),
+        tag_ids=tag_ids,
+        scores=[0.0] * len(tag_ids),
+        status="ok",
+        message="",
+        n_landmarks=len(tag_ids),
+        seconds=0.0,
+        settings=SelectLandmarksConfig(),
+        noise=RiskNoise(bearing_sigma_rad=0.02, range_sigma_m=0.05, odometry_sigma_m=0.02, odometry_sigma_rad=0.01),
+    )
+    FOCUSED.write(StageOutput(run.stage_dir("select_landmarks")), focused)
+    selected = {"factor_index": factor_indices, "step": list(range(n)), "gain": [np.nan] * n, "tag_id": [0] * n}
+    SELECTED.write(StageOutput(run.stage_dir("select_measurements")), {**selected, "stamp_ns": [0] * n})
+    choice = SelectedMeasurements(
+        strategy="test",
+        budget=n,
+        focus="selected",
+        focused_tag_ids=tag_ids,
+        factor_indices=factor_indices,
+        gains=[np.nan] * n,
+        status="ok",
+        message="",
+        n_candidates=n,
+        candidates=[],
+        entropy_before=0,
+        entropy_after=0,
+        seconds=0,
+        settings=SelectMeasurementsConfig(),
+    )
+    SELECTION.write(StageOutput(run.stage_dir("select_measurements")), choice)
     run.record("select_landmarks", {"fingerprint": f"sl-{tag}", "summary": {}})
     run.record("select_measurements", {"fingerprint": f"sm-{tag}", "summary": {}})
 
