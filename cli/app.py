@@ -13,12 +13,13 @@ from __future__ import annotations
 import functools
 import inspect
 import json
+import operator
 import os
 import subprocess
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, ParamSpec, TypeVar
 
 import click
 import typer
@@ -27,10 +28,11 @@ from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, 
 from pipeline.errors import InputError, PipelineError
 
 if TYPE_CHECKING:
+    from pipeline.config import Settings
     from pipeline.registry import Registry
     from pipeline.run_folder import RunFolder
     from pipeline.runner import StageResult
-    from pipeline.stage import Option, Stage
+    from pipeline.stage import AnyStage, Option
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -39,7 +41,8 @@ app = typer.Typer(
     help="Turn recorded robot runs into small, task-focused AprilTag maps, logged to Rerun.",
 )
 
-F = TypeVar("F", bound=Callable[..., Any])
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -60,11 +63,11 @@ def _state() -> CliState:
     return state if state is not None else CliState()
 
 
-def handled(func: F) -> F:
+def handled(func: Callable[P, R]) -> Callable[P, R]:
     """Turn known failures into one ``error:`` line and a non-zero exit."""
 
     @functools.wraps(func)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return func(*args, **kwargs)
         except PipelineError as err:
@@ -87,7 +90,7 @@ def handled(func: F) -> F:
             )
             raise typer.Exit(2) from None
 
-    return wrapper  # type: ignore[return-value]
+    return wrapper
 
 
 @app.callback()
@@ -112,7 +115,7 @@ def _settings(
     run_dir: Path | None = None,
     reset: bool = False,
     running: list[str] | None = None,
-) -> Any:
+) -> Settings:
     """Resolve the settings; on a run folder, on top of the settings it keeps, printing what differs."""
     from pipeline.config import load_settings
 
@@ -142,7 +145,7 @@ def _open_run(run_dir: Path) -> RunFolder:
     return RunFolder(run_dir)
 
 
-def _print_result(stage: Stage, result: StageResult) -> None:
+def _print_result(stage: AnyStage, result: StageResult) -> None:
     """The stage's line (name, status, its figures) and, when it ran, its remarks (notes, ...)."""
     from rich.console import Console
 
@@ -153,7 +156,7 @@ def _print_result(stage: Stage, result: StageResult) -> None:
         console.print(f"  [yellow]{label}:[/yellow] {text}")
 
 
-def _run_stages(run: RunFolder, names: list[str], settings: Any, force: bool) -> list[StageResult]:
+def _run_stages(run: RunFolder, names: list[str], settings: Settings, force: bool) -> list[StageResult]:
     from pipeline.progress import terminal
     from pipeline.run_settings import store_run_settings
     from pipeline.runner import run_stage
@@ -169,7 +172,7 @@ def _run_stages(run: RunFolder, names: list[str], settings: Any, force: bool) ->
 
 
 def _run_on_bag(
-    bag: Path, out: Path, name: str | None, stages: list[str], settings: Any, force: bool
+    bag: Path, out: Path, name: str | None, stages: list[str], settings: Settings, force: bool
 ) -> tuple[RunFolder, list[StageResult]]:
     """Check the recording, create (or reuse) its run folder and run ``stages`` in it."""
     from pipeline.run_folder import RunFolder
@@ -186,7 +189,7 @@ def _param_name(option: Option) -> str:
     return option.flag.lstrip("-").replace("-", "_")
 
 
-def _overrides(stages: Iterable[Stage], given: Mapping[str, Any]) -> list[str]:
+def _overrides(stages: Iterable[AnyStage], given: Mapping[str, object]) -> list[str]:
     """The ``--set`` overrides of the stage options given on the command line."""
     out = []
     for stage in stages:
@@ -203,11 +206,16 @@ def _option_parameter(option: Option) -> inspect.Parameter:
     if option.kind is bool:
         flag = Annotated[bool, typer.Option(option.flag, help=option.help)]
         return inspect.Parameter(_param_name(option), keyword, default=False, annotation=flag)
-    value = Annotated[option.kind | None, typer.Option(option.flag, help=option.help, min=option.min)]
+    # Annotated[kind | None, ...] built at run time: the option's type is a value here, not a static type
+    value = operator.getitem(
+        Annotated, (option.kind | None, typer.Option(option.flag, help=option.help, min=option.min))
+    )
     return inspect.Parameter(_param_name(option), keyword, default=None, annotation=value)
 
 
-def _with_options(func: Callable[..., Any], stages: Iterable[Stage], after: str | None = None) -> Callable[..., Any]:
+def _with_options(
+    func: Callable[..., None], stages: Iterable[AnyStage], after: str | None = None
+) -> Callable[..., None]:
     """``func`` with its ``**options`` replaced by the options of ``stages``, as typer parameters.
 
     The options go right after the parameter ``after`` (at the end when None); ``func`` gets them in
@@ -226,15 +234,15 @@ def _with_options(func: Callable[..., Any], stages: Iterable[Stage], after: str 
     params = [*fixed[:at], *extra, *fixed[at:]]
 
     @functools.wraps(func)
-    def command(**kwargs: Any) -> Any:
-        return func(**kwargs)
+    def command(**kwargs: object) -> None:
+        func(**kwargs)
 
     command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
     command.__annotations__ = {p.name: p.annotation for p in params}
     return command
 
 
-def _stage_command(stage: Stage) -> None:
+def _stage_command(stage: AnyStage) -> None:
     """The command of one stage: on a recording for a stage that reads it (ingest), else on a run folder."""
     if stage.needs_source:
 
@@ -246,7 +254,7 @@ def _stage_command(stage: Stage) -> None:
             set_: SetOpt = None,
             force: ForceOpt = False,
             reset: ResetOpt = False,
-            **options: Any,
+            **options: object,
         ) -> None:
             overrides = _overrides([stage], options)
             settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, [stage.name])
@@ -261,7 +269,7 @@ def _stage_command(stage: Stage) -> None:
             set_: SetOpt = None,
             force: ForceOpt = False,
             reset: ResetOpt = False,
-            **options: Any,
+            **options: object,
         ) -> None:
             run = _open_run(run_dir)
             overrides = _overrides([stage], options)
@@ -333,7 +341,7 @@ def run_pipeline(
     set_: SetOpt = None,
     force: ForceOpt = False,
     reset: ResetOpt = False,
-    **options: Any,
+    **options: object,
 ) -> None:
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
     registry = _registry()
@@ -345,7 +353,7 @@ def run_pipeline(
     typer.echo(f"open it with: focusmap view {run.path}")
 
 
-def _source_stages(registry: Registry) -> list[Stage]:
+def _source_stages(registry: Registry) -> list[AnyStage]:
     """The stages that read the recording: ``focusmap run`` takes their options."""
     return [s for s in registry if s.needs_source]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
@@ -124,5 +124,4 @@ def register(app: typer.Typer) -> None:
     """Add the ``batch`` command to the focusmap application."""
     from cli.app import handled  # cli.app calls register() at its end, after defining handled
 
-    command: Any = handled(batch)
-    app.command(name="batch", help=BATCH_HELP)(command)
+    app.command(name="batch", help=BATCH_HELP)(handled(batch))

@@ -44,10 +44,3 @@ ResetOpt = Annotated[
         help="Start from the default settings instead of those the run folder keeps from earlier commands.",
     ),
 ]
-ResetOpt = Annotated[
-    bool,
-    typer.Option(
-        "--reset-settings",
-        help="Start from the default settings instead of those the run folder keeps from earlier commands.",
-    ),
-]

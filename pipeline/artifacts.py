@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -26,7 +27,7 @@ class StageOutput:
         p.parent.mkdir(parents=True, exist_ok=True)
         return p
 
-    def write_table(self, name: str, table: pa.Table | dict[str, Any]) -> Path:
+    def write_table(self, name: str, table: pa.Table | dict[str, npt.ArrayLike]) -> Path:
         """Write a Parquet table (a pyarrow Table or a dict of columns)."""
         if isinstance(table, dict):
             table = pa.table(table)
@@ -34,7 +35,7 @@ class StageOutput:
         pq.write_table(table, p, compression="zstd")
         return p
 
-    def write_json(self, name: str, data: Any) -> Path:
+    def write_json(self, name: str, data: object) -> Path:
         """Write JSON (numpy arrays become lists)."""
         p = self.file(name)
         write_json_atomic(p, data)
@@ -49,7 +50,8 @@ class StageOutput:
     def write_npz(self, name: str, **arrays: np.ndarray) -> Path:
         """Write named arrays."""
         p = self.file(name)
-        np.savez_compressed(p, **arrays)
+        # numpy's stub lets a **mapping also fill the bool ``allow_pickle``, so it rejects any dict of arrays
+        np.savez_compressed(p, **arrays)  # type: ignore[arg-type]
         return p
 
     def write_text(self, name: str, text: str) -> Path:
@@ -85,7 +87,7 @@ class StageInput:
         return pq.read_table(self._require(name), columns=columns)
 
     def read_json(self, name: str) -> Any:
-        """Read a JSON artifact."""
+        """Read a JSON artifact (as ``json.loads`` returns it: the caller checks its shape)."""
         return json.loads(self._require(name).read_text())
 
     def read_npy(self, name: str) -> np.ndarray:

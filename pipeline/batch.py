@@ -35,16 +35,23 @@ import sys
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.context import SpawnProcess
 from pathlib import Path
-from typing import Any, Final, Literal
+from typing import TYPE_CHECKING, Any, Final, Literal
 
 import pyarrow as pa
 
 from pipeline.config import Settings
 from pipeline.errors import InputError, PipelineError
+from pipeline.json_types import JSONValue
 from pipeline.registry import Headline, Registry
+from pipeline.run_folder import RunFolder, StageEntry
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 Status = Literal["done", "skipped", "failed"]
 
@@ -114,7 +121,7 @@ class Outcome:
     failed_stage: str | None = None
     seconds: float = 0.0
     stages_run: list[str] = field(default_factory=list)
-    stages: dict[str, dict[str, Any]] = field(default_factory=dict)
+    stages: dict[str, StageEntry] = field(default_factory=dict)
     host: str = ""
     traceback: str | None = None
 
@@ -269,11 +276,27 @@ def run_folder_lock(run_dir: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None
         os.close(fd)  # closing the descriptor releases the lock
 
 
-def _current_entries(run: Any, registry: Registry, stages: Sequence[str], settings: Settings) -> dict[str, Any]:
+def _outcome_entry(entry: StageEntry) -> StageEntry:
+    """What an outcome keeps of a manifest entry: its fingerprint, finish time, seconds and summary."""
+    kept = StageEntry()
+    if "fingerprint" in entry:
+        kept["fingerprint"] = entry["fingerprint"]
+    if "finished" in entry:
+        kept["finished"] = entry["finished"]
+    if "seconds" in entry:
+        kept["seconds"] = entry["seconds"]
+    if "summary" in entry:
+        kept["summary"] = entry["summary"]
+    return kept
+
+
+def _current_entries(
+    run: RunFolder, registry: Registry, stages: Sequence[str], settings: Settings
+) -> dict[str, StageEntry]:
     """Manifest entries of the stages whose finished results are current (stale ones are left out)."""
     from pipeline.runner import is_current
 
-    entries: dict[str, dict[str, Any]] = {}
+    entries: dict[str, StageEntry] = {}
     manifest = run.manifest()["stages"]
     for name in stages:
         try:
@@ -281,8 +304,7 @@ def _current_entries(run: Any, registry: Registry, stages: Sequence[str], settin
         except Exception:  # a broken manifest entry or a vanished source: not current
             current = False
         if current:
-            entry = manifest[name]
-            entries[name] = {k: entry.get(k) for k in ("fingerprint", "finished", "seconds", "summary")}
+            entries[name] = _outcome_entry(manifest[name])
     return entries
 
 
@@ -293,12 +315,11 @@ def run_task(task: BatchTask) -> Outcome:
     folder (created or reused), the resolved settings beside the manifest, then each stage through
     :func:`pipeline.runner.run_stage`, which skips up-to-date stages and commits each stage atomically.
     """
-    from pipeline.run_folder import RunFolder
     from pipeline.runner import run_stage, write_resolved_settings
 
     start = time.perf_counter()
     outcome = Outcome(recording=task.recording, run=task.run, run_dir=task.run_dir, status="failed", host=_host())
-    run: Any = None
+    run: RunFolder | None = None
     registry: Registry | None = None
     current: str | None = None
     try:
@@ -357,7 +378,7 @@ def _child_main(task: BatchTask, conn: multiprocessing.connection.Connection) ->
     conn.close()
 
 
-def _mp_context() -> multiprocessing.context.BaseContext:
+def _mp_context() -> multiprocessing.context.SpawnContext:
     """Fresh interpreters (``spawn``): no locks inherited from the batch's threads (progress bar, Dask).
 
     Not ``forkserver``: its children hold the fork server's lifeline, so the fork server outlives a
@@ -376,6 +397,11 @@ def _describe_exit(code: int | None) -> str:
     return f"the worker process exited with code {code} without a result"
 
 
+def _ready(conns: Iterable[Connection], timeout: float | None = None) -> list[Connection]:
+    """``multiprocessing.connection.wait`` for pipe connections: those with something to read, in its order."""
+    return [c for c in multiprocessing.connection.wait(list(conns), timeout) if isinstance(c, Connection)]
+
+
 def run_local(tasks: Sequence[BatchTask], workers: int, on_outcome: OutcomeCallback | None = None) -> list[Outcome]:
     """Run the tasks in at most ``workers`` child processes at a time, one process per recording.
 
@@ -387,10 +413,10 @@ def run_local(tasks: Sequence[BatchTask], workers: int, on_outcome: OutcomeCallb
         raise ValueError(f"workers must be at least 1, got {workers}")
     ctx = _mp_context()
     queue = deque(enumerate(tasks))
-    running: dict[Any, tuple[int, Any, BatchTask]] = {}
+    running: dict[Connection, tuple[int, SpawnProcess, BatchTask]] = {}
     results: list[Outcome | None] = [None] * len(tasks)
 
-    def finish(conn: Any) -> None:
+    def finish(conn: Connection) -> None:
         i, proc, task = running.pop(conn)
         try:
             outcome: Outcome | None = conn.recv()
@@ -398,27 +424,26 @@ def run_local(tasks: Sequence[BatchTask], workers: int, on_outcome: OutcomeCallb
             outcome = None
         conn.close()
         proc.join()
-        results[i] = outcome if outcome is not None else failed_outcome(task, _describe_exit(proc.exitcode))
+        done = outcome if outcome is not None else failed_outcome(task, _describe_exit(proc.exitcode))
+        results[i] = done
         if on_outcome is not None:
-            on_outcome(results[i])  # type: ignore[arg-type]
+            on_outcome(done)
 
     try:
         while queue or running:
             while queue and len(running) < workers:
                 i, task = queue.popleft()
                 recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(  # type: ignore[attr-defined]
-                    target=_child_main, args=(task, send), name=f"focusmap-batch:{task.run}"
-                )
+                proc = ctx.Process(target=_child_main, args=(task, send), name=f"focusmap-batch:{task.run}")
                 proc.start()
                 send.close()
                 running[recv] = (i, proc, task)
-            for conn in multiprocessing.connection.wait(list(running)):
+            for conn in _ready(running):
                 finish(conn)
     except BaseException:
         deadline = time.monotonic() + 5.0
         while running and time.monotonic() < deadline:  # children got the same SIGINT: let them abort cleanly
-            for conn in multiprocessing.connection.wait(list(running), timeout=0.2):
+            for conn in _ready(running, timeout=0.2):
                 with contextlib.suppress(Exception):
                     finish(conn)
         for _, proc, _ in running.values():
@@ -566,19 +591,19 @@ def run_batch(
 
 
 # --- summary -------------------------------------------------------------------------------------------
-def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, headline: Headline) -> Any:
+def _headline(stages: Mapping[str, StageEntry], column: str, headline: Headline) -> int | float | None:
     candidates, dtype = headline.places, pa.type_for_alias(headline.dtype)
     fallback = tuple((stage, column) for stage in reversed(list(stages)))
     for stage, key in (*candidates, *fallback):
-        summary = (stages.get(stage) or {}).get("summary") or {}
+        node: JSONValue = (stages.get(stage) or StageEntry()).get("summary") or {}
         *parents, leaf = key.split(".")
         for part in parents:  # dotted keys reach into nested summaries ("headline.collision_rate")
-            summary = summary.get(part) if isinstance(summary, dict) else None
-            if not isinstance(summary, dict):
+            node = node.get(part) if isinstance(node, dict) else None
+            if not isinstance(node, dict):
                 break
-        if not isinstance(summary, dict) or leaf not in summary:
+        if not isinstance(node, dict) or leaf not in node:
             continue
-        value = summary[leaf]
+        value = node[leaf]
         if isinstance(value, list | tuple) and pa.types.is_integer(dtype):
             return len(value)
         if isinstance(value, bool) or not isinstance(value, int | float):
@@ -589,21 +614,20 @@ def _headline(stages: Mapping[str, Mapping[str, Any]], column: str, headline: He
 
 def summary_schema(stages: Sequence[str], registry: Registry) -> pa.Schema:
     """Columns of ``batch_summary.parquet`` for a batch of ``stages`` (headline columns from ``registry``)."""
-    return pa.schema(
-        [
-            ("recording", pa.string()),
-            ("run", pa.string()),
-            ("run_dir", pa.string()),
-            ("status", pa.string()),
-            ("reason", pa.string()),
-            ("failed_stage", pa.string()),
-            ("seconds", pa.float64()),
-            ("stages_run", pa.list_(pa.string())),
-            ("host", pa.string()),
-            *((f"seconds_{s}", pa.float64()) for s in stages),
-            *((name, pa.type_for_alias(h.dtype)) for name, h in registry.headlines.items()),
-        ]
-    )
+    fields: list[tuple[str, pa.DataType]] = [
+        ("recording", pa.string()),
+        ("run", pa.string()),
+        ("run_dir", pa.string()),
+        ("status", pa.string()),
+        ("reason", pa.string()),
+        ("failed_stage", pa.string()),
+        ("seconds", pa.float64()),
+        ("stages_run", pa.list_(pa.string())),
+        ("host", pa.string()),
+        *((f"seconds_{s}", pa.float64()) for s in stages),
+        *((name, pa.type_for_alias(h.dtype)) for name, h in registry.headlines.items()),
+    ]
+    return pa.schema(fields)
 
 
 def summary_table(outcomes: Sequence[Outcome], stages: Sequence[str], registry: Registry) -> pa.Table:
@@ -616,7 +640,7 @@ def summary_table(outcomes: Sequence[Outcome], stages: Sequence[str], registry: 
     schema = summary_schema(stages, registry)
     rows = []
     for o in outcomes:
-        row: dict[str, Any] = {
+        row: dict[str, object] = {
             "recording": o.recording,
             "run": o.run,
             "run_dir": o.run_dir,
@@ -664,7 +688,7 @@ def write_errors(outcomes: Sequence[Outcome], out: Path) -> Path | None:
     return path
 
 
-def _fmt(value: Any) -> str:
+def _fmt(value: object) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):
@@ -672,7 +696,7 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
-def print_summary(table: pa.Table, registry: Registry, console: Any = None) -> None:
+def print_summary(table: pa.Table, registry: Registry, console: Console | None = None) -> None:
     """Print the summary as a rich table: per recording its status, times, headline figures and reason.
 
     Headline columns that are null for every recording are left out; labels come from ``registry``.

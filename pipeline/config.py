@@ -16,6 +16,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.errors import ConfigError
+from pipeline.json_types import JSONObject
 
 
 class RecordingSettings(BaseModel):
@@ -38,13 +39,16 @@ class Settings:
         self.sections = dict(sections)
         self.sources = dict(sources)
 
-    def __getitem__(self, section: str) -> Any:
+    def __getitem__(self, section: str) -> BaseModel:
         return self.sections[section]
 
     @property
     def rerun(self) -> RecordingSettings:
         """The shared recording settings."""
-        return self.sections["rerun"]  # type: ignore[return-value]
+        section = self.sections["rerun"]
+        if not isinstance(section, RecordingSettings):
+            raise TypeError(f"the rerun section holds a {type(section).__name__}, not RecordingSettings")
+        return section
 
     def only(self, *names: str) -> Settings:
         """The sections ``names`` and the shared sections, nothing else (what one stage may read)."""
@@ -54,7 +58,7 @@ class Settings:
             {k: v for k, v in self.sources.items() if k.split(".")[0] in keep},
         )
 
-    def dump(self) -> dict[str, Any]:
+    def dump(self) -> dict[str, JSONObject]:
         """Every section as plain JSON-able data."""
         return {name: model.model_dump(mode="json") for name, model in self.sections.items()}
 
@@ -64,7 +68,7 @@ def _nearest(name: str, choices: Iterable[str]) -> str:
     return f" (did you mean {match[0]!r}?)" if match else f"; valid: {', '.join(sorted(choices))}"
 
 
-def _parse_override(text: str) -> tuple[str, list[str], Any]:
+def _parse_override(text: str) -> tuple[str, list[str], object]:
     if "=" not in text:
         raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.family=tag25h9")
     lhs, rhs = text.split("=", 1)
@@ -98,7 +102,7 @@ def load_settings(
     models: Mapping[str, type[BaseModel]],
     path: Path | None = None,
     overrides: Iterable[str] = (),
-    base: Mapping[str, Mapping[str, Any]] | None = None,
+    base: Mapping[str, object] | None = None,
 ) -> Settings:
     """Resolve the settings of every section: defaults, then ``base``, then the file, then ``overrides``.
 
@@ -113,7 +117,7 @@ def load_settings(
         ConfigError: on a missing or malformed file, an unknown section or key, or a bad value.
     """
     models = {**models, **SHARED_SECTIONS}
-    raw: dict[str, dict[str, Any]] = {name: {} for name in models}
+    raw: dict[str, dict[str, Any]] = {name: {} for name in models}  # parsed YAML and JSON, validated below
     source_of: dict[tuple[str, str], str] = {}
     for section, values in (base or {}).items():
         if section in models and isinstance(values, Mapping):

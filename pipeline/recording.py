@@ -10,22 +10,29 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 import rerun as rr
+
+if TYPE_CHECKING:
+    import rerun.blueprint as rrb
+    from rerun.encodings import Rgba32ArrayLike
+
+    from pipeline.stage import Summary
 
 APPLICATION_ID = "focusmap"
 
 
-def open_recording(run_id: str, path: Path, blueprint: Any = None) -> rr.RecordingStream:
+def open_recording(run_id: str, path: Path, blueprint: rrb.Blueprint | None = None) -> rr.RecordingStream:
     """A recording stream saving to ``path``, with the run's recording id so stage files merge in the viewer."""
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=run_id, send_properties=False)
     rec.save(path, default_blueprint=blueprint)
     return rec
 
 
-def run_blueprint(blueprints: Sequence[tuple[str, Any]], active: str | None = None) -> Any:
+def run_blueprint(blueprints: Sequence[tuple[str, rrb.Blueprint]], active: str | None = None) -> rrb.Blueprint | None:
     """One blueprint for a whole run: a tab per stage (each stage's own layout), paused on ``time``.
 
     Every stage's recording carries it (with its own tab active), so however the viewer is given
@@ -33,10 +40,10 @@ def run_blueprint(blueprints: Sequence[tuple[str, Any]], active: str | None = No
     """
     import rerun.blueprint as rrb
 
-    tabs = []
+    tabs: list[rrb.Container] = []
     active_index = None
     for name, bp in blueprints:
-        root = getattr(bp, "root_container", None)
+        root: rrb.Container | None = getattr(bp, "root_container", None)  # absent from an empty blueprint
         if root is None:
             continue
         root.name = name
@@ -52,7 +59,7 @@ def run_blueprint(blueprints: Sequence[tuple[str, Any]], active: str | None = No
     )
 
 
-def save_blueprint(blueprint: Any, path: Path) -> None:
+def save_blueprint(blueprint: rrb.Blueprint, path: Path) -> None:
     """Write a blueprint file (``.rbl``) that the viewer opens beside the recordings."""
     tmp = path.with_name(f".{path.name}.tmp")
     blueprint.save(APPLICATION_ID, tmp)
@@ -112,7 +119,7 @@ def ellipsoids(
     centers: np.ndarray,
     covariances: Sequence[np.ndarray] | np.ndarray,
     n_sigma: float,
-    colors: Any = None,
+    colors: Rgba32ArrayLike | None = None,
     labels: Sequence[str] | None = None,
 ) -> rr.Ellipsoids3D:
     """An ``Ellipsoids3D`` with one n-sigma ellipsoid per (center, 2x2 or 3x3 covariance)."""
@@ -133,7 +140,11 @@ def ellipsoids(
 
 
 def ellipses_2d(
-    centers: np.ndarray, covariances: Sequence[np.ndarray], n_sigma: float, colors: Any = None, segments: int = 32
+    centers: npt.ArrayLike,
+    covariances: Sequence[np.ndarray],
+    n_sigma: float,
+    colors: Rgba32ArrayLike | None = None,
+    segments: int = 32,
 ) -> rr.LineStrips3D:
     """Planar n-sigma ellipses (from the xy block of each covariance) drawn as closed strips at z = 0."""
     t = np.linspace(0.0, 2.0 * np.pi, segments + 1)
@@ -175,7 +186,7 @@ def colormap(values: np.ndarray, vmin: float | None = None, vmax: float | None =
     return (_RAMP[i] * (1 - f) + _RAMP[i + 1] * f).astype(np.uint8)
 
 
-def log_summary(rec: rr.RecordingStream, stage: str, summary: dict[str, Any]) -> None:
+def log_summary(rec: rr.RecordingStream, stage: str, summary: Summary) -> None:
     """The stage summary as a static markdown document at ``/<stage>/summary``."""
     body = json.dumps(summary, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     text = f"# {stage}\n\n```json\n{body}\n```\n"

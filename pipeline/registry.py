@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
+from typing import Literal, TypeAlias
 
 from pydantic import BaseModel
 
 from pipeline.errors import ConfigError
-from pipeline.stage import Stage
+from pipeline.stage import AnyStage
+
+HeadlineType: TypeAlias = Literal["int64", "float64"]
+"""Column types of headline figures (pyarrow type names)."""
 
 
 @dataclass(frozen=True)
@@ -24,7 +28,7 @@ class Headline:
         short: its column label in the printed table.
     """
 
-    dtype: str
+    dtype: HeadlineType
     places: tuple[tuple[str, str], ...] = ()
     short: str = ""
 
@@ -34,7 +38,7 @@ class Registry:
 
     def __init__(
         self,
-        stages: Iterable[Stage],
+        stages: Iterable[AnyStage],
         headlines: Mapping[str, Headline] | None = None,
         short_names: Mapping[str, str] | None = None,
     ) -> None:
@@ -50,13 +54,13 @@ class Registry:
                     raise ValueError(f"headline {column!r} reads unknown stage {stage!r}")
         self.short_names: dict[str, str] = dict(short_names or {})
 
-    def __iter__(self) -> Iterator[Stage]:
+    def __iter__(self) -> Iterator[AnyStage]:
         return iter(self._stages.values())
 
     def __contains__(self, name: object) -> bool:
         return name in self._stages
 
-    def __getitem__(self, name: str) -> Stage:
+    def __getitem__(self, name: str) -> AnyStage:
         key = name.replace("-", "_")
         if key not in self._stages:
             raise ConfigError(f"unknown stage {name!r}; stages: {', '.join(s.command for s in self)}")
@@ -71,7 +75,7 @@ class Registry:
         """Settings model of every stage, by section name."""
         return {s.name: s.config_type for s in self}
 
-    def between(self, start: str | None = None, until: str | None = None) -> list[Stage]:
+    def between(self, start: str | None = None, until: str | None = None) -> list[AnyStage]:
         """The stages from ``start`` to ``until`` inclusive, in order."""
         names = self.names
         i = names.index(self[start].name) if start else 0

@@ -13,9 +13,10 @@ import shutil
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import NotRequired, TypedDict
 
 from pipeline.errors import InputError
+from pipeline.json_types import JSONObject
 
 RUN_FILE = "run.json"
 MANIFEST_FILE = "manifest.json"
@@ -23,14 +24,63 @@ PARTIAL_DIR = ".partial"
 _EDGE_BYTES = 1 << 20
 
 
-def write_json_atomic(path: Path, data: Any) -> None:
+class RunInfo(TypedDict):
+    """``run.json``: what the run folder is for."""
+
+    run_id: str
+    name: str
+    source: str | None
+    source_kind: NotRequired[str]
+    """``bag`` or ``graph``; absent in folders made before import-graph existed (a bag)."""
+    created: str
+
+
+class SourceIdentity(TypedDict):
+    """A cheap identity of an input file or folder (:func:`source_identity`)."""
+
+    path: str
+    bytes: int
+    files: int
+    digest: str
+
+
+class SourceEntry(SourceIdentity):
+    """The source file a stage read, as its manifest entry records it."""
+
+    kind: str
+    """The run's source kind (``bag``, ``graph``)."""
+
+
+class StageEntry(TypedDict, total=False):
+    """A finished stage in ``manifest.json`` (what :func:`pipeline.runner.run_stage` records)."""
+
+    fingerprint: str
+    finished: str
+    code: str
+    seconds: float
+    settings: JSONObject
+    inputs: dict[str, str | None]
+    source: SourceEntry | None
+    outside_files: dict[str, str | None]
+    versions: dict[str, str]
+    summary: JSONObject
+
+
+class Manifest(TypedDict):
+    """``manifest.json``: the run id and every finished stage's entry."""
+
+    run_id: str
+    stages: dict[str, StageEntry]
+
+
+def write_json_atomic(path: Path, data: object) -> None:
     """Write JSON to a temporary name beside ``path`` and rename it into place."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n")
     os.replace(tmp, path)
 
 
-def _json_default(obj: Any) -> Any:
+def _json_default(obj: object) -> object:
     if hasattr(obj, "tolist"):
         return obj.tolist()
     if isinstance(obj, Path):
@@ -38,7 +88,7 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
-def source_identity(path: Path) -> dict[str, Any]:
+def source_identity(path: Path) -> SourceIdentity:
     """A cheap identity of an input file or folder: names, sizes, mtimes and a hash of each file's ends."""
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     digest = hashlib.sha256()
@@ -72,7 +122,7 @@ class RunFolder:
                 f"{str(path)!r} is not a focusmap run folder (no {RUN_FILE}); "
                 "create one with 'focusmap ingest BAG --out DIR' or 'focusmap import-graph FILE --out DIR'"
             )
-        self.info: dict[str, Any] = json.loads(info_path.read_text())
+        self.info: RunInfo = json.loads(info_path.read_text())
         self.recover()
 
     @classmethod
@@ -88,7 +138,7 @@ class RunFolder:
                 )
             return run
         path.mkdir(parents=True, exist_ok=True)
-        info = {
+        info: RunInfo = {
             "run_id": str(uuid.uuid4()),
             "name": path.name,
             "source": str(source.resolve()) if source is not None else None,
@@ -96,7 +146,8 @@ class RunFolder:
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
         write_json_atomic(info_path, info)
-        write_json_atomic(path / MANIFEST_FILE, {"run_id": info["run_id"], "stages": {}})
+        manifest: Manifest = {"run_id": info["run_id"], "stages": {}}
+        write_json_atomic(path / MANIFEST_FILE, manifest)
         return cls(path)
 
     @property
@@ -129,21 +180,22 @@ class RunFolder:
         return self.path / f"{stage}.rrd"
 
     # manifest -----------------------------------------------------------------------------------
-    def manifest(self) -> dict[str, Any]:
+    def manifest(self) -> Manifest:
         """The run's manifest: per stage, its fingerprint, time taken, summary and versions."""
         path = self.path / MANIFEST_FILE
         if not path.is_file():
             return {"run_id": self.run_id, "stages": {}}
-        return json.loads(path.read_text())
+        manifest: Manifest = json.loads(path.read_text())
+        return manifest
 
-    def stage_entry(self, stage: str) -> dict[str, Any] | None:
+    def stage_entry(self, stage: str) -> StageEntry | None:
         """The manifest entry of a finished stage whose folder exists, else None."""
         entry = self.manifest()["stages"].get(stage)
         if entry is None or not self.stage_dir(stage).is_dir():
             return None
         return entry
 
-    def record(self, stage: str, entry: dict[str, Any]) -> None:
+    def record(self, stage: str, entry: StageEntry) -> None:
         """Store a finished stage's manifest entry."""
         manifest = self.manifest()
         manifest["stages"][stage] = entry

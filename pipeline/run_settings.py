@@ -12,17 +12,17 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
 
 from pydantic import BaseModel
 
 from pipeline.config import BASE_SOURCE, SHARED_SECTIONS, Settings, load_settings
+from pipeline.json_types import JSONObject
 from pipeline.run_folder import write_json_atomic
 
 SETTINGS_FILE = "settings.json"
 
 
-def stored_settings(run_dir: Path) -> dict[str, dict[str, Any]] | None:
+def stored_settings(run_dir: Path) -> JSONObject | None:
     """The settings a run folder keeps (None: none stored, or not a run folder yet)."""
     path = Path(run_dir) / SETTINGS_FILE
     if not path.is_file():
@@ -34,7 +34,7 @@ def stored_settings(run_dir: Path) -> dict[str, dict[str, Any]] | None:
     return data if isinstance(data, dict) else None
 
 
-def _show(value: Any) -> str:
+def _show(value: object) -> str:
     return json.dumps(value, sort_keys=True)
 
 

@@ -12,7 +12,6 @@ import time
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import Any
 
 from pipeline import __version__
 from pipeline.artifacts import StageOutput
@@ -22,8 +21,8 @@ from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import close_recording, log_summary, open_recording, run_blueprint, save_blueprint
 from pipeline.registry import Registry
-from pipeline.run_folder import RunFolder, outside_identity, source_identity, write_json_atomic
-from pipeline.stage import Stage
+from pipeline.run_folder import RunFolder, SourceEntry, outside_identity, source_identity, write_json_atomic
+from pipeline.stage import AnyStage, Summary
 
 
 def _runtime_requirements() -> list[str]:
@@ -54,10 +53,10 @@ class StageResult:
     stage: str
     status: str  # "done" or "skipped"
     seconds: float
-    summary: dict[str, Any] = field(default_factory=dict)
+    summary: Summary = field(default_factory=dict)
 
 
-def code_version(stage: Stage) -> str:
+def code_version(stage: AnyStage) -> str:
     """The stage's declared version plus a digest of the project code it can run.
 
     The digest covers the stage's own sub-package (the package of its ``run`` function, e.g. ``stages.evaluate``)
@@ -94,7 +93,7 @@ def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Setting
     """
     stage = registry[name]
     required, optional = stage.inputs_on(run.source_kind)
-    inputs: dict[str, Any] = {}
+    inputs: dict[str, str | None] = {}
     for dep in (*required, *optional):
         entry = run.stage_entry(dep)
         inputs[dep] = entry["fingerprint"] if entry else None
@@ -110,10 +109,10 @@ def fingerprint(run: RunFolder, registry: Registry, name: str, settings: Setting
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
-def _source(run: RunFolder, stage: Stage) -> dict[str, Any] | None:
+def _source(run: RunFolder, stage: AnyStage) -> SourceEntry | None:
     if not stage.reads_source(run.source_kind) or run.source is None or not run.source.exists():
         return None
-    return {**source_identity(run.source), "kind": run.source_kind}
+    return SourceEntry(**source_identity(run.source), kind=run.source_kind)
 
 
 def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings) -> bool:
@@ -200,7 +199,9 @@ def run_stage(
     try:
         write_run_blueprint(run, registry)
     except Exception as err:  # a layout problem must not fail a finished stage
-        summary.setdefault("notes", []).append(f"run blueprint not written: {err}")
+        notes = summary.setdefault("notes", [])
+        if isinstance(notes, list):
+            notes.append(f"run blueprint not written: {err}")
     return StageResult(stage.name, "done", seconds, summary)
 
 

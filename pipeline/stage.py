@@ -12,20 +12,26 @@ its command's options, the line printed after it ran and, for a report, what ``f
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic, TypeAlias, TypeVar
 
 from pydantic import BaseModel
 
+from pipeline.json_types import JSONObject, JSONValue
 from pipeline.lazy import lazy
 
 if TYPE_CHECKING:
+    import rerun.blueprint as rrb
+
     from pipeline.context import StageContext
 
-Summary = dict[str, Any]
+Summary: TypeAlias = JSONObject
+"""A stage's summary: small JSON-able figures (counts, timings, headline metrics, ``notes``)."""
 
-__all__ = ["Option", "Stage", "Summary", "lazy", "summary_figures", "summary_notes"]
+C = TypeVar("C", bound=BaseModel)
+
+__all__ = ["AnyStage", "JSONValue", "Option", "Stage", "Summary", "lazy", "summary_figures", "summary_notes"]
 
 
 @dataclass(frozen=True)
@@ -48,9 +54,9 @@ class Option:
     help: str
     kind: type = str
     min: float | None = None
-    value: Callable[[Any], str] | None = None
+    value: Callable[[Any], str] | None = None  # takes a value of type ``kind``, which only the option knows
 
-    def override(self, section: str, given: Any) -> str | None:
+    def override(self, section: str, given: object) -> str | None:
         """The ``SECTION.KEY=VALUE`` override for a given value, None when the option was not given."""
         if given is None or given is False:
             return None
@@ -66,12 +72,13 @@ def summary_figures(summary: Summary, hidden: Sequence[str] = ("seconds", "notes
 
 def summary_notes(summary: Summary) -> list[tuple[str, str]]:
     """The summary's notes, as ``("note", text)`` remarks."""
-    return [("note", str(note)) for note in summary.get("notes", [])]
+    notes = summary.get("notes")
+    return [("note", str(note)) for note in notes] if isinstance(notes, list) else []
 
 
 @dataclass(frozen=True)
-class Stage:
-    """One step of the pipeline.
+class Stage(Generic[C]):
+    """One step of the pipeline, whose settings are a ``C``.
 
     Attributes:
         name: snake_case name; also the artifact folder and the ``<name>.rrd`` file.
@@ -92,12 +99,12 @@ class Stage:
     """
 
     name: str
-    config_type: type[BaseModel]
-    run: Callable[[StageContext, Any], Summary]
+    config_type: type[C]
+    run: Callable[[StageContext, C], Mapping[str, JSONValue] | None]
     inputs: tuple[str, ...] = ()
     version: str = "1"
     needs_source: bool = False
-    blueprint: Callable[[], Any] | None = None
+    blueprint: Callable[[], rrb.Blueprint] | None = None
     help: str = ""
     optional_inputs: tuple[str, ...] = field(default=())
     options: tuple[Option, ...] = ()
@@ -120,3 +127,7 @@ class Stage:
     def command(self) -> str:
         """The CLI command name (dashes instead of underscores)."""
         return self.name.replace("_", "-")
+
+
+AnyStage: TypeAlias = Stage[Any]
+"""A stage whose settings model is not known statically (the registry holds stages of every kind)."""

@@ -42,7 +42,8 @@ def pose3_from_xyz_quat(xyz: npt.ArrayLike, quat_xyzw: npt.ArrayLike) -> gtsam.P
 def quat_xyzw(pose_or_rot: gtsam.Pose3 | gtsam.Rot3) -> FloatArray:
     """The quaternion (x, y, z, w) of a ``Pose3`` or ``Rot3``, with w >= 0."""
     R = pose_or_rot.rotation() if isinstance(pose_or_rot, gtsam.Pose3) else pose_or_rot
-    q = R.toQuaternion()
+    # annotated: gtsam's stub names the return type ``Quaternion`` inside ``Rot3``, where that name is a method
+    q: gtsam.Quaternion = R.toQuaternion()
     out = np.array([q.x(), q.y(), q.z(), q.w()])
     return out if out[3] >= 0 else -out
 

@@ -413,8 +413,8 @@ def path_risk(
         if todo:
             J = np.array([_information(geometry.poses[t], landmarks, sorted(k[1]), geometry.sigmas) for t, k in todo])
             S = stabilised_covariances(geometry.Q, J, params.cap_steps)
-            for (t, key), s_t in zip(todo, S, strict=True):
-                sig[t] = s_t
+            for (t_todo, key), s_t in zip(todo, S, strict=True):
+                sig[t_todo] = s_t
                 if cache is not None:
                     cache[key] = s_t
     sigma = dead_reckoning_covariances(sig, localised, geometry.Q, params.cap_steps)

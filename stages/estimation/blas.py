@@ -13,11 +13,12 @@ import functools
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import ParamSpec, TypeVar
 
 import numpy as np
 import scipy.linalg as sla
 
+P = ParamSpec("P")
 T = TypeVar("T")
 
 
@@ -62,11 +63,11 @@ def single_threaded_blas() -> Iterator[None]:
             put(b)
 
 
-def blas_single(fn: Callable[..., T]) -> Callable[..., T]:
+def blas_single(fn: Callable[P, T]) -> Callable[P, T]:
     """Decorator: run ``fn`` inside :func:`single_threaded_blas`."""
 
     @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> T:
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> T:
         with single_threaded_blas():
             return fn(*args, **kwargs)
 

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.stats import norm
 
-from stages.estimation.landmark_selection import LandmarkSelection
+from stages.estimation.landmark_selection import LandmarkSelection, SelectionStatus
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -218,5 +218,5 @@ def select_collision(
         localised[ts] = True
         cov, risk = risk_now()
         scores.append(float(risk.max()))
-    status = "budget_exceeds_landmarks" if budget > L else "ok"
+    status: SelectionStatus = "budget_exceeds_landmarks" if budget > L else "ok"
     return LandmarkSelection(chosen, scores, status, {"risk_before": risk0, "risk_after": risk, "sigma_after": cov})

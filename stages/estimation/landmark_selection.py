@@ -18,9 +18,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from stages.estimation.blas import blas_single
+from stages.estimation.linear_system import SparseMatrix
 
 FloatArray = npt.NDArray[np.float64]
 Measure = Literal["logdet", "trace", "max_eig"]
+SelectionStatus = Literal["ok", "budget_zero", "budget_exceeds_landmarks", "no_landmarks"]
 T = TypeVar("T")
 
 
@@ -33,11 +35,11 @@ class LandmarkSelection:
     """Landmark indices in the order picked."""
     scores: list[float]
     """Score at each pick (strategy-specific; see the function)."""
-    status: Literal["ok", "budget_zero", "budget_exceeds_landmarks", "no_landmarks"] = "ok"
+    status: SelectionStatus = "ok"
     extra: dict[str, FloatArray] = field(default_factory=dict)
 
 
-def _status(budget: int, n: int) -> str | None:
+def _status(budget: int, n: int) -> SelectionStatus | None:
     if n == 0:
         return "no_landmarks"
     if budget <= 0:
@@ -53,8 +55,8 @@ def _status(budget: int, n: int) -> str | None:
 # leverage draw and to carry a dense n×n covariance through the MI greedy. Here they factorise the sparse matrix
 # (SuperLU with a symmetric ordering) and solve only for the columns they read: same numbers, ~10-50x faster on
 # the sample (n = 1,707).
-def _as_sparse(info: FloatArray | sp.spmatrix) -> sp.csc_matrix:
-    return sp.csc_matrix(info) if not sp.issparse(info) else info.tocsc()
+def _as_sparse(info: FloatArray | SparseMatrix) -> sp.csc_matrix:
+    return sp.csc_matrix(info) if isinstance(info, np.ndarray) else info.tocsc()
 
 
 def _scatter(n: int, parts: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]) -> sp.csc_matrix:
@@ -75,7 +77,7 @@ def _scatter(n: int, parts: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]) 
 class _Factor:
     """Sparse LU of a symmetric positive definite matrix (SuperLU, symmetric mode): log-determinant and solves."""
 
-    def __init__(self, A: sp.spmatrix) -> None:
+    def __init__(self, A: SparseMatrix) -> None:
         self.n = A.shape[0]
         self.A = A.tocsc()
         self.lu = spla.splu(self.A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -126,7 +128,7 @@ class _LevelBlocks:
     nonzero ``(i, j)`` of the pattern. Cost ``O(Σ_k b_k³)`` instead of ``O(n³)``; no ``n × n`` array.
     """
 
-    def __init__(self, pattern: sp.spmatrix, min_block: int | None = None) -> None:
+    def __init__(self, pattern: SparseMatrix, min_block: int | None = None) -> None:
         min_block = LEVEL_BLOCK_MIN if min_block is None else min_block
         g = sp.csr_matrix(pattern, copy=True)
         g.data = np.ones_like(g.data)
@@ -175,7 +177,7 @@ class _LevelBlocks:
         pos[upper] = self.off_c[k] + lj[upper] * self.size[k] + li[upper]
         return diag, upper, pos
 
-    def store(self, A: sp.spmatrix) -> tuple[FloatArray, FloatArray]:
+    def store(self, A: SparseMatrix) -> tuple[FloatArray, FloatArray]:
         """``A``'s diagonal blocks and lower neighbour blocks, flat (the input of :meth:`factor`)."""
         coo = sp.coo_matrix(A)
         coo.sum_duplicates()
@@ -299,9 +301,9 @@ inverse is used regardless (it never needs an ``n × n`` array)."""
 
 
 def _dense_mi_ops(
-    info0: FloatArray | sp.spmatrix, factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+    info0: FloatArray | SparseMatrix, factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
 ) -> tuple[Callable[[int], float], Callable[[int], None]]:
-    dense = info0.toarray() if sp.issparse(info0) else np.asarray(info0)
+    dense = np.asarray(info0) if isinstance(info0, np.ndarray) else info0.toarray()
     Sigma = np.linalg.inv(dense)
 
     def gain(l_: int) -> float:
@@ -323,7 +325,7 @@ def _dense_mi_ops(
 
 
 def _sparse_mi_ops(
-    info0: FloatArray | sp.spmatrix, factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
+    info0: FloatArray | SparseMatrix, factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]]
 ) -> tuple[Callable[[int], float], Callable[[int], None]]:
     n = info0.shape[0]
     lam = _as_sparse(info0)
@@ -350,7 +352,7 @@ def _sparse_mi_ops(
 
 
 def _selected_mi_ops(
-    info0: FloatArray | sp.spmatrix,
+    info0: FloatArray | SparseMatrix,
     factors: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     blocks: _LevelBlocks,
 ) -> tuple[Callable[[int], float], Callable[[int], None]]:
@@ -383,7 +385,7 @@ MIBackend = Literal["auto", "selected", "dense", "sparse"]
 ``sparse``: a sparse factorisation per pick and r solves per gain (memory-lean fallback above ``DENSE_MAX_DIM``)."""
 
 
-def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float, backend: MIBackend) -> str:
+def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float, backend: MIBackend) -> MIBackend:
     if backend != "auto":
         return backend
     if budget * blocks.cost() <= float(n) ** 3 + budget * 2.0 * float(n) ** 2 * rank or n > DENSE_MAX_DIM:
@@ -470,7 +472,7 @@ def _measure(cov: FloatArray, measure: Measure) -> float:
 
 
 def _measure_information(
-    lam: sp.spmatrix, measure: Measure, blocks: _LevelBlocks | None = None, min_block: int | None = None
+    lam: SparseMatrix, measure: Measure, blocks: _LevelBlocks | None = None, min_block: int | None = None
 ) -> float:
     """:func:`_measure` of ``lam⁻¹`` from a sparse factorisation of the information ``lam`` (no dense inverse).
 
@@ -489,7 +491,7 @@ def _measure_information(
 
 
 def _all_information(
-    info0: FloatArray | sp.spmatrix,
+    info0: FloatArray | SparseMatrix,
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     min_block: int | None = None,
 ) -> tuple[sp.csc_matrix, _LevelBlocks]:
@@ -500,7 +502,7 @@ def _all_information(
 
 
 def _leverage_probabilities(
-    info0: FloatArray | sp.spmatrix,
+    info0: FloatArray | SparseMatrix,
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     lam: sp.csc_matrix,
     blocks: _LevelBlocks,
@@ -516,11 +518,12 @@ def _leverage_probabilities(
         data.append(np.asarray(B, dtype=float).ravel())
         owner.append(np.full(len(c) * len(c), l_, dtype=np.int64))
     r_ = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+    own: FloatArray = np.zeros(N)
     if len(r_):
         sig = inv.entries(r_, np.concatenate(cols))
-        own = np.bincount(np.concatenate(owner), weights=sig * np.concatenate(data), minlength=N)
-    else:
-        own = np.zeros(N)
+        own = np.bincount(np.concatenate(owner), weights=sig * np.concatenate(data), minlength=N).astype(
+            np.float64, copy=False
+        )
     # Σ (Λ₀ + Σ_l Λ_l) = I, so tr(Σ Λ₀) = n − Σ_l tr(Σ Λ_l): no other entry of Σ is needed
     base = (n - float(own.sum())) / N
     return np.asarray((base + own) / n)

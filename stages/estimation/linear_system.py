@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +22,8 @@ if TYPE_CHECKING:
 VariableKind = Literal["pose", "landmark"]
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+SparseMatrix: TypeAlias = sp.csc_matrix | sp.csr_matrix | sp.coo_matrix
+"""The scipy sparse matrices the estimation code passes around (information matrices, Jacobians, patterns)."""
 
 
 @dataclass(frozen=True)

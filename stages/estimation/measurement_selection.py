@@ -45,7 +45,7 @@ import scipy.sparse as sp
 
 from stages.estimation.blas import single_threaded_blas
 from stages.estimation.gaussian import entropy_from_logdet
-from stages.estimation.linear_system import Factor, LinearSystem
+from stages.estimation.linear_system import Factor, LinearSystem, SparseMatrix
 from stages.estimation.sparse_cov import (
     SPDSolver,
     covariance_blocks,
@@ -256,7 +256,7 @@ class _Refactorising:
         self,
         info: sp.csc_matrix,
         m: int,
-        add_info: Callable[[list[int]], sp.spmatrix],
+        add_info: Callable[[list[int]], SparseMatrix],
         refactor_every: int | None,
         max_window: int,
     ) -> None:
@@ -307,7 +307,7 @@ class _Tracker(_Refactorising):
         info: sp.csc_matrix,
         rows: IntArray | None,
         m: int,
-        add_info: Callable[[list[int]], sp.spmatrix],
+        add_info: Callable[[list[int]], SparseMatrix],
         refactor_every: int | None,
         max_window: int = 256,
     ) -> None:
@@ -365,7 +365,7 @@ class _CapacitanceTracker(_Refactorising):
         m: int,
         d: int,
         fcols: IntArray,
-        add_info: Callable[[list[int]], sp.spmatrix],
+        add_info: Callable[[list[int]], SparseMatrix],
         refactor_every: int | None,
         weak: npt.NDArray[np.bool_] | None,
         refactor_on_first_observation: bool = False,
@@ -652,7 +652,7 @@ def _tracked_information(
 
 def _capacitance_tracker(
     prob: _Problem,
-    add_info: Callable[[list[int]], sp.spmatrix],
+    add_info: Callable[[list[int]], SparseMatrix],
     m: int,
     d: int,
     fcols: IntArray,
@@ -692,7 +692,7 @@ def _greedy(
     capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
     stats = {"reduce_s": time.perf_counter() - t_red}
 
-    def add_info(js: list[int]) -> sp.spmatrix:
+    def add_info(js: list[int]) -> SparseMatrix:
         info = prob.system.information([c.index[i] for i in js])
         return info if rows_t is not None else info[c.rows][:, c.rows]
 

@@ -25,6 +25,8 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
+from stages.estimation.linear_system import SparseMatrix
+
 try:  # optional, faster sparse Cholesky (CHOLMOD in a wheel)
     from cholespy import CholeskySolverD, MatrixType
 
@@ -47,7 +49,7 @@ class SPDSolver:
     SuperLU with a symmetric minimum-degree ordering and diagonal pivoting.
     """
 
-    def __init__(self, matrix: sp.spmatrix, backend: str | None = None) -> None:
+    def __init__(self, matrix: SparseMatrix, backend: str | None = None) -> None:
         A = sp.csc_matrix(matrix)
         self._A = A
         self.n = int(A.shape[0])
@@ -112,7 +114,7 @@ class SPDSolver:
         return np.asarray(self._superlu().solve(b))
 
 
-def _variable_graph(info: sp.spmatrix, offsets: IntArray) -> sp.csr_matrix:
+def _variable_graph(info: SparseMatrix, offsets: IntArray) -> sp.csr_matrix:
     """Block-sparsity pattern of ``info`` as a variable adjacency matrix (no self loops)."""
     coo = sp.coo_matrix(info)
     var_of_col = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
@@ -174,7 +176,7 @@ def _tridiagonal_blocks(
     for k in range(n):
         if k > 0:
             S = D[k] - B[k - 1].T @ S_inv[k - 1] @ B[k - 1]
-        S_inv.append(np.linalg.inv(S))
+        S_inv.append(np.linalg.inv(S).astype(np.float64, copy=False))
     diag: list[FloatArray] = [np.zeros((0, 0))] * n
     off: list[FloatArray] = [np.zeros((0, 0))] * max(n - 1, 0)
     diag[n - 1] = S_inv[n - 1]
@@ -186,7 +188,7 @@ def _tridiagonal_blocks(
 
 
 def covariance_blocks(
-    info: sp.spmatrix,
+    info: SparseMatrix,
     offsets: IntArray,
     pairs: Iterable[tuple[int, int]],
     solver: SPDSolver | None = None,
@@ -207,8 +209,8 @@ def covariance_blocks(
     graph = _variable_graph(info, offsets)
     _, label = csgraph.connected_components(graph, directed=False)
     members_of: dict[int, list[int]] = defaultdict(list)
-    for v, c in enumerate(label):
-        members_of[int(c)].append(v)
+    for v, comp in enumerate(label):
+        members_of[int(comp)].append(v)
     dims = np.diff(offsets)
     out: dict[tuple[int, int], FloatArray] = {}
     pending: list[tuple[int, int]] = []
@@ -270,7 +272,7 @@ def logdet_spd(matrix: FloatArray) -> float:
 
 
 def covariance_blocks_schur(
-    info: sp.spmatrix,
+    info: SparseMatrix,
     offsets: IntArray,
     pairs: Iterable[tuple[int, int]],
     separator: Sequence[int],
@@ -329,7 +331,7 @@ def covariance_blocks_schur(
     return out
 
 
-def schur_complement(info: sp.spmatrix, keep: IntArray, max_colours: int = 96) -> sp.csc_matrix | None:
+def schur_complement(info: SparseMatrix, keep: IntArray, max_colours: int = 96) -> sp.csc_matrix | None:
     """Exact sparse ``Λ_KK − Λ_KO Λ_OO⁻¹ Λ_OK`` (``= (Λ⁻¹[K, K])⁻¹``) onto the scalar columns ``keep``.
 
     ``O`` is every other column. ``Λ_OO⁻¹`` is block diagonal over the connected components of

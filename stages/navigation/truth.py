@@ -50,7 +50,7 @@ def se2(x: float, y: float, yaw: float) -> FloatArray:
     return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
 
 
-def transform_points(T: FloatArray, points: FloatArray) -> FloatArray:
+def transform_points(T: npt.NDArray[np.floating], points: npt.ArrayLike) -> FloatArray:
     """Apply a 3x3 planar transform to (N, 2) points."""
     p = np.asarray(points, dtype=float).reshape(-1, 2)
     return p @ T[:2, :2].T + T[:2, 2]
