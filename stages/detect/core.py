@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +22,9 @@ from stages.ingest.artifacts import CameraModel
 
 # Reasons a detection is dropped before its pose is kept (summary keys).
 DROP_REASONS = ("family", "hamming", "decision_margin", "small", "pose_failed", "reprojection")
+
+if TYPE_CHECKING:
+    import pycolmap
 
 
 @dataclass
@@ -97,7 +100,7 @@ def observations_to_rows(
     observations: list[TagObservation],
     job: FrameJob,
     cfg: DetectConfig,
-    camera: object,
+    camera: pycolmap.Camera,
     dropped: Counter[str],
     apply_quality: bool = True,
 ) -> list[DetectionRow]:
@@ -146,7 +149,7 @@ def observations_to_rows(
 def detect_image(
     gray: npt.NDArray[np.uint8],
     detector: Detector,
-    camera: object,
+    camera: pycolmap.Camera,
     cfg: DetectConfig,
     job: FrameJob | None = None,
     dropped: Counter[str] | None = None,

@@ -37,7 +37,7 @@ def decode_frame(fmt: str, width: int, height: int, step: int, data: bytes) -> n
             raise CorruptFrameError(f"{fmt} bytes ({buf.size} B) do not decode")
         if width and height and img.shape != (height, width):
             raise CorruptFrameError(f"decoded {img.shape[1]}x{img.shape[0]}, expected {width}x{height}")
-        return img
+        return np.asarray(img, dtype=np.uint8)
     if fmt not in _RAW_CHANNELS:
         raise CorruptFrameError(f"unsupported encoding {fmt!r}; expected jpeg, png, {', '.join(_RAW_CHANNELS)}")
     channels = _RAW_CHANNELS[fmt]
@@ -63,4 +63,4 @@ def decode_frame(fmt: str, width: int, height: int, step: int, data: bytes) -> n
         "bgra8": cv2.COLOR_BGRA2GRAY,
         "rgba8": cv2.COLOR_RGBA2GRAY,
     }[fmt]
-    return cv2.cvtColor(pix, code)
+    return np.asarray(cv2.cvtColor(pix, code), dtype=np.uint8)

@@ -12,9 +12,13 @@ Conventions:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:
+    import pycolmap
 
 Array = npt.NDArray[np.float64]
 
@@ -72,7 +76,7 @@ class TagPose:
         return R @ self.cov_unit[3:, 3:] @ R.T
 
 
-def _refinement_options() -> object:
+def _refinement_options() -> pycolmap.AbsolutePoseRefinementOptions:
     import pycolmap
 
     opts = pycolmap.AbsolutePoseRefinementOptions()
@@ -96,7 +100,10 @@ def colmap_to_gtsam_cov(cov_colmap: Array, R_camera_tag: Array) -> Array:
     return 0.5 * (out + out.T)
 
 
-def _refine(camera: object, corners: Array, obj: Array, R: Array, t: Array) -> tuple[Array, Array, float] | None:
+def _refine(
+    camera: pycolmap.Camera, corners: Array, obj: Array, R: Array, t: Array
+) -> tuple[Array, Array, float, Array] | None:
+    """The pose refined from ``R, t`` on the corners: 4x4 pose, GTSAM covariance, squared error, scale mode."""
     import pycolmap
 
     start = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(R), translation=t)
@@ -110,7 +117,7 @@ def _refine(camera: object, corners: Array, obj: Array, R: Array, t: Array) -> t
     T[:3, :4] = np.asarray(pose.matrix())
     if T[2, 3] <= 0:
         return None
-    proj = np.asarray(camera.img_from_cam(obj @ T[:3, :3].T + T[:3, 3], check_cheirality=False))  # type: ignore[attr-defined]
+    proj = np.asarray(camera.img_from_cam(obj @ T[:3, :3].T + T[:3, 3], check_cheirality=False))
     sse = float(np.sum((proj - corners) ** 2))
     cov = colmap_to_gtsam_cov(np.asarray(res["covariance"]), T[:3, :3])
     J = corner_jacobian(camera, T, obj)
@@ -134,7 +141,7 @@ def se3_log(T: Array) -> Array:
     """GTSAM's ``Pose3.Logmap`` (rx, ry, rz, tx, ty, tz) of a 4x4 pose."""
     import cv2
 
-    w = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0].ravel()
+    w = np.asarray(cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0], dtype=float).ravel()
     theta = float(np.linalg.norm(w))
     K = _skew(w)
     if theta < 1e-8:
@@ -149,7 +156,7 @@ _SKEW_BASIS = np.array(
 )
 
 
-def corner_jacobian(camera: object, T: Array, obj: Array, h: float = 1e-6) -> Array:
+def corner_jacobian(camera: pycolmap.Camera, T: Array, obj: Array, h: float = 1e-6) -> Array:
     """8 x 6 derivative of the distorted corners (x0 y0 .. x3 y3) by the right perturbation ``T Exp(xi)``.
 
     Central differences; ``R Exp(+-h w)`` is taken as ``R (I +- h [w]x)``, whose central difference is the
@@ -161,7 +168,7 @@ def corner_jacobian(camera: object, T: Array, obj: Array, h: float = 1e-6) -> Ar
     delta[:3] = np.einsum("nj,kij->kni", obj, R @ _SKEW_BASIS)  # d/dw_k of R (I + [w]x) p = R [e_k]x p
     delta[3:] = R.T[:, None, :]  # d/dv_k of t + R v = R e_k
     pts = np.concatenate([base + h * delta, base - h * delta], axis=0).reshape(-1, 3)
-    proj = np.asarray(camera.img_from_cam(pts, check_cheirality=False)).reshape(2, 6, 8)  # type: ignore[attr-defined]
+    proj = np.asarray(camera.img_from_cam(pts, check_cheirality=False)).reshape(2, 6, 8)
     return ((proj[0] - proj[1]) / (2 * h)).T
 
 
@@ -172,7 +179,7 @@ def scale_mode(corners: Array) -> Array:
     return (d / np.linalg.norm(d, axis=1, keepdims=True)).ravel()
 
 
-def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPose | None:
+def estimate_tag_pose(corners_px: Array, size_m: float, camera: pycolmap.Camera) -> TagPose | None:
     """Pose of a tag from its distorted pixel corners (4 x 2, OpenCV aruco order), or None if degenerate.
 
     Both IPPE solutions of the planar ambiguity are computed on the undistorted corners and refined
@@ -183,7 +190,7 @@ def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPo
 
     corners = np.asarray(corners_px, float).reshape(4, 2)
     obj = tag_object_points(size_m)
-    normalized = np.asarray(camera.cam_from_img(corners))  # type: ignore[attr-defined]
+    normalized = np.asarray(camera.cam_from_img(corners))
     if not np.all(np.isfinite(normalized)):
         return None
     try:
@@ -195,7 +202,7 @@ def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPo
     candidates = []
     for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
         R, _ = cv2.Rodrigues(rvec)
-        refined = _refine(camera, corners, obj, R, np.asarray(tvec, float).ravel())
+        refined = _refine(camera, corners, obj, np.asarray(R, float), np.asarray(tvec, float).ravel())
         if refined is not None and np.all(np.isfinite(refined[1])):
             candidates.append(refined)
     if not candidates:
@@ -208,7 +215,7 @@ def estimate_tag_pose(corners_px: Array, size_m: float, camera: object) -> TagPo
         alt = None
     if alt is None:
         return TagPose(T, cov, sse, None, float("inf"), scale_dir)
-    offset = se3_log(np.linalg.solve(T, alt[0]))
+    offset = se3_log(np.asarray(np.linalg.solve(T, alt[0]), dtype=float))
     return TagPose(T, cov, sse, alt[0], alt[2], scale_dir, alt[1], alt[3], offset)
 
 

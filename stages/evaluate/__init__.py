@@ -41,17 +41,21 @@ def blueprint() -> Any:
 def report_lines(summary: Summary) -> list[str]:
     """The evaluation report's path and its headline row (focus, info), from evaluate's summary."""
     lines = []
-    head = summary.get("headline") or {}
     if summary.get("report"):
         lines.append(f"report: {summary['report']}")
-    if head:
-        nan = float("nan")
+    head = summary.get("headline")
+    if isinstance(head, dict) and head:
+
+        def num(key: str) -> float:
+            value = head.get(key)
+            return float(value) if isinstance(value, int | float) else float("nan")
+
         lines.append(
-            f"headline ({head.get('case')}): focused entropy {head.get('focused_entropy', nan):.1f} nats, "
-            f"focused error {100 * head.get('focused_error_m', nan):.1f} cm, "
-            f"max P(collision) {head.get('max_collision_probability', nan):.2g}, "
-            f"collision rate {head.get('collision_rate', nan):.3f} "
-            f"[{head.get('collision_ci_low', nan):.3f}, {head.get('collision_ci_high', nan):.3f}]"
+            f"headline ({head.get('case')}): focused entropy {num('focused_entropy'):.1f} nats, "
+            f"focused error {100 * num('focused_error_m'):.1f} cm, "
+            f"max P(collision) {num('max_collision_probability'):.2g}, "
+            f"collision rate {num('collision_rate'):.3f} "
+            f"[{num('collision_ci_low'):.3f}, {num('collision_ci_high'):.3f}]"
         )
     return lines
 

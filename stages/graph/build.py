@@ -115,10 +115,8 @@ def _usable_detections(
     """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
     if missing := sorted(set(DETECTION_COLUMNS) - set(detections.column_names)):
         raise InputError(f"{DETECTIONS.file} lacks columns {missing}; re-run 'focusmap detect'")
-    det = detections.select(
-        [c for c in (*DETECTION_COLUMNS, *DETECTION_FILTER_COLUMNS) if c in detections.column_names]
-    )
-    det = det.to_pydict()
+    wanted = [c for c in (*DETECTION_COLUMNS, *DETECTION_FILTER_COLUMNS) if c in detections.column_names]
+    det = detections.select(wanted).to_pydict()
     n_det = detections.num_rows
     keep = np.ones(n_det, dtype=bool)
     info: dict[str, Any] = {"detections": n_det}

@@ -64,7 +64,7 @@ def tum_text(stamps_ns: list[int], poses: list[gtsam.Pose3]) -> str:
     lines = []
     for s, p in zip(stamps_ns, poses, strict=True):
         t = np.asarray(p.translation())
-        q = p.rotation().toQuaternion()
+        q: gtsam.Quaternion = p.rotation().toQuaternion()  # gtsam's stub misnames the return type
         lines.append(f"{s / 1e9:.9f} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q.x():.9f} {q.y():.9f} {q.z():.9f} {q.w():.9f}")
     return "\n".join(lines) + "\n"
 
@@ -199,8 +199,9 @@ def log_recording(
         rec.log(f"{ENTITY}/tag_edges", rr.LineStrips3D(edges, colors=[[200, 200, 60, 90]], radii=0.003), static=True)
     for i in idx:
         set_stamp(rec, problem.pose_stamps_ns[i])
-        q = poses3[i].rotation().toQuaternion()
-        rec.log(f"{ENTITY}/pose", rr.Transform3D(translation=path[i], quaternion=[q.x(), q.y(), q.z(), q.w()]))
+        q: gtsam.Quaternion = poses3[i].rotation().toQuaternion()
+        xyzw = rr.Quaternion(xyzw=[q.x(), q.y(), q.z(), q.w()])
+        rec.log(f"{ENTITY}/pose", rr.Transform3D(translation=path[i], quaternion=xyzw))
 
 
 def _log_landmarks(

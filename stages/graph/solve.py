@@ -173,22 +173,7 @@ def optimise(
             values, iterations = loop.values, loop.iterations
             optimizer = method if method == optimizer else f"{method} (dogleg has no loop for Python factors)"
         else:
-            params: gtsam.NonlinearOptimizerParams
-            if optimizer == "lm":
-                params = gtsam.LevenbergMarquardtParams()
-            elif optimizer == "gn":
-                params = gtsam.GaussNewtonParams()
-            else:
-                params = gtsam.DoglegParams()
-            params.setMaxIterations(max_iterations)
-            params.setRelativeErrorTol(relative_error_tol)
-            params.setAbsoluteErrorTol(1e-9)
-            if optimizer == "lm":
-                opt = gtsam.LevenbergMarquardtOptimizer(graph, problem.initial, params)
-            elif optimizer == "gn":
-                opt = gtsam.GaussNewtonOptimizer(graph, problem.initial, params)
-            else:
-                opt = gtsam.DoglegOptimizer(graph, problem.initial, params)
+            opt = _gtsam_optimizer(graph, problem.initial, optimizer, max_iterations, relative_error_tol)
             values = opt.optimize()
             iterations = int(opt.iterations())
     except RuntimeError as err:
@@ -215,3 +200,26 @@ def marginal_covariances(
         if _is_indeterminant(err):
             raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
         raise
+
+
+def _gtsam_optimizer(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, optimizer: str, max_iterations: int, tol: float
+) -> gtsam.NonlinearOptimizer:
+    """GTSAM's own optimiser of that name (``lm``, ``gn`` or ``dogleg``), with the iteration cap and tolerances."""
+
+    def limits(params: gtsam.NonlinearOptimizerParams) -> None:
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(tol)
+        params.setAbsoluteErrorTol(1e-9)
+
+    if optimizer == "lm":
+        lm = gtsam.LevenbergMarquardtParams()
+        limits(lm)
+        return gtsam.LevenbergMarquardtOptimizer(graph, initial, lm)
+    if optimizer == "gn":
+        gn = gtsam.GaussNewtonParams()
+        limits(gn)
+        return gtsam.GaussNewtonOptimizer(graph, initial, gn)
+    dl = gtsam.DoglegParams()
+    limits(dl)
+    return gtsam.DoglegOptimizer(graph, initial, dl)

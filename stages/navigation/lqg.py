@@ -109,9 +109,14 @@ def lqr_gains(path: NominalPath, Wx: FloatArray, Wu: FloatArray) -> FloatArray:
 class MapLike(Protocol):
     """A planar landmark map: ``tag_ids`` (L,), ``positions`` (L, 2), ``covariances`` (L, 2, 2)."""
 
-    tag_ids: IntArray
-    positions: FloatArray
-    covariances: FloatArray
+    @property
+    def tag_ids(self) -> IntArray: ...
+
+    @property
+    def positions(self) -> FloatArray: ...
+
+    @property
+    def covariances(self) -> FloatArray: ...
 
 
 @dataclass(frozen=True)

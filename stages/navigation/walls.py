@@ -19,7 +19,10 @@ FloatArray = npt.NDArray[np.float64]
 class Obstacles(Protocol):
     """Anything with a distance-to-nearest-obstacle query."""
 
-    kind: str
+    @property
+    def kind(self) -> str:
+        """What the obstacles are (e.g. ``ground_truth`` walls or walls rebuilt from the ``laser``)."""
+        ...
 
     def distance(self, points: FloatArray) -> FloatArray:
         """Distance (m) from each (N, 2) point to the nearest obstacle."""
