@@ -1,10 +1,10 @@
 """Stage ``graph``: the full SLAM factor graph of the run (odometry + every tag measurement), optimised,
-with the marginal covariance of every pose and landmark; and ``import_graph`` for existing graph files.
+with the marginal covariance of every pose and landmark; and ``import_run`` for existing graph files.
 
 Public API:
     STAGE: the stage value for the registry.
     GraphConfig: its settings.
-    import_graph(path, out_dir, name) -> Path: a run folder whose graph stage comes from a g2o / GTSAM file.
+    import_run(path, out_dir, name) -> RunFolder: a run folder whose graph stage reads a g2o / GTSAM file.
     load_graph(graph_input) -> LoadedGraph and build_reduced(loaded, keep_factor_indices) (in ``stages.graph.load``).
 """
 
@@ -17,11 +17,11 @@ from pipeline.stage import Stage, lazy
 from stages.graph.config import GRAPH_SOURCE, GraphConfig
 
 if TYPE_CHECKING:
-    from stages.graph.imports import import_graph
+    from stages.graph.imports import import_run
     from stages.graph.load import LoadedGraph, build_reduced, load_graph
 
 __getattr__ = lazy_exports(
-    __name__, {"imports": ("import_graph",), "load": ("LoadedGraph", "build_reduced", "load_graph")}
+    __name__, {"imports": ("import_run",), "load": ("LoadedGraph", "build_reduced", "load_graph")}
 )
 
 
@@ -50,4 +50,4 @@ STAGE: Final = Stage(
     help="Build the full factor graph (odometry + every tag), optimise it and compute every marginal.",
 )
 
-__all__ = ["STAGE", "GraphConfig", "LoadedGraph", "blueprint", "build_reduced", "import_graph", "load_graph"]
+__all__ = ["STAGE", "GraphConfig", "LoadedGraph", "blueprint", "build_reduced", "import_run", "load_graph"]

@@ -1,4 +1,4 @@
-"""Write the graph stage's artifacts and its Rerun recording (shared by the stage and ``import_graph``).
+"""Write the graph stage's artifacts and its Rerun recording (for the full graph and for optimize's reduced one).
 
 Artifacts in ``graph/`` (declared in :mod:`stages.graph.artifacts`): ``factors.parquet``, ``values.npz``,
 ``marginals.npz``, ``poses.parquet``, ``landmarks.parquet``, ``trajectory.tum``, ``dead_reckoning.tum``,

@@ -1,4 +1,4 @@
-"""Check, optimise, compute marginals, write and log: the common tail of the stage and of ``import_graph``."""
+"""Check, optimise, compute marginals, write and log: the common tail of the stage, from a recording or a file."""
 
 from __future__ import annotations
 

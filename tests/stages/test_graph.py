@@ -27,13 +27,14 @@ from stages.geometry import (
     interpolate_pose3,
     relative_position_to_bearing_range_2d,
 )
-from stages.graph import GraphConfig, build_reduced, import_graph, load_graph
+from stages.graph import GraphConfig, build_reduced, load_graph
 from stages.graph.artifacts import ARTIFACTS as GRAPH_ARTIFACTS
 from stages.graph.build import build_problem
 from stages.graph.factors import SCALE_KEY, FactorRow, build_graph
 from stages.graph.g2o import read_graph_file, write_g2o
 from stages.graph.problem import VAR_DIMS, GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
+from tests.fixtures.graphs import import_graph
 from tests.fixtures.shared_data import need_shared
 from tests.fixtures.synthetic_runs import synthetic_run
 from tests.fixtures.upstream import seed_upstream, stand_in

@@ -164,7 +164,7 @@ def test_visibility_window_and_no_laser(inputs: LandmarkInputs) -> None:
 
 def test_import_graph_run(office_run: Path, tmp_path: Path) -> None:
     """A run made by import-graph (graph only): non-collision strategies work, collision says why it cannot."""
-    from stages.graph import import_graph
+    from tests.fixtures.graphs import import_graph
 
     run_dir = import_graph(office_run / "graph" / "graph.g2o", tmp_path, "imported")
     run = RunFolder(run_dir)
