@@ -17,8 +17,12 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pipeline.errors import PipelineError
+
+if TYPE_CHECKING:
+    from rerun.experimental import ViewerClient
 
 
 def _free_port() -> int:
@@ -58,26 +62,38 @@ def screenshot(files: Sequence[Path], out: Path, at: float = 0.5, timeout_s: flo
             f"the headless Rerun viewer did not start ({err}); it needs a Vulkan driver (Debian: mesa-vulkan-drivers)"
         ) from None
     try:
-        client.open([str(f) for f in files])
-        deadline = time.monotonic() + timeout_s
-        while True:
-            state = client.get_state()
-            if not state.loading and state.recordings and all(r.timelines for r in state.recordings):
-                break
-            if time.monotonic() > deadline:
-                raise PipelineError(f"the viewer did not finish loading {len(files)} files in {timeout_s:.0f} s")
-            time.sleep(0.25)
-        recording = state.recordings[0]
-        client.set_location(recording.location)
-        time.sleep(0.5)
-        timeline = next((t for t in recording.timelines if t.name == "time"), None)
-        if timeline is not None and timeline.start is not None and timeline.end is not None:
-            stamp = timeline.start + at * (timeline.end - timeline.start)
-            client.set_time("time", timestamp=stamp * 1e-9, play_state="paused", recording=recording.store_id)
-        time.sleep(2.0)  # let the views draw the data at the cursor
-        out.parent.mkdir(parents=True, exist_ok=True)
-        client.save_screenshot(str(out))
+        _take_picture(client, files, out, at, timeout_s)
+    except PipelineError:
+        raise
+    except Exception as err:  # the viewer died after it started: on a machine without graphics, it exits at once
+        raise PipelineError(
+            f"the headless Rerun viewer stopped before the picture was taken ({type(err).__name__}: {err}); "
+            "it needs a Vulkan driver (Debian: mesa-vulkan-drivers)"
+        ) from None
     finally:
         with contextlib.suppress(Exception):  # the viewer may already be gone
             client.quit()
     return out
+
+
+def _take_picture(client: ViewerClient, files: Sequence[Path], out: Path, at: float, timeout_s: float) -> None:
+    """Open the files, wait until they have loaded, place the time cursor at fraction ``at`` and save the PNG."""
+    client.open([str(f) for f in files])
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = client.get_state()
+        if not state.loading and state.recordings and all(r.timelines for r in state.recordings):
+            break
+        if time.monotonic() > deadline:
+            raise PipelineError(f"the viewer did not finish loading {len(files)} files in {timeout_s:.0f} s")
+        time.sleep(0.25)
+    recording = state.recordings[0]
+    client.set_location(recording.location)
+    time.sleep(0.5)
+    timeline = next((t for t in recording.timelines if t.name == "time"), None)
+    if timeline is not None and timeline.start is not None and timeline.end is not None:
+        stamp = timeline.start + at * (timeline.end - timeline.start)
+        client.set_time("time", timestamp=stamp * 1e-9, play_state="paused", recording=recording.store_id)
+    time.sleep(2.0)  # let the views draw the data at the cursor
+    out.parent.mkdir(parents=True, exist_ok=True)
+    client.save_screenshot(str(out))

@@ -24,9 +24,14 @@ def shared_data() -> Path:
 
 
 @pytest.fixture(scope="session")
-def headless_viewer(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Skips, with the viewer's own message, where Rerun's headless viewer cannot draw (no Vulkan driver, so
-    no render context); probed once per session by asking the bare viewer for a picture."""
-    problem = headless_viewer_problem(tmp_path_factory.mktemp("viewer_probe"))
-    if problem is not None:
-        pytest.skip(f"no picture from a headless viewer here (needs a Vulkan driver): {problem}")
+def viewer_problem(tmp_path_factory: pytest.TempPathFactory) -> str | None:
+    """Why Rerun's headless viewer cannot draw here (no Vulkan driver, so no render context), or None where it can;
+    probed once per session by asking the bare viewer for a picture."""
+    return headless_viewer_problem(tmp_path_factory.mktemp("viewer_probe"))
+
+
+@pytest.fixture(scope="session")
+def headless_viewer(viewer_problem: str | None) -> None:
+    """Skips, with the viewer's own message, where Rerun's headless viewer cannot draw."""
+    if viewer_problem is not None:
+        pytest.skip(f"no picture from a headless viewer here (needs a Vulkan driver): {viewer_problem}")

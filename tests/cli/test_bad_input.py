@@ -167,3 +167,21 @@ def test_view_screenshot_from_a_headless_viewer(
     out = tmp_path / "view.png"
     screenshot([run / "ingest.rrd"], out, timeout_s=60)
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
+
+
+def test_view_screenshot_without_graphics_is_one_error_line(
+    viewer_problem: str | None, minimal_run: tuple[Path, subprocess.CompletedProcess[str]], tmp_path: Path
+) -> None:
+    """Where the viewer cannot draw, ``view --screenshot`` says so and what to install, with no internal error and
+    no picture (the viewer's own panic text may come before focusmap's line: it is the viewer's stderr)."""
+    if viewer_problem is None:
+        pytest.skip("this machine's headless viewer can draw; the no-graphics path is not reachable here")
+    run, ingested = minimal_run
+    assert ingested.returncode == 0, ingested.stderr
+    out = tmp_path / "view.png"
+    proc = focusmap("view", run, "--screenshot", out)
+    assert proc.returncode == 1, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: the headless Rerun viewer") and "Vulkan driver" in last, proc.stderr
+    assert "internal error" not in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()
