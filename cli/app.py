@@ -154,6 +154,8 @@ def _print_result(stage: AnyStage, result: StageResult) -> None:
     console.print(f"[bold]{result.stage:<20}[/bold] {status:<16} {stage.summary_line(result.summary)}")
     for label, text in stage.remarks(result.summary) if result.status == "done" else []:
         console.print(f"  [yellow]{label}:[/yellow] {text}")
+    for text in result.warnings:
+        console.print(f"  [yellow]warning:[/yellow] {text}")
 
 
 def _run_stages(run: RunFolder, names: list[str], settings: Settings, force: bool) -> list[StageResult]:

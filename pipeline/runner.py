@@ -54,6 +54,8 @@ class StageResult:
     status: str  # "done" or "skipped"
     seconds: float
     summary: Summary = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    """Why the result may not be what a full run would give (an input made from older upstream results)."""
 
 
 def code_version(stage: AnyStage) -> str:
@@ -128,6 +130,37 @@ def is_current(run: RunFolder, registry: Registry, name: str, settings: Settings
     return entry.get("fingerprint") == _seal(fingerprint(run, registry, name, settings), outside)
 
 
+def stale_inputs(run: RunFolder, registry: Registry, name: str) -> list[str]:
+    """The upstream stages, at any depth, whose results were made from older results of their own inputs.
+
+    A stage run alone reads what is in the folder; if an input stage was made before its own input changed
+    (``select-landmarks --budget 10`` and then ``optimize`` without ``select-measurements``), the result mixes
+    two versions. Each line names the stale stage, what changed under it, and the command that fixes it.
+    """
+    lines: list[str] = []
+    seen: set[str] = set()
+    required, optional = registry[name].inputs_on(run.source_kind)
+    todo = [*required, *optional]
+    while todo:
+        dep = todo.pop(0)
+        entry = run.stage_entry(dep)
+        if dep in seen or entry is None:
+            continue
+        seen.add(dep)
+        recorded = entry.get("inputs") or {}
+        for up, fp in recorded.items():
+            now = run.stage_entry(up)
+            if now is not None and fp is not None and now.get("fingerprint") != fp:
+                lines.append(
+                    f"{dep} was made from an older {up}; run 'focusmap {registry[dep].command} {run.path}' "
+                    "(or 'focusmap run') for results from one version"
+                )
+                break
+        required, optional = registry[dep].inputs_on(run.source_kind)
+        todo.extend((*required, *optional))
+    return lines
+
+
 def run_stage(
     run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False, progress: bool = False
 ) -> StageResult:
@@ -145,9 +178,10 @@ def run_stage(
             )
     if stage.reads_source(run.source_kind) and run.source is not None and not run.source.exists():
         raise StageError(f"source recording {str(run.source)!r} of run {run.path.name!r} no longer exists")
+    warnings = stale_inputs(run, registry, name)
     entry = run.stage_entry(name)
     if not force and entry is not None and is_current(run, registry, name, settings):
-        return StageResult(stage.name, "skipped", 0.0, entry.get("summary", {}))
+        return StageResult(stage.name, "skipped", 0.0, entry.get("summary", {}), warnings)
     fp = fingerprint(run, registry, name, settings)
     scratch, rrd = run.begin(stage.name)
     try:
@@ -202,7 +236,7 @@ def run_stage(
         notes = summary.setdefault("notes", [])
         if isinstance(notes, list):
             notes.append(f"run blueprint not written: {err}")
-    return StageResult(stage.name, "done", seconds, summary)
+    return StageResult(stage.name, "done", seconds, summary, warnings)
 
 
 BLUEPRINT_FILE = "focusmap.rbl"

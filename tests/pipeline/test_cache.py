@@ -96,6 +96,22 @@ def test_landmark_budget_reruns_the_selection_and_what_follows(make_run) -> None
     assert run_all(run, "select_landmarks.budget=3") == dict.fromkeys(STAGES, "skipped")
 
 
+def test_a_stage_run_alone_on_stale_inputs_says_which_and_how_to_fix_it(make_run) -> None:
+    """select-landmarks with a new budget, then optimize alone: select_measurements still holds the picks made for
+    the old focused set, so optimize's result mixes two versions, and the warning names the stage to re-run."""
+    run = make_run()
+    settings = load_settings(REG.models(), None, [*BASE, "select_landmarks.budget=3"])
+    assert run_stage(run, REG, "select_landmarks", settings).warnings == []
+    result = run_stage(run, REG, "optimize", settings)
+    assert result.status == "done"
+    assert result.warnings == [
+        f"select_measurements was made from an older select_landmarks; run 'focusmap select-measurements "
+        f"{run.path}' (or 'focusmap run') for results from one version"
+    ]
+    assert run_stage(run, REG, "select_measurements", settings).status == "done"
+    assert run_stage(run, REG, "optimize", settings).warnings == []  # one version again (evaluate stays behind)
+
+
 def test_measurement_budget_reruns_from_select_measurements(make_run) -> None:
     run = make_run()
     statuses = run_all(run, "select_measurements.budget=7")
