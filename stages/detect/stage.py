@@ -5,10 +5,9 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import time
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -187,16 +186,6 @@ def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Ite
     return _frame_jobs(ingest, cfg.batch_frames), total, cfg.workers
 
 
-@dataclass
-class _Detected:
-    """What every batch gave: detection rows, corrupt frames, counts of dropped detections by reason."""
-
-    rows: list[DetectionRow] = field(default_factory=list)
-    corrupt: list[tuple[int, str]] = field(default_factory=list)
-    dropped: Counter[str] = field(default_factory=Counter)
-    frames: int = 0
-
-
 def _detect(
     ctx: StageContext,
     cfg: DetectConfig,
@@ -205,7 +194,7 @@ def _detect(
     batches: Iterable[list[FrameJob]],
     total: int,
     workers: int,
-) -> _Detected:
+) -> BatchResult:
     """Process the batches (in ``workers`` processes when more than one), logging the frames as they come."""
     pool = None
     if workers > 1:
@@ -218,7 +207,7 @@ def _detect(
         fn = process_in_worker
     else:
         fn = FrameProcessor(cfg, camera, with_detector=not from_bag).process
-    found = _Detected()
+    found = BatchResult()  # the sum over every batch
     try:
         stream = _bounded_map(fn, batches, pool, 2 * workers)
         for jobs_done, result in ctx.progress(stream, "detect", total=total):

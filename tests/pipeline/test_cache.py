@@ -15,17 +15,12 @@ import pytest
 from pipeline.artifacts import StageInput
 from pipeline.code import code_digest, package_dirs
 from pipeline.config import load_settings
-from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
-from stages import evaluate as evaluate_stage
-from stages import graph as graph_stage
-from stages import optimize as optimize_stage
-from stages import select_landmarks, select_measurements
 from stages.select_landmarks.artifacts import FOCUSED
 from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
-from tests.fixtures.upstream import seed_upstream, stand_in
+from tests.fixtures.upstream import seed_upstream, stand_in_registry
 
 STAGES = ("graph", "select_landmarks", "select_measurements", "optimize", "evaluate")
 BASE = (
@@ -36,17 +31,7 @@ BASE = (
     "evaluate.oracle_measurements=false",
     "evaluate.extra_pairs=[]",
 )
-REG = Registry(
-    [
-        stand_in("ingest"),
-        stand_in("detect", "ingest"),
-        graph_stage.STAGE,
-        select_landmarks.STAGE,
-        select_measurements.STAGE,
-        optimize_stage.STAGE,
-        evaluate_stage.STAGE,
-    ]
-)
+REG = stand_in_registry()
 
 
 @pytest.fixture(scope="module")

@@ -20,16 +20,9 @@ from stages.detect.pose import (
     so3_exp,
     tag_object_points,
 )
-from stages.ingest.artifacts import CameraModel
-from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag
+from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag, plumb_bob_camera
 
-CAMERA = CameraModel(
-    width=640,
-    height=480,
-    K=[420.0, 0, 318.3, 0, 420.8, 241.7, 0, 0, 1],
-    distortion_model="plumb_bob",
-    D=[-0.12, 0.02, 0.0008, -0.0005, 0.0],
-)
+CAMERA = plumb_bob_camera()
 
 
 def _errors(cam: object, T_true: np.ndarray, corners: list[np.ndarray], size: float) -> list[tuple[object, np.ndarray]]:

@@ -10,16 +10,9 @@ import pytest
 from stages.camera import colmap_camera
 from stages.detect.backends import _quad_thresh_params, make_detector
 from stages.detect.config import DetectConfig
-from stages.ingest.artifacts import CameraModel
-from tests.fixtures.tag_render import TagPlacement, look_at_tag, render_frame
+from tests.fixtures.tag_render import TagPlacement, look_at_tag, plumb_bob_camera, render_frame
 
-CAMERA = CameraModel(
-    width=640,
-    height=480,
-    K=[420.0, 0, 318.3, 0, 420.8, 241.7, 0, 0, 1],
-    distortion_model="plumb_bob",
-    D=[-0.12, 0.02, 0.0008, -0.0005, 0.0],
-)
+CAMERA = plumb_bob_camera()
 
 
 def test_quad_thresh_params_layout_reads_the_library_defaults() -> None:

@@ -9,34 +9,19 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.config import load_settings
-from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
-from stages import evaluate as evaluate_stage
-from stages import graph as graph_stage
-from stages import optimize as optimize_stage
-from stages import select_landmarks, select_measurements
 from stages.evaluate.cases import TABLE_I
 from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import synthetic_run
-from tests.fixtures.upstream import seed_upstream, stand_in
+from tests.fixtures.upstream import seed_upstream, stand_in_registry
 
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("eval")
     sim = synthetic_run(seed=7, loops=0.5)
-    reg = Registry(
-        [
-            stand_in("ingest"),
-            stand_in("detect", "ingest"),
-            graph_stage.STAGE,
-            select_landmarks.STAGE,
-            select_measurements.STAGE,
-            optimize_stage.STAGE,
-            evaluate_stage.STAGE,
-        ]
-    )
+    reg = stand_in_registry()
     source = tmp / "run.bag"
     source.write_bytes(b"")
     write_ground_truth(sim, tmp / "run.ground_truth.json")
