@@ -40,6 +40,7 @@ from stages.evaluate.analysis import (
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
+from stages.ingest.artifacts import ANGLE_INCREMENT, ANGLE_MIN, RANGE_MAX, RANGE_MIN, RANGES
 from stages.navigation import (
     NavigationMap,
     NavigationParams,
@@ -239,18 +240,18 @@ def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
     cols = scans.to_pydict()
     pts = []
     for j in range(0, scans.num_rows, inputs.cfg.scan_stride):
-        s = float(cols["stamp_ns"][j])
+        s = float(cols[STAMP_NS][j])
         if s < kt[0] or s > kt[-1]:
             continue
         pose = se2(np.interp(s, kt, geo.poses[:, 0]), np.interp(s, kt, geo.poses[:, 1]), np.interp(s, kt, yaw))
         pts.append(
             scan_endpoints(
                 pose @ T_base_laser,
-                np.asarray(cols["ranges"][j], dtype=float),
-                float(cols["angle_min"][j]),
-                float(cols["angle_increment"][j]),
-                float(cols["range_min"][j]),
-                float(cols["range_max"][j]),
+                np.asarray(cols[RANGES][j], dtype=float),
+                float(cols[ANGLE_MIN][j]),
+                float(cols[ANGLE_INCREMENT][j]),
+                float(cols[RANGE_MIN][j]),
+                float(cols[RANGE_MAX][j]),
             )
         )
     return occupancy_grid(np.vstack(pts), inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
