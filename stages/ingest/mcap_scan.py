@@ -355,7 +355,10 @@ def _scan_linear(fh: IO[bytes], scan: McapScan, salvage: bool) -> None:
             scan.problems.append(what)
             break
         if not rec.complete:
-            what = f"the file is cut at byte {scan.size} inside a record that starts at byte {pos}"
+            what = (
+                f"the record at byte {pos} runs past the end of the file (the file is cut at byte {scan.size}, "
+                "or the record's length is damaged)"
+            )
             if not salvage:
                 raise InputError(
                     f"{str(scan.path)!r} cannot be read, it looks truncated or damaged ({what}); copy it again, "
