@@ -50,8 +50,13 @@ def summary_line(summary: Summary) -> str:
 
 def remarks(summary: Summary) -> list[tuple[str, str]]:
     """Notes, and how much of a damaged bag was salvaged."""
+    from stages.ingest.info import salvage_text
+
     salvaged = summary.get("salvaged")
-    return [*summary_notes(summary), *([("salvaged", str(salvaged))] if salvaged else [])]
+    return [
+        *summary_notes(summary),
+        *([("salvaged", salvage_text(salvaged) if isinstance(salvaged, dict) else str(salvaged))] if salvaged else []),
+    ]
 
 
 OPTIONS: Final = (

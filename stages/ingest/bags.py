@@ -11,10 +11,7 @@ records, SQLite's ``messages`` table), never from a ``metadata.yaml`` that may d
 
 from __future__ import annotations
 
-import io
-import os
 import sqlite3
-import struct
 from collections.abc import Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -140,6 +137,9 @@ class Recording:
         files, storage = _ros2_files(self.path)
         self.storage = storage
         if storage == "mcap":
+            if self.salvage:  # chunk by chunk, dropping the damaged ones
+                self.reader = "mcap"
+                return _Mcap(self, files)
             try:
                 impl: _Impl = _Rosbags2(self)
             except InputError:
@@ -347,80 +347,55 @@ def _sqlite_counts(files: list[Path]) -> dict[str, tuple[int, int | None, int | 
 
 
 def _mcap_counts(files: list[Path]) -> dict[str, tuple[int, int | None, int | None]]:
-    from mcap.reader import make_reader
+    """Per-topic counts and spans of MCAP files, every chunk's CRC checked on the way."""
+    from stages.ingest.mcap_scan import scan_mcap
 
     out: dict[str, list[Any]] = {}
     for f in files:
-        with f.open("rb") as fh:
-            reader = make_reader(fh)
-            summary = None
-            try:
-                summary = reader.get_summary()
-            except Exception:
-                summary = None
-            if summary is not None and summary.statistics is not None and summary.channels:
-                # statistics hold per-channel counts; message index gives the per-channel span
-                stats = summary.statistics.channel_message_counts
-                for cid, ch in summary.channels.items():
-                    acc = out.setdefault(ch.topic, [0, None, None])
-                    acc[0] += int(stats.get(cid, 0))
-                fh.seek(0)
-            for _schema, channel, message in make_reader(fh).iter_messages(log_time_order=False):
-                acc = out.setdefault(channel.topic, [0, None, None])
-                if summary is None or summary.statistics is None:
-                    acc[0] += 1
-                t = message.log_time
-                acc[1] = t if acc[1] is None else min(acc[1], t)
-                acc[2] = t if acc[2] is None else max(acc[2], t)
+        scan = scan_mcap(f, salvage=False)
+        for cid, ch in scan.channels.items():
+            acc = out.setdefault(ch.topic, [0, None, None])
+            if cid not in scan.counts:
+                continue
+            acc[0] += scan.counts[cid]
+            first, last = scan.first_ns[cid], scan.last_ns[cid]
+            acc[1] = first if acc[1] is None else min(acc[1], first)
+            acc[2] = last if acc[2] is None else max(acc[2], last)
     return {k: (v[0], v[1], v[2]) for k, v in out.items()}
 
 
 class _Mcap(_Impl):
-    """MCAP files (standalone, or a ROS 2 folder rosbags cannot read) through the mcap library."""
+    """MCAP files (standalone, or a ROS 2 folder rosbags cannot read or is salvaged) through the mcap library.
+
+    Every chunk is checked (:mod:`stages.ingest.mcap_scan`); with --salvage, damaged chunks are dropped,
+    the whole records of a cut chunk kept, and ``rec.salvaged`` says what was lost.
+    """
 
     def __init__(self, rec: Recording, files: list[Path]) -> None:
-        from mcap.reader import make_reader
+        from stages.ingest.mcap_scan import salvage_report, scan_mcap
 
         self.rec = rec
         self.files = files
         self.topics = {}
-        self._schemas: dict[str, tuple[str, str]] = {}
         try:
-            for f in files:
-                with f.open("rb") as fh:
-                    reader = make_reader(fh)
-                    if rec.salvage:
-                        self._scan(f)
-                        continue
-                    summary = reader.get_summary()
-                    if summary is None:
-                        raise InputError("no summary section")
-                    for ch in summary.channels.values():
-                        sch = summary.schemas.get(ch.schema_id)
-                        name = _normalise_type(sch.name) if sch else ""
-                        self.topics.setdefault(ch.topic, TopicInfo(ch.topic, name))
-            if not rec.salvage:
-                for name, (n, first, last) in _mcap_counts(files).items():
-                    info = self.topics.setdefault(name, TopicInfo(name, ""))
-                    info.count, info.first_ns, info.last_ns = n, first, last
-        except InputError as err:
+            self.scans = [scan_mcap(f, rec.salvage) for f in files]
+        except InputError:
+            raise
+        except Exception as err:  # library errors vary
             raise _truncation_hint(rec.path, err) from None
-        except Exception as err:
-            raise _truncation_hint(rec.path, err) from None
-
-    def _scan(self, f: Path) -> None:
-        """Salvage: read records in order until the damage, counting what is intact."""
-        errors: list[str] = []
-        read = 0
-        with f.open("rb") as fh:
-            for schema, channel, message in _intact_messages(fh, errors):
-                info = self.topics.setdefault(channel.topic, TopicInfo(channel.topic, _normalise_type(schema.name)))
-                info.count += 1
-                t = message.log_time
-                info.first_ns = t if info.first_ns is None else min(info.first_ns, t)
-                info.last_ns = t if info.last_ns is None else max(info.last_ns, t)
-                read += 1
-        self.rec.salvaged = {"messages": read, "stopped_at": errors[0] if errors else None}
+        for scan in self.scans:
+            for cid, ch in scan.channels.items():
+                info = self.topics.setdefault(ch.topic, TopicInfo(ch.topic, _normalise_type(scan.type_of(cid))))
+                if not info.type:
+                    info.type = _normalise_type(scan.type_of(cid))
+                if cid not in scan.counts:
+                    continue
+                info.count += scan.counts[cid]
+                first, last = scan.first_ns[cid], scan.last_ns[cid]
+                info.first_ns = first if info.first_ns is None else min(info.first_ns, first)
+                info.last_ns = last if info.last_ns is None else max(info.last_ns, last)
+        if rec.salvage:
+            rec.salvaged = salvage_report(self.scans)
 
     def messages(self, topics: set[str]) -> Iterator[RawMessage]:
         from mcap.reader import make_reader
@@ -440,15 +415,15 @@ class _Mcap(_Impl):
                 channel.topic, _normalise_type(schema.name), message.log_time, message.data, lambda d, _t: dec(d)
             )
 
-        for f in self.files:
+        for f, scan in zip(self.files, self.scans, strict=True):
             with f.open("rb") as fh:
                 if self.rec.salvage:
-                    for schema, channel, message in _intact_messages(fh, []):
-                        if channel.topic in topics:
-                            yield raw(f, schema, channel, message)
+                    for message in _salvaged_messages(fh, scan, topics):
+                        channel = scan.channels[message.channel_id]
+                        yield raw(f, scan.schemas.get(channel.schema_id), channel, message)
                     continue
                 try:
-                    for schema, channel, message in make_reader(fh).iter_messages(
+                    for schema, channel, message in make_reader(fh, validate_crcs=True).iter_messages(
                         topics=list(topics), log_time_order=True
                     ):
                         yield raw(f, schema, channel, message)
@@ -458,79 +433,28 @@ class _Mcap(_Impl):
                     raise _truncation_hint(self.rec.path, err) from None
 
 
-_MCAP_SCHEMA, _MCAP_CHANNEL, _MCAP_MESSAGE, _MCAP_CHUNK = 0x03, 0x04, 0x05, 0x06
+def _salvaged_messages(fh: Any, scan: Any, topics: set[str]) -> Iterator[Any]:
+    """The intact messages of ``scan`` on ``topics`` in log-time order (ties in file order).
 
-
-def _chunk_records(content: bytes) -> bytes:
-    """The (possibly cut) records inside an MCAP chunk's content, decompressed as far as they go."""
-    pos = 8 + 8 + 8 + 4  # message start/end time, uncompressed size, crc
-    (n,) = struct.unpack_from("<I", content, pos)
-    compression = content[pos + 4 : pos + 4 + n].decode()
-    pos += 4 + n + 8  # the records' length follows the compression name
-    data = content[pos:]
-    if compression == "zstd":
-        import zstandard
-
-        return zstandard.ZstdDecompressor().decompressobj().decompress(data)
-    if compression == "lz4":
-        import lz4.frame
-
-        return lz4.frame.LZ4FrameDecompressor().decompress(data)
-    return data
-
-
-def _intact_messages(fh: Any, errors: list[str]) -> Iterator[tuple[Any, Any, Any]]:
-    """(schema, channel, message) of an MCAP file in file order, up to the damage.
-
-    Records are walked by hand (opcode, length, content), so a chunk cut by truncation still gives
-    the messages it holds before the cut. The reason reading stopped early is appended to ``errors``.
+    Chunks whose time ranges overlap are merged in memory; the others are read one at a time.
     """
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
+    wanted = {cid for cid, ch in scan.channels.items() if ch.topic in topics}
+    group: list[Any] = []
+    group_end = -1
 
-    schemas: dict[int, Any] = {}
-    channels: dict[int, Any] = {}
-    size = os.fstat(fh.fileno()).st_size
+    def flush() -> Iterator[Any]:
+        msgs = [m for block in group for m in scan.iter_block(fh, block) if m.channel_id in wanted]
+        msgs.sort(key=lambda m: m.log_time)
+        yield from msgs
 
-    def parse(records: bytes) -> Iterator[tuple[Any, Any, Any]]:
-        try:
-            for record in StreamReader(io.BytesIO(records), skip_magic=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                elif isinstance(record, Message):
-                    channel = channels[record.channel_id]
-                    yield schemas[channel.schema_id], channel, record
-        except Exception as err:  # a cut record inside a chunk: keep what came before it
-            errors.append(f"record cut inside a chunk ({err or type(err).__name__})")
-
-    if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-        errors.append("no MCAP magic at the start")
-        return
-    while True:
-        head = fh.read(9)
-        if len(head) < 9:
-            if head:
-                errors.append(f"record header cut at byte {fh.tell()} of {size}")
-            return
-        opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
-        content = fh.read(min(length, max(size - fh.tell(), 0)))
-        complete = len(content) == length
-        if opcode == _MCAP_CHUNK:
-            try:
-                inner = _chunk_records(content)
-            except Exception as err:
-                errors.append(f"chunk at byte {fh.tell() - len(content) - 9} does not decode ({err})")
-                return
-            yield from parse(inner)
-        elif opcode in (_MCAP_SCHEMA, _MCAP_CHANNEL, _MCAP_MESSAGE) and complete:
-            yield from parse(head + content)
-        if not complete:
-            errors.append(f"record cut at byte {size} (it needs {length} bytes from byte {size - len(content)})")
-            return
-        if errors:
-            return
+    for block in sorted(scan.blocks, key=lambda b: b.start_ns):
+        if group and block.start_ns > group_end:
+            yield from flush()
+            group = []
+        group.append(block)
+        group_end = max(group_end, block.end_ns) if len(group) > 1 else block.end_ns
+    if group:
+        yield from flush()
 
 
 class _Sqlite(_Impl):

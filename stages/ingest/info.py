@@ -41,7 +41,7 @@ def format_info(data: dict[str, Any]) -> str:
         f"messages:  {data['messages']}",
     ]
     if "salvaged" in data:
-        lines.append(f"salvaged:  {data['salvaged']}")
+        lines.append(f"salvaged:  {salvage_text(data['salvaged'])}")
     if data["topics"]:
         w_name = max(len(t["name"]) for t in data["topics"])
         w_type = max(len(t["type"]) for t in data["topics"])
@@ -51,3 +51,24 @@ def format_info(data: dict[str, Any]) -> str:
     else:
         lines.append("topics:    none")
     return "\n".join(lines)
+
+
+def salvage_text(report: dict[str, Any]) -> str:
+    """One line for a salvage report: what was read, what was lost (time range, messages per topic), why."""
+    if "lost" not in report:  # a report without a loss estimate (ROS 1): its fields as they are
+        return str(report)
+    parts = [f"read {report['messages']} messages"]
+    if report.get("chunks_total") is not None:
+        parts[0] += f" ({report['chunks']} of {report['chunks_total']} chunks)"
+    lost = report["lost"]
+    if not report.get("problems"):
+        return parts[0] + "; nothing lost"
+    count = f"{lost['messages']} messages" if lost["messages"] is not None else "an unknown number of messages"
+    start = f"{lost['start_s']:.3f} s" if lost["start_s"] is not None else "?"
+    end = f"{lost['end_s']:.3f} s" if lost["end_s"] is not None else "the unknown end"
+    text = f"lost {count} from {start} to {end}"
+    if lost["topics"]:
+        text += " (" + ", ".join(f"{t} {n}" for t, n in lost["topics"].items()) + ")"
+    parts.append(text)
+    parts.extend(report["problems"])
+    return "; ".join(parts)
