@@ -10,13 +10,14 @@ numerics: a stage's code is imported when it runs.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import inspect
 import json
 import operator
 import os
 import subprocess
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, ParamSpec, TypeVar
@@ -28,6 +29,8 @@ from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, 
 from pipeline.errors import InputError, PipelineError
 
 if TYPE_CHECKING:
+    from typer._click import Context as _VendoredContext
+
     from pipeline.config import Settings
     from pipeline.registry import Registry
     from pipeline.run_folder import RunFolder
@@ -56,9 +59,25 @@ class CliState:
     debug: bool = False
 
 
+def _context() -> click.Context | _VendoredContext | None:
+    """The running command's context, None outside one.
+
+    Typer 0.2x runs its commands on its own copy of click (``typer._click``), whose context stack
+    ``click.get_current_context`` does not see: look there too.
+    """
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:
+        return ctx
+    try:
+        from typer._click.globals import get_current_context
+    except ImportError:
+        return None
+    return get_current_context(silent=True)
+
+
 def _state() -> CliState:
     """The state of the running invocation (defaults outside one)."""
-    ctx = click.get_current_context(silent=True)
+    ctx = _context()
     state = ctx.find_object(CliState) if ctx is not None else None
     return state if state is not None else CliState()
 
@@ -131,18 +150,50 @@ def _settings(
 
 
 def _run_name(bag: Path, name: str | None) -> str:
-    if name:
-        return name
+    """The run folder's name: ``--name`` (a plain folder name, checked) or the recording's name."""
+    from pipeline.run_folder import check_run_name
+
+    if name is not None:
+        return check_run_name(name)
     base = bag.resolve()
     return base.name if base.is_dir() else base.stem
 
 
 def _open_run(run_dir: Path) -> RunFolder:
+    """An existing run folder, to read (:func:`_locked_run` to write in it)."""
     from pipeline.run_folder import RunFolder
 
     if not run_dir.exists():
         raise InputError(f"run folder {str(run_dir)!r} does not exist; create it with 'focusmap ingest BAG --out DIR'")
     return RunFolder(run_dir)
+
+
+def _who() -> str:
+    """The running command as the busy message of another command shows it (``focusmap run``)."""
+    ctx = _context()
+    return f"focusmap {ctx.info_name}" if ctx is not None and ctx.info_name else "focusmap"
+
+
+@contextlib.contextmanager
+def _locked_run(run_dir: Path) -> Iterator[RunFolder]:
+    """An existing run folder, locked for this command (another one on it says the folder is busy).
+
+    No waiting: a stage can take minutes, and a command that fails at once says more than one that
+    waits a while and fails anyway; the user runs it again when the other has finished.
+    """
+    run = _open_run(run_dir)
+    with run.lock(who=_who()):
+        yield run
+
+
+@contextlib.contextmanager
+def _new_run(path: Path, source: Path, kind: str = "bag") -> Iterator[RunFolder]:
+    """The run folder ``path`` for ``source``, created or reused, locked for this command."""
+    from pipeline.run_folder import RunFolder, check_out_dir, run_folder_lock
+
+    check_out_dir(path.parent)
+    with run_folder_lock(path, who=_who()):
+        yield RunFolder.create(path, source, kind)
 
 
 def _print_result(stage: AnyStage, result: StageResult) -> None:
@@ -176,13 +227,12 @@ def _run_stages(run: RunFolder, names: list[str], settings: Settings, force: boo
 def _run_on_bag(
     bag: Path, out: Path, name: str | None, stages: list[str], settings: Settings, force: bool
 ) -> tuple[RunFolder, list[StageResult]]:
-    """Check the recording, create (or reuse) its run folder and run ``stages`` in it."""
-    from pipeline.run_folder import RunFolder
+    """Check the recording, create (or reuse) its run folder and run ``stages`` in it, holding its lock."""
     from stages.ingest.bags import detect_format
 
     detect_format(bag)
-    run = RunFolder.create(out / _run_name(bag, name), bag)
-    results = _run_stages(run, stages, settings, force)
+    with _new_run(out / _run_name(bag, name), bag) as run:
+        results = _run_stages(run, stages, settings, force)
     typer.echo(f"run folder: {run.path}")
     return run, results
 
@@ -273,9 +323,10 @@ def _stage_command(stage: AnyStage) -> None:
             reset: ResetOpt = False,
             **options: object,
         ) -> None:
-            run = _open_run(run_dir)
             overrides = _overrides([stage], options)
-            _run_stages(run, [stage.name], _settings(config, set_, overrides, run.path, reset, [stage.name]), force)
+            with _locked_run(run_dir) as run:
+                settings = _settings(config, set_, overrides, run.path, reset, [stage.name])
+                _run_stages(run, [stage.name], settings, force)
 
         command = _with_options(handled(on_run_folder), [stage], after="run_dir")
     help_text = stage.help or f"Run the {stage.command} stage on a run folder."
@@ -320,13 +371,14 @@ def import_graph_command(
     reset: ResetOpt = False,
 ) -> None:
     """Make a run folder whose graph stage comes from an existing factor graph instead of a bag."""
-    from stages.graph.imports import import_run
+    from stages.graph.config import GRAPH_SOURCE
 
     if not graph_file.is_file():
         raise InputError(f"{str(graph_file)!r} does not exist; pass a .g2o or GTSAM .graph file")
-    settings = _settings(config, set_, None, out / (name or graph_file.stem), reset, ["graph"])
-    run = import_run(graph_file, out, name)
-    _run_stages(run, ["graph"], settings, force)
+    run_dir = out / (graph_file.stem if name is None else _run_name(graph_file, name))
+    settings = _settings(config, set_, None, run_dir, reset, ["graph"])
+    with _new_run(run_dir, graph_file, GRAPH_SOURCE) as run:
+        _run_stages(run, ["graph"], settings, force)
     typer.echo(f"run folder: {run.path}")
     typer.echo("the stages after graph that need no camera or laser run on it, e.g. focusmap select-landmarks")
 

@@ -10,8 +10,9 @@ Two back-ends run the same :func:`run_task`:
 
 - :func:`run_local`: at most ``workers`` child processes at a time, one process per recording, so a
   crash (a segfault in a native library, the OOM killer) fails that recording only. Children die
-  with the batch process (Linux), draw no progress bars (only the batch's own bar is drawn), and take an
-  exclusive lock on their run folder, so two processes never work on one run folder.
+  with the batch process (Linux), draw no progress bars (only the batch's own bar is drawn), and take the
+  run folder's lock (:func:`pipeline.run_folder.run_folder_lock`, as every command that writes in a run
+  folder does), waiting up to ``LOCK_WAIT_S`` for it, so two processes never work on one run folder.
 - :func:`run_dask`: the tasks on an existing ``dask.distributed`` cluster. The run folders are
   written by the workers, so ``OUT`` must be storage every worker sees at the same path.
 
@@ -35,7 +36,7 @@ import sys
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.context import SpawnProcess
@@ -48,7 +49,7 @@ from pipeline.config import Settings
 from pipeline.errors import InputError, PipelineError
 from pipeline.json_types import JSONValue
 from pipeline.registry import Headline, Registry
-from pipeline.run_folder import RunFolder, StageEntry
+from pipeline.run_folder import RunFolder, StageEntry, run_folder_lock
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -57,7 +58,6 @@ Status = Literal["done", "skipped", "failed"]
 
 SUMMARY_FILE: Final = "batch_summary.parquet"
 ERRORS_FILE: Final = "batch_errors.log"
-LOCK_FILE: Final = ".focusmap.lock"
 LOCK_WAIT_S: Final = 60.0
 
 OutcomeCallback = Callable[["Outcome"], None]
@@ -236,46 +236,6 @@ def _host() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-@contextlib.contextmanager
-def run_folder_lock(run_dir: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None]:
-    """Hold an exclusive lock on a run folder (``<run>/.focusmap.lock``) while working on it.
-
-    Waits up to ``wait_s`` for another process to let go (a batch killed a moment ago whose child
-    is still dying, a worker the cluster thought lost), then gives up with a clear error. Locks are
-    advisory (``flock``); on systems without ``fcntl`` no lock is taken.
-
-    Raises:
-        InputError: when the lock is still held after ``wait_s`` seconds.
-    """
-    try:
-        import fcntl
-    except ImportError:  # not POSIX: no lock
-        yield
-        return
-    run_dir.mkdir(parents=True, exist_ok=True)
-    path = run_dir / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        deadline = time.monotonic() + wait_s
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    holder = path.read_text().strip() or "another process"
-                    raise InputError(
-                        f"run folder {str(run_dir)!r} is in use by {holder} (another focusmap batch); "
-                        "wait for it to finish, then run the batch again"
-                    ) from None
-                time.sleep(0.2)
-        os.ftruncate(fd, 0)
-        os.write(fd, _host().encode())
-        yield
-    finally:
-        os.close(fd)  # closing the descriptor releases the lock
-
-
 def _outcome_entry(entry: StageEntry) -> StageEntry:
     """What an outcome keeps of a manifest entry: its fingerprint, finish time, seconds and summary."""
     kept = StageEntry()
@@ -326,7 +286,7 @@ def run_task(task: BatchTask) -> Outcome:
         registry = resolve_spec(task.registry)
         if task.preflight:
             resolve_spec(task.preflight)(Path(task.recording))
-        with run_folder_lock(Path(task.run_dir)):
+        with run_folder_lock(Path(task.run_dir), wait_s=LOCK_WAIT_S, who="focusmap batch", then="run the batch again"):
             run = RunFolder.create(Path(task.run_dir), Path(task.recording))
             write_resolved_settings(run, task.settings)
             for name in task.stages:

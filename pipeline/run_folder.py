@@ -2,18 +2,26 @@
 
 Stages write into ``.partial/<stage>/`` and the folder is renamed into place only when the stage
 has finished, so an interrupted or failed stage leaves the previous results whole.
+
+Whatever writes into a run folder holds its lock (:func:`run_folder_lock`, or :meth:`RunFolder.lock`
+for an existing one): an exclusive ``flock`` on ``<run>/.focusmap.lock``, which the kernel releases
+when the holder's process ends in any way, kill -9 included. Reading needs no lock.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import os
 import shutil
+import socket
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
-from typing import NotRequired, TypedDict
+from typing import Final, NotRequired, TypedDict
 
 from pipeline.errors import InputError
 from pipeline.json_types import JSONObject
@@ -21,7 +29,9 @@ from pipeline.json_types import JSONObject
 RUN_FILE = "run.json"
 MANIFEST_FILE = "manifest.json"
 PARTIAL_DIR = ".partial"
+LOCK_FILE: Final = ".focusmap.lock"
 _EDGE_BYTES = 1 << 20
+_READ_ONLY: Final = (errno.EACCES, errno.EPERM, errno.EROFS)
 
 
 class RunInfo(TypedDict):
@@ -123,11 +133,14 @@ class RunFolder:
                 "create one with 'focusmap ingest BAG --out DIR' or 'focusmap import-graph FILE --out DIR'"
             )
         self.info: RunInfo = json.loads(info_path.read_text())
-        self.recover()
 
     @classmethod
     def create(cls, path: Path, source: Path | None, kind: str = "bag") -> RunFolder:
-        """Create (or reuse, if it is for the same source) the run folder for ``source``."""
+        """Create (or reuse, if it is for the same source) the run folder for ``source``.
+
+        It writes, so where another process may use the folder, call it holding :func:`run_folder_lock`.
+        A reused folder is cleared of what a killed process left (:meth:`recover`).
+        """
         info_path = path / RUN_FILE
         if info_path.is_file():
             run = cls(path)
@@ -136,6 +149,7 @@ class RunFolder:
                 raise InputError(
                     f"run folder {str(path)!r} belongs to {old!r}, not {str(source)!r}; choose another --out or --name"
                 )
+            run.recover()
             return run
         path.mkdir(parents=True, exist_ok=True)
         info: RunInfo = {
@@ -149,6 +163,15 @@ class RunFolder:
         manifest: Manifest = {"run_id": info["run_id"], "stages": {}}
         write_json_atomic(path / MANIFEST_FILE, manifest)
         return cls(path)
+
+    @contextlib.contextmanager
+    def lock(
+        self, *, wait_s: float = 0.0, who: str = "focusmap", then: str = "run the command again"
+    ) -> Iterator[None]:
+        """Hold the folder's lock (:func:`run_folder_lock`) and clear what a killed process left, to write in it."""
+        with run_folder_lock(self.path, wait_s=wait_s, who=who, then=then):
+            self.recover()
+            yield
 
     @property
     def run_id(self) -> str:
@@ -211,7 +234,15 @@ class RunFolder:
     def begin(self, stage: str) -> tuple[Path, Path]:
         """Fresh scratch folder and recording path for ``stage``."""
         root = self.partial_root
-        root.mkdir(exist_ok=True)
+        try:
+            root.mkdir(exist_ok=True)
+        except OSError as err:
+            if err.errno not in _READ_ONLY:
+                raise
+            raise InputError(
+                f"cannot write in run folder {str(self.path)!r} ({err.strerror}); make it writable, "
+                "or copy it and run the command on the copy"
+            ) from None
         scratch = root / stage
         if scratch.exists():
             shutil.rmtree(scratch)
@@ -245,7 +276,10 @@ class RunFolder:
         self._tidy()
 
     def recover(self) -> None:
-        """Undo what a killed process left: restore a replaced folder, drop unfinished scratch output."""
+        """Undo what a killed process left: restore a replaced folder, drop unfinished scratch output.
+
+        Only for the holder of the folder's lock: another process's stage in progress looks just the same.
+        """
         root = self.partial_root
         if not root.is_dir():
             return
@@ -266,3 +300,125 @@ class RunFolder:
         root = self.partial_root
         if root.is_dir() and not any(root.iterdir()):
             root.rmdir()
+
+
+# --- names and locks -------------------------------------------------------------------------------------
+def check_run_name(name: str) -> str:
+    """``name`` if it is a plain folder name (what ``--name`` may be), else an :class:`InputError`.
+
+    No path: not blank, no ``/`` (or the system's other separator), not ``.`` or ``..``, no NUL, so the
+    run folder ``OUT/<name>`` is always directly inside ``OUT``.
+    """
+    seps = {os.sep, os.altsep or os.sep}
+    if not name.strip() or name in (".", "..") or any(c in name for c in (*seps, "\0")):
+        raise InputError(
+            f"--name {name!r} is not a plain folder name; give a non-empty name without '/', other than '.' "
+            "and '..' (the run folder is made inside --out)"
+        )
+    return name
+
+
+def check_out_dir(out: Path) -> Path:
+    """``out`` if it can hold run folders (a folder, or absent), else an :class:`InputError`."""
+    if out.exists() and not out.is_dir():
+        raise InputError(
+            f"--out {str(out)!r} is a file, not a folder; pass the folder that holds the run folders "
+            "(it is created if absent)"
+        )
+    return out
+
+
+def _make_folder(path: Path) -> None:
+    """``path`` as a folder (with its parents), or an :class:`InputError` saying why it cannot be."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocker = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), path)
+        raise InputError(
+            f"cannot make run folder {str(path)!r}: {str(blocker)!r} is a file, not a folder; choose another --out"
+        ) from None
+    except OSError as err:
+        raise InputError(
+            f"cannot make run folder {str(path)!r} ({err.strerror}); choose an --out you can write in"
+        ) from None
+    names = {p.name for p in path.iterdir()} - {LOCK_FILE, PARTIAL_DIR}
+    if names and RUN_FILE not in names:
+        raise InputError(
+            f"{str(path)!r} exists and is not a focusmap run folder (no {RUN_FILE}); choose another --name or --out"
+        )
+
+
+def _holder(text: str) -> str:
+    """Who holds a lock, from its lock file's text (``host:pid what``), for an error message."""
+    ident, _, what = text.strip().partition(" ")
+    host, _, pid = ident.rpartition(":")
+    if not pid.isdigit():
+        return "another process"
+    where = "" if host == socket.gethostname() else f" on {host}"
+    return f"{what or 'a process'} (pid {pid}{where})"
+
+
+@contextlib.contextmanager
+def run_folder_lock(
+    path: Path, *, wait_s: float = 0.0, who: str = "focusmap", then: str = "run the command again"
+) -> Iterator[None]:
+    """Hold the exclusive lock of the run folder ``path`` (made if absent) while writing in it.
+
+    The lock is ``flock`` on ``<run>/.focusmap.lock``: the kernel releases it when the holder's process
+    ends, however it ends, so a killed command never leaves a folder locked. The holder writes
+    ``host:pid who`` into the file for the message another process gets. A folder nobody can write in
+    (read-only) is locked through a read-only descriptor (or not at all if it has no lock file yet):
+    reading an up-to-date folder then works, and the first write fails with its own clear error.
+    Locks are advisory; on systems without ``fcntl`` none is taken.
+
+    Args:
+        wait_s: how long to wait for another holder to finish before giving up (0: give up at once).
+        who: what the holder is, as the busy message shows it (``focusmap run``).
+        then: what to do once the holder has finished, the busy message's last words.
+
+    Raises:
+        InputError: the folder is busy (another process holds the lock after ``wait_s``), or ``path``
+            cannot be a run folder (a file, a folder that is not a run folder, no permission to make it).
+    """
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        yield
+        return
+    _make_folder(path)
+    lock = path / LOCK_FILE
+    writable = True
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:
+        if err.errno not in _READ_ONLY:
+            raise
+        writable = False
+        try:
+            fd = os.open(lock, os.O_RDONLY)
+        except FileNotFoundError:  # a read-only folder without a lock file: nobody can lock it, or write in it
+            yield
+            return
+    try:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    try:
+                        held_by = _holder(lock.read_text())
+                    except OSError:
+                        held_by = "another process"
+                    raise InputError(
+                        f"run folder {str(path)!r} is busy: {held_by} is working in it; "
+                        f"wait for it to finish (or stop it), then {then}"
+                    ) from None
+                time.sleep(0.2)
+        if writable:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{socket.gethostname()}:{os.getpid()} {who}\n".encode())
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock

@@ -96,12 +96,16 @@ def store_run_settings(run_dir: Path, settings: Settings, sections: Iterable[str
     """Record the settings ``sections`` ran with (and the shared sections) in ``RUN/settings.json``.
 
     The other sections keep what is stored: they describe the artifacts of stages this command did not run.
+    Call it holding the run folder's lock (:func:`pipeline.run_folder.run_folder_lock`). Nothing is written
+    when nothing changes, so a command whose stages are all up to date leaves the folder as it was.
     """
-    stored = stored_settings(run_dir) or {}
+    before = stored_settings(run_dir)
+    stored = dict(before or {})
     now = settings.dump()
     for section in (*sections, *SHARED_SECTIONS):
         if section in now:
             stored[section] = now[section]
     for section, values in now.items():  # first time: every section, so the folder starts complete
         stored.setdefault(section, values)
-    write_json_atomic(Path(run_dir) / SETTINGS_FILE, stored)
+    if stored != before:
+        write_json_atomic(Path(run_dir) / SETTINGS_FILE, stored)

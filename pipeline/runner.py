@@ -252,5 +252,15 @@ def write_run_blueprint(run: RunFolder, registry: Registry) -> None:
 
 
 def write_resolved_settings(run: RunFolder, settings: Settings) -> None:
-    """Keep the last resolved settings beside the manifest, for people reading the run folder."""
-    write_json_atomic(run.path / "settings.json", settings.dump())
+    """Keep the last resolved settings beside the manifest, for people reading the run folder.
+
+    Call it holding the run folder's lock; nothing is written when the file already holds these settings.
+    """
+    path = run.path / "settings.json"
+    now = settings.dump()
+    try:
+        if json.loads(path.read_text()) == now:
+            return
+    except (OSError, ValueError):
+        pass
+    write_json_atomic(path, now)

@@ -3,6 +3,7 @@ printed the way the stage says (in this process, with the stage runs replaced by
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -31,6 +32,7 @@ def recorded(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Any]:
     monkeypatch.setattr(cli_app, "_run_stages", run_stages)
     monkeypatch.setattr(cli_app, "_run_on_bag", run_on_bag)
     monkeypatch.setattr(cli_app, "_open_run", lambda run_dir: SimpleNamespace(path=run_dir))
+    monkeypatch.setattr(cli_app, "_locked_run", lambda run_dir: contextlib.nullcontext(SimpleNamespace(path=run_dir)))
     return seen
 
 

@@ -27,7 +27,6 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.batch import (
-    LOCK_FILE,
     SUMMARY_FILE,
     Outcome,
     collect_recordings,
@@ -38,6 +37,7 @@ from pipeline.batch import (
 from pipeline.config import load_settings
 from pipeline.errors import InputError
 from pipeline.registry import Headline, Registry
+from pipeline.run_folder import LOCK_FILE
 
 ROOT = Path(__file__).resolve().parents[2]
 UNTIL = "detect"
