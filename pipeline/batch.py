@@ -10,9 +10,9 @@ Two back-ends run the same :func:`run_task`:
 
 - :func:`run_local`: at most ``workers`` child processes at a time, one process per recording, so a
   crash (a segfault in a native library, the OOM killer) fails that recording only. Children die
-  with the batch process (Linux), draw no progress bars (only the batch's own bar is drawn), and take the
-  run folder's lock (:func:`pipeline.run_folder.run_folder_lock`, as every command that writes in a run
-  folder does), waiting up to ``LOCK_WAIT_S`` for it, so two processes never work on one run folder.
+  with the batch process (:mod:`pipeline.workers`), draw no progress bars (only the batch's own bar is drawn),
+  and take the run folder's lock (:func:`pipeline.run_folder.run_folder_lock`, as every command that writes in a
+  run folder does), waiting up to ``LOCK_WAIT_S`` for it, so two processes never work on one run folder.
 - :func:`run_dask`: the tasks on an existing ``dask.distributed`` cluster. The run folders are
   written by the workers, so ``OUT`` must be storage every worker sees at the same path.
 
@@ -24,7 +24,6 @@ does before creating a run folder is another spec (``preflight``).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import glob
 import importlib
 import multiprocessing
@@ -50,6 +49,7 @@ from pipeline.errors import InputError, PipelineError
 from pipeline.json_types import JSONValue
 from pipeline.registry import Headline, Registry
 from pipeline.run_folder import RunFolder, StageEntry, run_folder_lock
+from pipeline.workers import ignore_interrupts, interrupts_held, spawn_context, start_worker
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -315,36 +315,22 @@ def failed_outcome(task: BatchTask, reason: str) -> Outcome:
 
 
 # --- local back-end -------------------------------------------------------------------------------------
-def _die_with_parent() -> None:
-    """Ask Linux to SIGKILL this process when its parent dies, so a killed batch leaves no orphans."""
-    if not sys.platform.startswith("linux"):
-        return
-    with contextlib.suppress(OSError, AttributeError):
-        pr_set_pdeathsig = 1
-        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
-
-
 def _child_main(task: BatchTask, conn: multiprocessing.connection.Connection) -> None:
-    """Entry point of a local worker process: run the task, send the outcome back."""
-    parent = os.getppid()  # the batch process
-    _die_with_parent()
-    if os.getppid() != parent:  # the parent died before the request above took effect
-        os._exit(1)
+    """Entry point of a local worker process: run the task, send the outcome back.
+
+    The worker dies with the batch process (:mod:`pipeline.workers`). It takes Ctrl-C while it runs
+    the task, to abort its stage cleanly and report it interrupted (a Ctrl-C that came while it was
+    starting counts too), and ignores it while it hands the outcome back.
+    """
     try:
+        start_worker(interrupts=True)
         outcome = run_task(task)
+        ignore_interrupts()
     except KeyboardInterrupt:
+        ignore_interrupts()
         outcome = failed_outcome(task, "interrupted; finished stages are kept, the interrupted one left no output")
     conn.send(outcome)
     conn.close()
-
-
-def _mp_context() -> multiprocessing.context.SpawnContext:
-    """Fresh interpreters (``spawn``): no locks inherited from the batch's threads (progress bar, Dask).
-
-    Not ``forkserver``: its children hold the fork server's lifeline, so the fork server outlives a
-    killed batch and its children would never learn that their parent died.
-    """
-    return multiprocessing.get_context("spawn")
 
 
 def _describe_exit(code: int | None) -> str:
@@ -371,7 +357,7 @@ def run_local(tasks: Sequence[BatchTask], workers: int, on_outcome: OutcomeCallb
     """
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
-    ctx = _mp_context()
+    ctx = spawn_context()
     queue = deque(enumerate(tasks))
     running: dict[Connection, tuple[int, SpawnProcess, BatchTask]] = {}
     results: list[Outcome | None] = [None] * len(tasks)
@@ -393,11 +379,12 @@ def run_local(tasks: Sequence[BatchTask], workers: int, on_outcome: OutcomeCallb
         while queue or running:
             while queue and len(running) < workers:
                 i, task = queue.popleft()
-                recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child_main, args=(task, send), name=f"focusmap-batch:{task.run}")
-                proc.start()
-                send.close()
-                running[recv] = (i, proc, task)
+                with interrupts_held():  # the child starts deaf to Ctrl-C; one meant for us comes once it is recorded
+                    recv, send = ctx.Pipe(duplex=False)
+                    proc = ctx.Process(target=_child_main, args=(task, send), name=f"focusmap-batch:{task.run}")
+                    proc.start()
+                    send.close()
+                    running[recv] = (i, proc, task)
             for conn in _ready(running):
                 finish(conn)
     except BaseException:

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from typing import Any, Literal
 
 import numpy as np
@@ -18,6 +17,7 @@ from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
 from pipeline.errors import InputError, StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
+from pipeline.workers import WorkerPool
 from stages.columns import CORNERS, FAMILY, FRAME, STAMP_NS, TAG_ID, TOPIC
 from stages.detect.artifacts import (
     ALT_PROBABILITY,
@@ -104,7 +104,7 @@ def bag_detection_jobs(table: pa.Table, cfg: DetectConfig) -> list[FrameJob]:
 def _bounded_map(
     fn: Callable[[list[FrameJob]], BatchResult],
     items: Iterable[list[FrameJob]],
-    pool: ProcessPoolExecutor | None,
+    pool: WorkerPool | None,
     in_flight: int,
 ) -> Iterator[tuple[list[FrameJob], BatchResult]]:
     """``fn`` over ``items`` in order, at most ``in_flight`` batches queued in the pool at once."""
@@ -198,11 +198,9 @@ def _detect(
     """Process the batches (in ``workers`` processes when more than one), logging the frames as they come."""
     pool = None
     if workers > 1:
-        pool = ProcessPoolExecutor(
-            workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=init_worker,
-            initargs=(cfg.model_dump(mode="json"), camera, not from_bag),
+        # Its workers die with this process and leave Ctrl-C to it (pipeline.workers).
+        pool = WorkerPool(
+            workers, initializer=init_worker, initargs=(cfg.model_dump(mode="json"), camera, not from_bag)
         )
         fn = process_in_worker
     else:
