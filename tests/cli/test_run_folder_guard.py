@@ -21,7 +21,7 @@ import pytest
 
 from pipeline.run_folder import LOCK_FILE, run_folder_lock
 from tests.fixtures.bags import write_minimal_bag
-from tests.pipeline.test_run_folder_lock import hold_in_subprocess
+from tests.fixtures.locks import hold_in_subprocess
 
 ROOT = Path(__file__).resolve().parents[2]
 Snapshot = dict[str, tuple[int, str]]

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -19,26 +16,9 @@ from pipeline.run_folder import (
     check_run_name,
     run_folder_lock,
 )
+from tests.fixtures.locks import hold_in_subprocess
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def hold_in_subprocess(run_dir: Path, seconds: float = 60.0) -> subprocess.Popen[str]:
-    """A process that takes the lock of ``run_dir`` as ``focusmap test``, says ``locked``, sleeps, and writes
-    ``run_dir/let-go`` just before it lets go."""
-    script = textwrap.dedent(f"""
-        import sys, time
-        sys.path.insert(0, {str(ROOT)!r})
-        from pathlib import Path
-        from pipeline.run_folder import run_folder_lock
-        with run_folder_lock(Path(sys.argv[1]), who="focusmap test"):
-            print("locked", flush=True)
-            time.sleep({seconds})
-            (Path(sys.argv[1]) / "let-go").touch()
-    """)
-    proc = subprocess.Popen([sys.executable, "-c", script, str(run_dir)], stdout=subprocess.PIPE, text=True)
-    assert proc.stdout is not None and proc.stdout.readline().strip() == "locked"
-    return proc
 
 
 def test_a_second_holder_is_told_the_folder_is_busy_and_by_whom(tmp_path: Path) -> None:
