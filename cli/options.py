@@ -30,7 +30,7 @@ ConfigOpt = Annotated[
 SetOpt = Annotated[
     list[str] | None,
     typer.Option(
-        "--set", "-s", help="Override one setting: SECTION.KEY=VALUE (repeatable), e.g. detect.family=tag25h9."
+        "--set", "-s", help="Override one setting: SECTION.KEY=VALUE (repeatable), e.g. detect.tag_size_m=0.16."
     ),
 ]
 ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Re-run even if the results are up to date.")]

@@ -1,6 +1,6 @@
 """Settings: one pydantic model per YAML section, merged from defaults, a file and ``--set`` overrides.
 
-A run's settings file has one section per stage (``detect: {family: tag36h11}``) plus the
+A run's settings file has one section per stage (``detect: {families: [tag36h11]}``) plus the
 ``rerun`` section shared by every stage. Unknown sections and keys are errors that name the file
 and suggest the nearest valid name; a wrong value names the file, the key and what was expected.
 """
@@ -19,10 +19,20 @@ from pipeline.errors import ConfigError
 from pipeline.json_types import JSONObject
 
 
-class RecordingSettings(BaseModel):
-    """How stages draw into their Rerun recordings."""
+class SettingsModel(BaseModel):
+    """Base of every settings model (each YAML section and the models nested in one).
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Unknown keys are errors, values are frozen, and no number may be infinite or NaN: a ``.inf`` or
+    ``1e400`` in a settings file or after ``--set`` is rejected at load with one line naming the key,
+    never carried into a stage (where it overflowed a time conversion, aborted Ceres or became a NaN
+    entropy). Physical bounds (``le=``/``ge=``) are on the fields themselves.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class RecordingSettings(SettingsModel):
+    """How stages draw into their Rerun recordings."""
 
     n_sigma: float = Field(3.0, gt=0, description="Covariance ellipsoids are drawn at this many standard deviations.")
     image_stride: int = Field(5, ge=1, description="Log every n-th camera frame to the recordings (1 = every frame).")
@@ -70,11 +80,11 @@ def _nearest(name: str, choices: Iterable[str]) -> str:
 
 def _parse_override(text: str) -> tuple[str, list[str], object]:
     if "=" not in text:
-        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.family=tag25h9")
+        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.tag_size_m=0.16")
     lhs, rhs = text.split("=", 1)
     parts = lhs.strip().split(".")
     if len(parts) < 2 or not all(parts):
-        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.family=tag25h9")
+        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set detect.tag_size_m=0.16")
     try:
         value = yaml.safe_load(rhs) if rhs.strip() else ""
     except yaml.YAMLError:
@@ -82,7 +92,29 @@ def _parse_override(text: str) -> tuple[str, list[str], object]:
     return parts[0].replace("-", "_"), parts[1:], value
 
 
-def _describe(err: ValidationError, section: str, source_of: Mapping[tuple[str, str], str]) -> str:
+def _allowed(model: type[BaseModel], key: str) -> str:
+    """The range a number field accepts, as ``"; allowed: 0 < value <= 1000"`` (empty for other fields)."""
+    info = model.model_fields.get(key)
+    if info is None:
+        return ""
+    low = high = ""
+    for bound in info.metadata:
+        if (v := getattr(bound, "gt", None)) is not None:
+            low = f"{v:g} < "
+        elif (v := getattr(bound, "ge", None)) is not None:
+            low = f"{v:g} <= "
+        elif (v := getattr(bound, "lt", None)) is not None:
+            high = f" < {v:g}"
+        elif (v := getattr(bound, "le", None)) is not None:
+            high = f" <= {v:g}"
+    if info.annotation is not None and "float" in str(info.annotation) and not (low and high):
+        low, high = low or "-inf < ", high or " < inf"  # finite, whatever the bounds
+    return f"; allowed: {low}value{high}" if low or high else ""
+
+
+def _describe(
+    err: ValidationError, section: str, source_of: Mapping[tuple[str, str], str], model: type[BaseModel]
+) -> str:
     first = err.errors()[0]
     loc = ".".join(str(p) for p in first["loc"])
     top = str(first["loc"][0]) if first["loc"] else ""
@@ -91,7 +123,7 @@ def _describe(err: ValidationError, section: str, source_of: Mapping[tuple[str, 
         return f"{source}: unknown key {section}.{loc}"
     value = first.get("input")
     shown = f" (got {value!r})" if not isinstance(value, dict) else ""
-    return f"{source}: {section}.{loc}: {first['msg'].rstrip('.')}{shown}"
+    return f"{source}: {section}.{loc}: {first['msg'].rstrip('.')}{shown}{_allowed(model, top) if loc == top else ''}"
 
 
 BASE_SOURCE = "run folder"
@@ -129,7 +161,14 @@ def load_settings(
         if not path.is_file():
             raise ConfigError(f"settings file {str(path)!r} not found; pass an existing YAML file to --config")
         try:
-            loaded = yaml.safe_load(path.read_text()) or {}
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            reason = "not UTF-8 text" if isinstance(err, UnicodeDecodeError) else (err.strerror or str(err))
+            raise ConfigError(
+                f"settings file {str(path)!r} cannot be read ({reason}); pass a YAML file to --config"
+            ) from None
+        try:
+            loaded = yaml.safe_load(text) or {}
         except yaml.YAMLError as err:
             mark = getattr(err, "problem_mark", None)
             where = f" at line {mark.line + 1}" if mark is not None else ""
@@ -166,7 +205,7 @@ def load_settings(
         try:
             sections[name] = model.model_validate(raw[name])
         except ValidationError as err:
-            raise ConfigError(_describe(err, name, source_of)) from None
+            raise ConfigError(_describe(err, name, source_of, model)) from None
     sources = {f"{s}.{k}": v for (s, k), v in source_of.items()}
     return Settings(sections, sources)
 

@@ -49,8 +49,9 @@ def load_camera_file(path: Path, topic: str | None = None) -> CameraModel:
     """
     try:
         doc = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as err:
-        msg = f"camera file {str(path)!r} cannot be read as YAML ({err}); pass a valid --camera FILE"
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        reason = "not UTF-8 text" if isinstance(err, UnicodeDecodeError) else str(err)
+        msg = f"camera file {str(path)!r} cannot be read as YAML ({reason}); pass a valid --camera FILE"
         raise InputError(msg) from err
     if not isinstance(doc, dict):
         raise InputError(f"camera file {str(path)!r} is not a YAML mapping; expected cameras.yaml or camera_info")

@@ -4,25 +4,24 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_TAG_SIZE_M
 
 Family = Literal["tag36h11", "tag25h9", "tag16h5", "tag36h10"]
 Backend = Literal["apriltag3", "opencv"]
 
 
-class TagSize(BaseModel):
+class TagSize(SettingsModel):
     """The printed size of one tag id (edge of the black square)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
     id: int = Field(..., ge=0, description="Tag id.")
-    size_m: float = Field(..., gt=0, description="Edge of the tag's black square, in metres.")
+    size_m: float = Field(..., gt=0, le=MAX_TAG_SIZE_M, description="Edge of the tag's black square, in metres.")
 
 
-class DetectConfig(BaseModel):
+class DetectConfig(SettingsModel):
     """Detect AprilTags in the ingested frames and measure each tag's pose with its covariance."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     backend: Backend = Field(
         "apriltag3",
@@ -59,7 +58,9 @@ class DetectConfig(BaseModel):
         10.0, ge=0.0, description="apriltag3 detections with a lower decision margin are dropped (grey levels)."
     )
     max_hamming: int = Field(1, ge=0, le=3, description="Detections with more corrected bits are dropped.")
-    tag_size_m: float = Field(0.162, gt=0, description="Default edge of a tag's black square, metres.")
+    tag_size_m: float = Field(
+        0.162, gt=0, le=MAX_TAG_SIZE_M, description="Default edge of a tag's black square, metres."
+    )
     tag_sizes: tuple[TagSize, ...] = Field(
         (), description="Per-id sizes overriding tag_size_m, a list of {id, size_m} (metres)."
     )

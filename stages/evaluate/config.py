@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_SIGMA_M, MIN_GRID_RESOLUTION_M
 
 
-class EvaluateConfig(BaseModel):
+class EvaluateConfig(SettingsModel):
     """The six cases of Mu et al. Table I, other strategy pairs, and Monte Carlo LQG navigation on each map."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     landmark_budget: int | None = Field(
         None, ge=0, description="Landmark budget alpha; null = select_landmarks.budget (the paper's office: 30)."
@@ -41,16 +42,20 @@ class EvaluateConfig(BaseModel):
         None, gt=0, description="Bearing noise of the simulated measurements, rad; null = the risk model's."
     )
     range_sigma_m: float | None = Field(
-        None, gt=0, description="Range noise of the simulated measurements, m; null = the risk model's."
+        None, gt=0, le=MAX_SIGMA_M, description="Range noise of the simulated measurements, m; null = the risk model's."
     )
     speed_sigma_mps: float = Field(0.05, ge=0, description="Actuation noise on the forward speed, m/s.")
     yaw_rate_sigma_radps: float = Field(0.05, ge=0, description="Actuation noise on the yaw rate, rad/s.")
-    initial_sigma_m: float = Field(0.02, ge=0, description="Standard deviation of the start position, m.")
+    initial_sigma_m: float = Field(
+        0.02, ge=0, le=MAX_SIGMA_M, description="Standard deviation of the start position, m."
+    )
     initial_sigma_rad: float = Field(0.01, ge=0, description="Standard deviation of the start heading, rad.")
     lqr_position_weight: float = Field(10.0, gt=0, description="LQR weight on the position error (W_x).")
     lqr_heading_weight: float = Field(1.0, gt=0, description="LQR weight on the heading error (W_x).")
     lqr_control_weight: float = Field(1.0, gt=0, description="LQR weight on speed and yaw-rate corrections (W_u).")
-    grid_resolution_m: float = Field(0.05, gt=0, description="Cell size of the laser occupancy grid, m.")
+    grid_resolution_m: float = Field(
+        0.05, ge=MIN_GRID_RESOLUTION_M, description="Cell size of the laser occupancy grid, m."
+    )
     grid_min_hits: int = Field(2, ge=1, description="Laser returns a cell needs to count as occupied.")
     scan_stride: int = Field(2, ge=1, description="Use every n-th laser scan for the occupancy grid.")
     plots: bool = Field(True, description="Draw the report's PNG figures (needs matplotlib).")

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_SIGMA_M
 
 GRAPH_SOURCE = "graph"
 """``source_kind`` of a run made by ``import-graph``: its graph stage reads the graph file, not ingest and detect."""
 
 
-class GraphConfig(BaseModel):
+class GraphConfig(SettingsModel):
     """The full factor graph: model, keyframes, noise, robust kernel and optimiser."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     model: Literal["planar", "3d"] = Field(
         "planar",
@@ -36,7 +37,9 @@ class GraphConfig(BaseModel):
         description="Noise of the odometry factors: from the messages' pose covariances (their growth between "
         "keyframes), from the settings below, or auto (messages when filled in, else settings).",
     )
-    odometry_sigma_m: float = Field(0.01, gt=0, description="Odometry translation noise floor per factor, m.")
+    odometry_sigma_m: float = Field(
+        0.01, gt=0, le=MAX_SIGMA_M, description="Odometry translation noise floor per factor, m."
+    )
     odometry_sigma_per_m: float = Field(
         0.05, ge=0, description="Odometry translation noise growth per metre travelled (fraction of distance)."
     )
@@ -51,10 +54,14 @@ class GraphConfig(BaseModel):
     motion_prior: bool = Field(
         True, description="Without odometry, join consecutive keyframes with a weak zero-motion prior."
     )
-    motion_prior_sigma_m: float = Field(1.0, gt=0, description="Zero-motion prior translation sigma, m.")
+    motion_prior_sigma_m: float = Field(
+        1.0, gt=0, le=MAX_SIGMA_M, description="Zero-motion prior translation sigma, m."
+    )
     motion_prior_sigma_rad: float = Field(1.0, gt=0, description="Zero-motion prior rotation sigma, rad.")
     # prior
-    prior_sigma_m: float = Field(1e-3, gt=0, description="Prior on the first pose: translation sigma, m.")
+    prior_sigma_m: float = Field(
+        1e-3, gt=0, le=MAX_SIGMA_M, description="Prior on the first pose: translation sigma, m."
+    )
     prior_sigma_rad: float = Field(1e-3, gt=0, description="Prior on the first pose: rotation sigma, rad.")
     # tags
     min_tag_observations: int = Field(
@@ -68,7 +75,7 @@ class GraphConfig(BaseModel):
         1.0, gt=0, description="Multiply the detections' 6x6 covariances by this (variance scale)."
     )
     tag_sigma_floor_m: float = Field(
-        0.005, ge=0, description="Floor added to the tag position sigma in every direction, m."
+        0.005, ge=0, le=MAX_SIGMA_M, description="Floor added to the tag position sigma in every direction, m."
     )
     tag_sigma_floor_rad: float = Field(
         0.005, ge=0, description="Floor added to the tag rotation sigma (3d model), rad."

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_BAG_SECONDS
 
 
-class IngestConfig(BaseModel):
+class IngestConfig(SettingsModel):
     """What to read from the recording."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     image_topic: str = Field("", description="Camera image topic (Image or CompressedImage); empty = the only one.")
     camera_info_topic: str = Field("", description="CameraInfo topic; empty = the only one.")
@@ -23,7 +24,11 @@ class IngestConfig(BaseModel):
         description="Calibration file (Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML) used instead of "
         "CameraInfo messages; empty = read CameraInfo from the bag.",
     )
-    start_s: float = Field(0.0, ge=0, description="Skip messages before this time, seconds from the bag start.")
-    end_s: float | None = Field(None, gt=0, description="Skip messages after this time, seconds from the bag start.")
+    start_s: float = Field(
+        0.0, ge=0, le=MAX_BAG_SECONDS, description="Skip messages before this time, seconds from the bag start."
+    )
+    end_s: float | None = Field(
+        None, gt=0, le=MAX_BAG_SECONDS, description="Skip messages after this time, seconds from the bag start."
+    )
     frame_stride: int = Field(1, ge=1, description="Keep every n-th camera frame (counted from the first in the bag).")
     salvage: bool = Field(False, description="Read a damaged bag up to the damage instead of failing.")

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_SIGMA_M
 
 
-class OptimizeConfig(BaseModel):
+class OptimizeConfig(SettingsModel):
     """Re-optimise the reduced graph (odometry + prior + the selected measurements of the focused landmarks)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     initialise_from: Literal["dead_reckoning", "full_solution"] = Field(
         "dead_reckoning",
@@ -22,6 +23,7 @@ class OptimizeConfig(BaseModel):
     unobserved_sigma_m: float = Field(
         100.0,
         gt=0,
+        le=MAX_SIGMA_M,
         description="A focused landmark that keeps no measurement enters the focused entropy with this isotropic "
         "standard deviation per dimension, m (the weak landmark prior of measurement selection).",
     )

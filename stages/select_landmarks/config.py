@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_SIGMA_M
 
 if TYPE_CHECKING:  # stages.risk imports the estimation maths; settings must load without it
     from stages.risk import RiskParams
@@ -14,10 +17,8 @@ STRATEGIES: tuple[str, ...] = ("collision", "mutual-information", "leverage", "u
 NEEDS_LASER: tuple[str, ...] = ("collision",)
 
 
-class SelectLandmarksConfig(BaseModel):
+class SelectLandmarksConfig(SettingsModel):
     """Stage one of focused inference: which landmarks to keep, and the collision-risk model."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     strategy: LandmarkStrategy = Field(
         "collision",
@@ -33,6 +34,7 @@ class SelectLandmarksConfig(BaseModel):
     landmark_prior_sigma_m: float = Field(
         100.0,
         gt=0,
+        le=MAX_SIGMA_M,
         description="mutual-information and leverage: weak prior on a landmark when its measurements are "
         "marginalised (Schur complement), m.",
     )
@@ -61,10 +63,16 @@ class SelectLandmarksConfig(BaseModel):
         None, gt=0, description="Bearing noise of the risk model, rad; null = median of the graph's tag factors."
     )
     range_sigma_m: float | None = Field(
-        None, gt=0, description="Range noise of the risk model, m; null = median of the graph's tag factors."
+        None,
+        gt=0,
+        le=MAX_SIGMA_M,
+        description="Range noise of the risk model, m; null = median of the graph's tag factors.",
     )
     odometry_sigma_m: float | None = Field(
-        None, gt=0, description="Translation noise per keyframe step, m; null = from the graph's odometry factors."
+        None,
+        gt=0,
+        le=MAX_SIGMA_M,
+        description="Translation noise per keyframe step, m; null = from the graph's odometry factors.",
     )
     odometry_sigma_rad: float | None = Field(
         None, gt=0, description="Heading noise per keyframe step, rad; null = from the graph's odometry factors."

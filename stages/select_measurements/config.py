@@ -4,16 +4,17 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from pipeline.config import SettingsModel
+from stages.limits import MAX_SIGMA_M
 
 MeasurementStrategy = Literal["information", "leverage", "uniform", "random", "all"]
 STRATEGIES: tuple[str, ...] = ("information", "leverage", "uniform", "random", "all")
 
 
-class SelectMeasurementsConfig(BaseModel):
+class SelectMeasurementsConfig(SettingsModel):
     """Stage two of focused inference: which tag measurements to keep (all odometry is always kept)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     strategy: MeasurementStrategy = Field(
         "information",
@@ -29,6 +30,7 @@ class SelectMeasurementsConfig(BaseModel):
     landmark_prior_sigma_m: float = Field(
         100.0,
         gt=0,
+        le=MAX_SIGMA_M,
         description="Weak isotropic prior on every landmark in the initial information (odometry and prior leave "
         "landmarks unobserved), so first gains are finite and comparable, m.",
     )
