@@ -20,10 +20,12 @@ import subprocess
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, ParamSpec, TypeVar
 
 import click
 import typer
+from typer._click.exceptions import BadParameter, MissingParameter
+from typer.core import TyperGroup
 
 from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, RunDirArg, SalvageOpt, SetOpt
 from pipeline.errors import InputError, PipelineError
@@ -37,7 +39,41 @@ if TYPE_CHECKING:
     from pipeline.runner import StageResult
     from pipeline.stage import AnyStage, Option
 
+
+class _Group(TyperGroup):
+    """The root group: a bad option value is one ``error:`` line, not Click's usage box.
+
+    Click checks ``min=``/``max=`` and types while it parses a command's options, outside the
+    command's :func:`handled`; a bad value (``--stride 0``, ``--at 2``, ``--budget x``) ends here. A
+    missing argument, an unknown option or command keep Click's usage box: that is about how the
+    command is called, which the usage shows.
+    """
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except BadParameter as err:
+            if isinstance(err, MissingParameter):
+                raise
+            message = err.format_message().removeprefix("Invalid value for ").rstrip(".")
+            typer.echo(f"error: invalid value for {message}{_option_setting(err)}", err=True)
+            raise typer.Exit(1) from None
+
+
+def _option_setting(err: BadParameter) -> str:
+    """`` (setting SECTION.KEY)`` when the bad value was given to a stage option, else empty."""
+    command = err.ctx.info_name if err.ctx is not None else None
+    name = err.param.name if err.param is not None else None
+    stages = [s for s in _registry() if s.command == command] or _source_stages(_registry())
+    for stage in stages:
+        for option in stage.options:
+            if _param_name(option) == name:
+                return f" (setting {stage.name}.{option.key})"
+    return ""
+
+
 app = typer.Typer(
+    cls=_Group,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,

@@ -62,7 +62,9 @@ def test_selection_options_set_the_stage_settings(recorded: dict[str, Any], tmp_
 
 def test_an_option_is_checked_like_its_setting(recorded: dict[str, Any], tmp_path: Path) -> None:
     result = invoke("select-landmarks", str(tmp_path), "--budget", "-1")
-    assert result.exit_code == 2 and "names" not in recorded
+    assert result.exit_code == 1 and "names" not in recorded
+    assert result.stderr.startswith("error: ") and "select_landmarks.budget" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr  # not Click's usage box
     result = invoke("select-landmarks", str(tmp_path), "--strategy", "nearest")
     assert result.exit_code == 1
     assert result.stderr.startswith("error: ") and "select_landmarks.strategy" in result.stderr
