@@ -41,6 +41,7 @@ from stages.evaluate.analysis import (
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
 from stages.ingest.artifacts import ANGLE_INCREMENT, ANGLE_MIN, RANGE_MAX, RANGE_MIN, RANGES
+from stages.limits import MAX_GRID_CELLS
 from stages.navigation import (
     NavigationMap,
     NavigationParams,
@@ -254,7 +255,24 @@ def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
                 float(cols[RANGE_MAX][j]),
             )
         )
-    return occupancy_grid(np.vstack(pts), inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
+    endpoints = np.vstack(pts)
+    _check_grid_size(endpoints, inputs.cfg.grid_resolution_m)
+    return occupancy_grid(endpoints, inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
+
+
+def _check_grid_size(endpoints: npt.NDArray[np.float64], resolution_m: float, margin_m: float = 1.0) -> None:
+    """Refuse a laser grid of more than :data:`~stages.limits.MAX_GRID_CELLS` cells before allocating it."""
+    finite = endpoints[np.isfinite(endpoints).all(axis=1)]
+    if len(finite) == 0:
+        return
+    span = np.ptp(finite, axis=0) + 2 * margin_m
+    cells = float(np.prod(np.ceil(span / resolution_m) + 1))
+    if cells > MAX_GRID_CELLS:
+        finest = 1.1 * float(np.sqrt(np.prod(span) / MAX_GRID_CELLS))  # rounded up: the +1 cells per side
+        raise ConfigError(
+            f"evaluate.grid_resolution_m={resolution_m:g} makes a laser grid of {cells:.3g} cells over "
+            f"{span[0]:.0f} m x {span[1]:.0f} m (at most {MAX_GRID_CELLS:.0e}); set it to {finest:.2g} m or more"
+        )
 
 
 def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup:
