@@ -24,8 +24,12 @@ from typing import TYPE_CHECKING, Annotated, Any, ParamSpec, TypeVar
 
 import click
 import typer
-from typer._click.exceptions import BadParameter, MissingParameter
 from typer.core import TyperGroup
+
+try:  # Typer 0.2x raises its option errors from its own copy of click
+    from typer._click.exceptions import BadParameter, MissingParameter
+except ImportError:  # older Typer: click itself
+    from click.exceptions import BadParameter, MissingParameter  # type: ignore[assignment]
 
 from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, RunDirArg, SalvageOpt, SetOpt
 from pipeline.errors import InputError, PipelineError
