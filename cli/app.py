@@ -32,7 +32,7 @@ except ImportError:  # older Typer: click itself
     from click.exceptions import BadParameter, MissingParameter  # type: ignore[assignment]
 
 from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, RunDirArg, SalvageOpt, SetOpt
-from pipeline.errors import InputError, PipelineError
+from pipeline.errors import InputError, PipelineError, write_error
 
 if TYPE_CHECKING:
     from typer._click import Context as _VendoredContext
@@ -142,6 +142,11 @@ def handled(func: Callable[P, R]) -> Callable[P, R]:
         except Exception as err:
             if _state().debug:
                 raise
+            # a write that failed outside a stage (settings, the manifest): a full or read-only disk
+            failed = write_error(err, Path.cwd()) if isinstance(err, OSError) and err.filename else None
+            if failed is not None:
+                typer.echo(f"error: {failed}", err=True)
+                raise typer.Exit(1) from None
             typer.echo(
                 f"error: internal error {type(err).__name__}: {err} (re-run with --debug for the traceback "
                 "and report it)",

@@ -25,10 +25,43 @@ if TYPE_CHECKING:
 APPLICATION_ID = "focusmap"
 
 
+class _FileWriter:
+    """Writes a recording's encoded bytes into its file when it is closed.
+
+    Rerun's own file sink cannot be used: once one of its writes fails (a full disk), every later
+    flush, disconnect or drop of the recording waits forever, even the interpreter's exit. Here the
+    encoding stays in memory (a stage's recording is a few MB) and Python writes the file, so a failed
+    write is an ``OSError``. The bytes are read once: Rerun 0.41 ends every read of its in-memory
+    stream with its own index, and pieces read at several times do not join into one valid file.
+    """
+
+    def __init__(self, stream: rr.BinaryStream, path: Path) -> None:
+        self.path = path
+        self._stream = stream
+
+    def close(self) -> None:
+        """Write the recording's file; a failed write raises ``OSError`` and leaves no file."""
+        data = self._stream.read(flush=True) or b""
+        try:
+            with open(self.path, "wb") as f:
+                f.write(data)
+        except OSError:
+            self.path.unlink(missing_ok=True)
+            raise
+
+
+_WRITERS: dict[int, _FileWriter] = {}
+
+
 def open_recording(run_id: str, path: Path, blueprint: rrb.Blueprint | None = None) -> rr.RecordingStream:
-    """A recording stream saving to ``path``, with the run's recording id so stage files merge in the viewer."""
+    """A recording stream saving to ``path``, with the run's recording id so stage files merge in the viewer.
+
+    Close it with :func:`close_recording`, which raises the ``OSError`` of a failed write.
+    """
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=run_id, send_properties=False)
-    rec.save(path, default_blueprint=blueprint)
+    _WRITERS[id(rec)] = _FileWriter(rr.binary_stream(recording=rec), path)
+    if blueprint is not None:
+        rec.send_blueprint(blueprint, make_active=False, make_default=True)
     return rec
 
 
@@ -59,17 +92,50 @@ def run_blueprint(blueprints: Sequence[tuple[str, rrb.Blueprint]], active: str |
     )
 
 
+def blueprint_bytes(blueprint: rrb.Blueprint) -> bytes:
+    """A blueprint encoded as a ``.rbl`` file holds it (Rerun's encoding, made in memory)."""
+    stream = rr.RecordingStream._from_native(  # what ``Blueprint.save`` makes, without Rerun's file sink
+        rr.recording_stream.bindings.new_blueprint(
+            application_id=APPLICATION_ID, make_default=False, make_thread_default=False, default_enabled=True
+        )
+    )
+    out = rr.binary_stream(recording=stream)
+    stream.set_time("blueprint", sequence=0)
+    blueprint._log_to_stream(stream)
+    return out.read(flush=True) or b""
+
+
 def save_blueprint(blueprint: rrb.Blueprint, path: Path) -> None:
-    """Write a blueprint file (``.rbl``) that the viewer opens beside the recordings."""
+    """Write a blueprint file (``.rbl``) that the viewer opens beside the recordings.
+
+    Python writes it under a temporary name and renames it, so a failed write raises ``OSError``
+    naming ``path`` at once (Rerun's own ``Blueprint.save`` waits forever on a full disk) and the
+    old file stays whole.
+    """
+    data = blueprint_bytes(blueprint)
     tmp = path.with_name(f".{path.name}.tmp")
-    blueprint.save(APPLICATION_ID, tmp)
-    tmp.replace(path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        tmp.replace(path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise OSError(err.errno, err.strerror, str(path)) from err
 
 
 def close_recording(rec: rr.RecordingStream) -> None:
-    """Flush everything to disk and close the file sink."""
-    rec.flush()
-    rec.disconnect()
+    """Flush everything to the recording's file and close it; a failed write raises ``OSError`` naming the file."""
+    writer = _WRITERS.pop(id(rec), None)
+    try:
+        if writer is not None:
+            writer.close()
+        else:
+            rec.flush()
+    except OSError as err:
+        path = str(writer.path) if writer is not None else None
+        raise OSError(err.errno, err.strerror, path) from err
+    finally:
+        rec.disconnect()
 
 
 def set_stamp(rec: rr.RecordingStream, stamp_ns: int) -> None:

@@ -86,8 +86,13 @@ class Manifest(TypedDict):
 def write_json_atomic(path: Path, data: object) -> None:
     """Write JSON to a temporary name beside ``path`` and rename it into place."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n")
-    os.replace(tmp, path)
+    text = json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n"
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError as err:  # a full disk: leave no torn temporary file, and name the file meant
+        tmp.unlink(missing_ok=True)
+        raise OSError(err.errno, err.strerror, str(path)) from err
 
 
 def _json_default(obj: object) -> object:

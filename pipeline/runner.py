@@ -18,7 +18,7 @@ from pipeline.artifacts import StageOutput
 from pipeline.code import code_digest, package_dirs
 from pipeline.config import Settings
 from pipeline.context import StageContext
-from pipeline.errors import StageError
+from pipeline.errors import StageError, write_error
 from pipeline.recording import close_recording, log_summary, open_recording, run_blueprint, save_blueprint
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder, SourceEntry, outside_identity, source_identity, write_json_atomic
@@ -208,31 +208,42 @@ def run_stage(
         close_recording(rec)
         write_json_atomic(scratch / "summary.json", summary)
         run.commit(stage.name)
-    except BaseException:
+    except BaseException as err:
         try:
             close_recording(rec)
+        except OSError:
+            pass  # the stage's own error says more; its output goes anyway
         finally:
             run.abort(stage.name)
+        failed = write_error(err, run.path)
+        if failed is not None:  # a full or read-only disk: one line naming the file, earlier results untouched
+            raise failed from err
         raise
     outside = dict(sorted(ctx.outside_files.items()))
-    run.record(
-        stage.name,
-        {
-            "fingerprint": _seal(fp, outside),
-            "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "code": code_version(stage),
-            "seconds": round(seconds, 3),
-            "settings": settings[stage.name].model_dump(mode="json"),
-            "inputs": {d: (run.stage_entry(d) or {}).get("fingerprint") for d in (*required, *optional)},
-            "source": _source(run, stage),
-            "outside_files": outside,
-            "versions": library_versions(),
-            "summary": summary,
-        },
-    )
+    try:
+        run.record(
+            stage.name,
+            {
+                "fingerprint": _seal(fp, outside),
+                "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "code": code_version(stage),
+                "seconds": round(seconds, 3),
+                "settings": settings[stage.name].model_dump(mode="json"),
+                "inputs": {d: (run.stage_entry(d) or {}).get("fingerprint") for d in (*required, *optional)},
+                "source": _source(run, stage),
+                "outside_files": outside,
+                "versions": library_versions(),
+                "summary": summary,
+            },
+        )
+    except OSError as err:  # the stage's folder is in place but unrecorded: the next command re-runs it
+        failed = write_error(err, run.path)
+        if failed is None:
+            raise
+        raise failed from err
     try:
         write_run_blueprint(run, registry)
-    except Exception as err:  # a layout problem must not fail a finished stage
+    except Exception as err:  # a layout problem (or no room for it) must not fail a finished stage
         notes = summary.setdefault("notes", [])
         if isinstance(notes, list):
             notes.append(f"run blueprint not written: {err}")
