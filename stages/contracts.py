@@ -14,17 +14,7 @@ import importlib
 import sys
 
 from pipeline.contracts import ArtifactSet, render_markdown
-
-ORDER: tuple[str, ...] = (
-    "ingest",
-    "detect",
-    "graph",
-    "select_landmarks",
-    "select_measurements",
-    "optimize",
-    "evaluate",
-)
-"""The stages in pipeline order."""
+from stages import REGISTRY
 
 TITLE = "Artifacts"
 INTRO = """
@@ -40,7 +30,7 @@ than the code. Every stage also writes `summary.json` (its headline numbers, the
 def artifact_sets() -> list[ArtifactSet]:
     """The ``ARTIFACTS`` of every stage that declares them, in pipeline order."""
     sets = []
-    for stage in ORDER:
+    for stage in REGISTRY.names:
         sets.append(importlib.import_module(f"stages.{stage}.artifacts").ARTIFACTS)
     return sets
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from stages.contracts import ORDER, artifact_sets, render
+from stages import REGISTRY
+from stages.contracts import artifact_sets, render
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -17,7 +18,7 @@ def test_artifacts_doc_is_the_rendering_of_the_declarations() -> None:
 def test_every_declared_stage_is_in_pipeline_order_and_names_its_files_once() -> None:
     sets = artifact_sets()
     stages = [s.stage for s in sets]
-    assert stages == [s for s in ORDER if s in stages]
+    assert stages == [s for s in REGISTRY.names if s in stages]
     assert {"select_landmarks", "select_measurements", "optimize", "evaluate"} <= set(stages)
     for s in sets:
         files = [spec.file for spec in s.specs]

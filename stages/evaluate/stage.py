@@ -23,10 +23,9 @@ from stages.evaluate.cases import (
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
-from stages.graph.artifacts import LANDMARKS
 from stages.graph.load import LoadedGraph, load_graph
 from stages.navigation.truth import load_truth
-from stages.optimize import OptimizeConfig, ReducedMap, landmark_heights, read_reduced, solve_settings
+from stages.optimize import OptimizeConfig, ReducedMap, read_reduced, solve_settings
 from stages.risk import read_path_inputs
 from stages.select_landmarks import LandmarkInputs
 from stages.select_landmarks.artifacts import FOCUSED
@@ -70,7 +69,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         loaded=loaded,
         landmarks=landmarks,
         truth=load_truth(ctx, loaded),
-        heights=landmark_heights(LANDMARKS.read(ctx.input("graph"))),
+        heights=loaded.landmark_heights,
         sl_cfg=sl_cfg,
         sm_cfg=sm_cfg,
         cfg=cfg,

@@ -18,7 +18,7 @@ import pyarrow as pa
 
 from pipeline.artifacts import StageInput
 from pipeline.errors import InputError
-from stages.columns import TAG_ID
+from stages.columns import TAG_ID, Z
 from stages.graph.artifacts import (
     FACTORS,
     LANDMARK_KEY,
@@ -26,6 +26,7 @@ from stages.graph.artifacts import (
     POSE_KEY,
     POSE_STAMP_NS,
     POSES,
+    POSITION_COV,
     VALUES,
     MarginalArrays,
     ValueArrays,
@@ -69,7 +70,8 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
     vals = ValueArrays.read(graph_input)
     margs = MarginalArrays.read(graph_input)
     poses = POSES.read(graph_input, columns=[POSE_KEY, POSE_STAMP_NS]).to_pydict()
-    lms = LANDMARKS.read(graph_input, columns=[TAG_ID, LANDMARK_KEY]).to_pydict()
+    landmarks = LANDMARKS.read(graph_input)
+    lms = landmarks.select([TAG_ID, LANDMARK_KEY]).to_pydict()
     keys = [int(k) for k in vals.keys]
     types = [str(t) for t in vals.types]
     var_types = dict(zip(keys, types, strict=True))
@@ -98,6 +100,7 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
         pose_keys=pose_keys,
         pose_stamps_ns=[int(s) for s in poses[POSE_STAMP_NS]],
         landmark_keys={int(t): int(k) for t, k in zip(lms[TAG_ID], lms[LANDMARK_KEY], strict=True)},
+        landmark_heights=landmark_heights(landmarks),
         var_types=var_types,
         model=model.name,
         marginals=marginals,
@@ -133,3 +136,12 @@ def build_reduced(
         if k in used:
             var_kind(t).copy(values, loaded.values, k)
     return graph, values
+
+
+def landmark_heights(graph_landmarks: pa.Table) -> dict[int, tuple[float, float]]:
+    """Tag id to (z, var z) from a ``landmarks.parquet`` (planar graphs keep the height aside)."""
+    cols = graph_landmarks.to_pydict()
+    return {
+        int(t): (float(z), float(pc[8]) if pc and len(pc) == 9 else 0.0)
+        for t, z, pc in zip(cols[TAG_ID], cols[Z], cols[POSITION_COV], strict=True)
+    }

@@ -6,7 +6,7 @@ Public API:
     STAGE, OptimizeConfig.
     solve_reduced(loaded, focused_tag_ids, selected_factor_indices, ...) -> ReducedMap (``stages.optimize.core``).
     landmark_errors(estimate, reference, tag_ids), mean_or_nan(values), map_size(loaded, reduced),
-    gaussian_entropy(cov), solve_settings(cfg), landmark_heights(graph_landmarks_table).
+    gaussian_entropy(cov), solve_settings(cfg).
     read_reduced(optimize_input, full_graph, focused_tag_ids) -> ReducedMap: optimize's result read back.
 """
 
@@ -24,7 +24,6 @@ if TYPE_CHECKING:
         ReducedMap,
         gaussian_entropy,
         landmark_errors,
-        landmark_heights,
         map_size,
         mean_or_nan,
         solve_reduced,
@@ -39,7 +38,6 @@ __getattr__ = lazy_exports(
             "ReducedMap",
             "gaussian_entropy",
             "landmark_errors",
-            "landmark_heights",
             "map_size",
             "mean_or_nan",
             "solve_settings",
@@ -84,7 +82,6 @@ __all__ = [
     "blueprint",
     "gaussian_entropy",
     "landmark_errors",
-    "landmark_heights",
     "map_size",
     "mean_or_nan",
     "read_reduced",

@@ -20,7 +20,6 @@ from pipeline.artifacts import StageInput
 from pipeline.contracts import ArtifactSet, Column, FileSpec, TableSpec
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
 from stages.graph.artifacts import ARTIFACTS as GRAPH_ARTIFACTS
-from stages.graph.artifacts import LANDMARKS
 from stages.select_landmarks.artifacts import CLEARANCE_M, LOCALISED, SIGMA_STAR
 
 if TYPE_CHECKING:
@@ -102,7 +101,7 @@ def read_reduced(inp: StageInput, full: LoadedGraph, focused_tag_ids: Iterable[i
     from stages.graph.load import load_graph
     from stages.graph.problem import GraphProblem
     from stages.graph.solve import Solution
-    from stages.optimize.core import ReducedMap, landmark_heights
+    from stages.optimize.core import ReducedMap
     from stages.risk import LandmarkMap
 
     red = load_graph(inp)
@@ -116,7 +115,7 @@ def read_reduced(inp: StageInput, full: LoadedGraph, focused_tag_ids: Iterable[i
         pose_keys=red.pose_keys,
         pose_stamps_ns=red.pose_stamps_ns,
         landmark_keys=red.landmark_keys,
-        landmark_heights=landmark_heights(LANDMARKS.read(inp)),
+        landmark_heights=red.landmark_heights,
     )
     solution = Solution(
         values=red.values,

@@ -25,12 +25,9 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 import numpy.typing as npt
-import pyarrow as pa
 
 from pipeline.errors import StageError
-from stages.columns import TAG_ID, Z
 from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
-from stages.graph.artifacts import POSITION_COV
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.problem import GraphProblem
@@ -242,13 +239,4 @@ def solve_settings(cfg: object) -> dict[str, object]:
     """
     return {
         k: getattr(cfg, k) for k in ("initialise_from", "max_iterations", "relative_error_tol", "unobserved_sigma_m")
-    }
-
-
-def landmark_heights(graph_landmarks: pa.Table) -> dict[int, tuple[float, float]]:
-    """Tag id to (z, var z) from the graph's ``landmarks.parquet`` (planar graphs keep the height aside)."""
-    cols = graph_landmarks.to_pydict()
-    return {
-        int(t): (float(z), float(pc[8]) if pc and len(pc) == 9 else 0.0)
-        for t, z, pc in zip(cols[TAG_ID], cols[Z], cols[POSITION_COV], strict=True)
     }

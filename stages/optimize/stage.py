@@ -12,7 +12,6 @@ import rerun as rr
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids, set_stamp
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
-from stages.graph.artifacts import LANDMARKS
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.outputs import write_artifacts
 from stages.navigation.truth import MapTruth, load_truth
@@ -35,7 +34,6 @@ from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
     landmark_errors,
-    landmark_heights,
     map_size,
     mean_or_nan,
     solve_reduced,
@@ -65,7 +63,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
         loaded,
         focused.tag_ids,
         selection.factor_indices,
-        landmark_heights(LANDMARKS.read(graph_in)),
+        loaded.landmark_heights,
         cfg.initialise_from,
         cfg.max_iterations,
         cfg.relative_error_tol,

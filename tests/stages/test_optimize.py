@@ -16,8 +16,8 @@ from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
 from stages import graph as graph_stage
 from stages import optimize as optimize_stage
-from stages.graph.load import load_graph
-from stages.optimize import gaussian_entropy, landmark_heights, solve_reduced
+from stages.graph.load import landmark_heights, load_graph
+from stages.optimize import gaussian_entropy, solve_reduced
 from stages.risk import LandmarkMap
 from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
