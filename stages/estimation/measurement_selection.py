@@ -26,6 +26,12 @@ Woodbury window over the picks since (a second one when more than 128 columns ar
 capacitance form instead (two solves per step with the factor of the whole compact graph, whose size
 does not depend on the candidates). No dense ``n × n`` matrix is ever formed.
 
+When every candidate touches only focused variables (a pose graph's loop closures with the poses
+focused), ``Σ_{·|F} A_cᵀ = 0`` so ``K_c = 0`` and the gain is ``½ log det(I + A_c Σ A_cᵀ)``: nothing of
+``Σ_F`` is needed, and the focused entropy comes from two sparse log-determinants,
+``log det Σ_F = log det Λ_UU − log det Λ`` (``U`` the other variables). That is the path for focusing
+thousands of pose columns, where a dense ``Σ_F`` would not fit.
+
 Initial information ``Λ₀`` = the base factors (odometry and prior) plus a weak isotropic prior of
 standard deviation ``landmark_prior_sigma`` on every landmark variable, so landmarks that the base
 leaves unobserved have finite, comparable first gains.
@@ -51,6 +57,7 @@ from stages.estimation.sparse_cov import (
     covariance_blocks,
     covariance_blocks_schur,
     logdet_spd,
+    marginal_logdet,
     schur_complement,
 )
 
@@ -93,6 +100,8 @@ class _Problem:
     prior: sp.csc_matrix
     info0: sp.csc_matrix
     landmark_vars: list[int]
+    full_focus: bool = False
+    """Every candidate touches only focused variables: ``K_c = 0``, no ``Σ_F`` tracked (``focused`` is then empty)."""
 
 
 def _compact_problem(
@@ -158,6 +167,15 @@ def _budget_status(budget: int, n: int) -> SelectionStatus | None:
     return None
 
 
+DENSE_FOCUS_MAX = 1024
+"""Up to this many focused columns, entropies come from the dense ``Σ_F``; above, from sparse log-determinants."""
+
+
+def _sparse_focused_entropy(info: sp.csc_matrix, fcols: IntArray) -> float:
+    """``½ log det(2πe Σ_F)`` from sparse log-determinants (no dense ``Σ_F``)."""
+    return entropy_from_logdet(marginal_logdet(info, fcols), len(fcols))
+
+
 def focused_entropy(
     system: LinearSystem,
     factors: Sequence[int],
@@ -166,10 +184,19 @@ def focused_entropy(
 ) -> float:
     """Entropy (nats) of the focused variables given the factors (plus the weak landmark prior)."""
     prob = _compact_problem(system, factors, [], focused, landmark_prior_sigma)
-    solver = SPDSolver(prob.info0)
     fcols = prob.system.columns(prob.focused)
+    if len(fcols) > DENSE_FOCUS_MAX:
+        return _sparse_focused_entropy(prob.info0, fcols)
+    solver = SPDSolver(prob.info0)
     _, SF = _focused_cov(solver, prob.system.dim, fcols)
     return entropy_from_logdet(logdet_spd(SF), len(fcols))
+
+
+def _within_focus(sub: LinearSystem, candidates: Sequence[int], fcols: IntArray) -> bool:
+    """Every candidate's columns are focused columns."""
+    focused = np.zeros(sub.dim, dtype=bool)
+    focused[fcols] = True
+    return all(focused[sub.factor_columns(c)].all() for c in candidates)
 
 
 def _padded_candidates(sub: LinearSystem, cand: Sequence[int]) -> tuple[FloatArray, IntArray]:
@@ -528,6 +555,8 @@ def _initial_gains(prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatA
     pairs = _sym_pairs(m)
     Mu = np.ascontiguousarray(np.stack([M0[:, a, b] for a, b in pairs]))
     Ku = np.ascontiguousarray(np.stack([K0[:, a, b] for a, b in pairs]))
+    if prob.full_focus:
+        Ku[:] = 0.0  # K_c = A_c Σ_{·|F} A_cᵀ = 0: the candidates touch only focused columns
     B = _candidate_operator(Ac, c.pos, len(c.rows))
     return _Gains(Mu, Ku, SF, P, B, pairs, m, np.zeros(N, dtype=bool))
 
@@ -718,6 +747,8 @@ def _greedy(
                 st = _capacitance_step(tracker, c, j, fcols, g.P)
             else:
                 st = _window_step(tracker, c, j, fcols, g.P, Yt)
+            if prob.full_focus:
+                st.Xt = st.Vt  # Σ_{·|F} A_jᵀ = 0: K_c stays 0
             tu = time.perf_counter()
             _apply_pick(g, st)
             t_update += time.perf_counter() - tu
@@ -795,11 +826,17 @@ def select_information(
     if len(fcols) == 0:
         raise ValueError("no focused variables: run landmark selection first")
     solver = SPDSolver(prob.info0)
-    XF, SF = _focused_cov(solver, prob.system.dim, fcols)
-    h0 = entropy_from_logdet(logdet_spd(SF), len(fcols))
+    full = _within_focus(prob.system, prob.candidates, fcols)
+    if full:  # no Σ_F: the gains do not need it, the entropy comes from sparse log-determinants
+        h0 = _sparse_focused_entropy(prob.info0, fcols)
+        prob.full_focus, prob.focused, fcols = True, [], np.zeros(0, dtype=np.int64)
+        XF, SF = np.zeros((prob.system.dim, 0)), np.zeros((0, 0))
+    else:
+        XF, SF = _focused_cov(solver, prob.system.dim, fcols)
+        h0 = entropy_from_logdet(logdet_spd(SF), len(fcols))
     N = len(cand)
     status = _budget_status(budget, N)
-    stats: dict[str, float] = {"setup_s": time.perf_counter() - t0}
+    stats: dict[str, float] = {"setup_s": time.perf_counter() - t0, "full_focus": float(full)}
     if status in ("no_candidates", "budget_zero"):
         return MeasurementSelection([], [], status or "ok", N, budget, h0, h0, stats)
     if budget >= N:

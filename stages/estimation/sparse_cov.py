@@ -271,6 +271,16 @@ def logdet_spd(matrix: FloatArray) -> float:
     return float(2.0 * np.sum(np.log(np.diag(c))))
 
 
+def marginal_logdet(info: SparseMatrix, cols: IntArray) -> float:
+    """``log det Σ_F`` of the marginal covariance of the columns ``cols`` of ``Σ = info⁻¹``, without forming it:
+    ``log det Λ_UU − log det Λ`` (``U`` the other columns; Schur complement)."""
+    A = sp.csc_matrix(info)
+    other = np.setdiff1d(np.arange(A.shape[0]), cols)
+    ld_all = SPDSolver(A, backend="superlu").logdet()
+    ld_other = SPDSolver(sp.csc_matrix(A[other][:, other]), backend="superlu").logdet() if len(other) else 0.0
+    return ld_other - ld_all
+
+
 def covariance_blocks_schur(
     info: SparseMatrix,
     offsets: IntArray,

@@ -162,6 +162,11 @@ def _reduced_factors(
     return keep, kept_tags, dropped
 
 
+def marginals_of(problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, solution: Solution) -> dict[int, FloatArray]:
+    """Every variable's marginal covariance (tangent space) of a solved graph."""
+    return _marginals(problem, graph, solution, [])[0]
+
+
 def _marginals(
     problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, solution: Solution, focused_observed: list[int]
 ) -> tuple[dict[int, FloatArray], FloatArray]:

@@ -10,6 +10,7 @@ import pyarrow as pa
 import rerun as rr
 
 from pipeline.context import StageContext
+from pipeline.errors import StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
 from stages.graph.load import LoadedGraph, load_graph
@@ -57,8 +58,17 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     graph_in = ctx.input("graph")
     loaded = load_graph(graph_in)
-    focused = FOCUSED.read(ctx.input("select_landmarks"))
     selection = SELECTION.read(ctx.input("select_measurements"))
+    if selection.focus == "poses":
+        from stages.optimize.pose_graph import run_pose_focus
+
+        return run_pose_focus(ctx, cfg, loaded, selection)
+    if not ctx.has_input("select_landmarks"):
+        raise StageError(
+            f"stage 'optimize' needs 'select_landmarks', which has not run in {str(ctx.run.path)!r}; run "
+            f"'focusmap select-landmarks {ctx.run.path}' first"
+        )
+    focused = FOCUSED.read(ctx.input("select_landmarks"))
     reduced = solve_reduced(
         loaded,
         focused.tag_ids,

@@ -21,11 +21,18 @@ class SelectMeasurementsConfig(SettingsModel):
         description="information: Mu et al. Alg. 1, exact fast greedy on the focused entropy; leverage: Mousavi & "
         "Motee sampling; uniform: even in time (the paper's DS); random: seeded; all: every candidate.",
     )
-    budget: int = Field(90, ge=0, description="Number of tag measurements to keep (K); 0 keeps none.")
-    focus: Literal["selected", "all"] = Field(
+    budget: int = Field(
+        90,
+        ge=0,
+        description="Number of candidate measurements to keep (K: tag measurements, or loop closures with "
+        "focus=poses); 0 keeps none.",
+    )
+    focus: Literal["selected", "all", "poses"] = Field(
         "selected",
         description="selected: the landmarks of select_landmarks are focused and their measurements are the "
-        "candidates; all: every landmark (the 'full' cases of Mu et al. Table I; select_landmarks not needed).",
+        "candidates; all: every landmark (the 'full' cases of Mu et al. Table I; select_landmarks not needed); "
+        "poses: every pose is focused and the loop closures (pose-to-pose edges between non-consecutive poses of "
+        "an imported graph) are the candidates, so a pose graph is sparsified to K loop closures.",
     )
     landmark_prior_sigma_m: float = Field(
         100.0,

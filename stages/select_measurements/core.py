@@ -76,8 +76,13 @@ class MeasurementChoice(BaseModel):
     stats: dict[str, float] = Field(default_factory=dict, description="the strategy's counters and timings")
 
     def keep_factor_indices(self, loaded: LoadedGraph) -> list[int]:
-        """Every factor of the reduced graph: all non-tag factors plus the kept measurements (sorted)."""
-        return sorted({int(i) for i in loaded.fixed_factor_indices} | {int(i) for i in self.factor_indices})
+        """Every factor of the reduced graph (sorted): all non-tag factors plus the kept measurements; with
+        ``focus: poses``, every factor but the loop closures not kept."""
+        picks = {int(i) for i in self.factor_indices}
+        if self.focus == "poses":
+            dropped = set(self.candidates) - picks
+            return [i for i in range(len(loaded.rows)) if i not in dropped]
+        return sorted({int(i) for i in loaded.fixed_factor_indices} | picks)
 
     def entropy_per_step(self) -> FloatArray | None:
         """Focused entropy after each pick (information strategy only: before minus the cumulative gains)."""
@@ -89,6 +94,25 @@ class MeasurementChoice(BaseModel):
 def focused_variables(loaded: LoadedGraph, system: LinearSystem, tag_ids: Iterable[int]) -> list[int]:
     """Variable indices (in ``system``) of the landmarks with these tag ids."""
     return [system.index_of_key(loaded.landmark_keys[int(t)]) for t in tag_ids]
+
+
+def loop_closures(loaded: LoadedGraph) -> list[int]:
+    """Pose-to-pose factors between non-consecutive poses (``kind == "loop"``), in time order (then index)."""
+    loops = [i for i, r in enumerate(loaded.rows) if r.kind == "loop"]
+    return sorted(loops, key=lambda i: (loaded.rows[i].stamp_ns or 0, i))
+
+
+def _pose_focus(loaded: LoadedGraph, system: LinearSystem) -> tuple[list[int], list[int], list[int]]:
+    """``focus: poses``: every pose variable focused, the loop closures the candidates, every other factor the base."""
+    cands = loop_closures(loaded)
+    if not cands:
+        raise StageError(
+            "select_measurements.focus=poses: the graph has no loop closures (pose-to-pose edges between "
+            "non-consecutive poses) to choose from; every factor is kept as it is"
+        )
+    focused = [system.index_of_key(k) for k in loaded.pose_keys]
+    cset = set(cands)
+    return focused, cands, [i for i in range(len(loaded.rows)) if i not in cset]
 
 
 def candidate_factors(loaded: LoadedGraph, tag_ids: Iterable[int]) -> list[int]:
@@ -105,9 +129,10 @@ def _message(status: str, budget: int, n: int, kept: int, strategy: str, n_focus
         return f"budget {budget} exceeds the {n} candidate measurements: all {n} kept"
     if status == "no_candidates":
         return "the focused landmarks have no tag measurements"
+    what = f"{n_focused} focused landmarks" if n_focused >= 0 else "the poses (loop closures)"
     if strategy == "all":
-        return f"all {n} candidate measurements of {n_focused} focused landmarks kept"
-    return f"{kept} of {n} candidate measurements of {n_focused} focused landmarks kept by {strategy}"
+        return f"all {n} candidate measurements of {what} kept"
+    return f"{kept} of {n} candidate measurements of {what} kept by {strategy}"
 
 
 def choose(
@@ -133,6 +158,13 @@ def choose(
     t0 = time.perf_counter()
     if cfg.focus == "all":
         tags = sorted(loaded.landmark_keys)
+        if not tags:
+            raise StageError(
+                "select_measurements.focus=all: the graph has no landmarks (a pose graph); to keep the K loop "
+                "closures that best localise the poses, use --set select_measurements.focus=poses"
+            )
+    elif cfg.focus == "poses":
+        tags = []
     else:
         if not focused_tag_ids:
             raise StageError(
@@ -147,9 +179,12 @@ def choose(
                 "'focusmap select-landmarks RUN'"
             )
     system = system if system is not None else linear_system(loaded)
-    focused = focused_variables(loaded, system, tags)
-    cands = candidate_factors(loaded, tags)
-    base = [int(i) for i in loaded.fixed_factor_indices]
+    if cfg.focus == "poses":
+        focused, cands, base = _pose_focus(loaded, system)
+    else:
+        focused = focused_variables(loaded, system, tags)
+        cands = candidate_factors(loaded, tags)
+        base = [int(i) for i in loaded.fixed_factor_indices]
     sigma = cfg.landmark_prior_sigma_m
     sel: MeasurementSelection
     if cfg.strategy == "information":
@@ -179,7 +214,9 @@ def choose(
         factor_indices=[int(p) for p in sel.picks],
         gains=[float(g) for g in sel.gains],
         status=sel.status,
-        message=_message(sel.status, cfg.budget, len(cands), len(sel.picks), cfg.strategy, len(tags)),
+        message=_message(
+            sel.status, cfg.budget, len(cands), len(sel.picks), cfg.strategy, -1 if cfg.focus == "poses" else len(tags)
+        ),
         n_candidates=len(cands),
         candidates=cands,
         entropy_before=float(h0),

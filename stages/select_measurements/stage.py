@@ -32,9 +32,14 @@ PICK = [255, 40, 200]
 KEPT = [255, 170, 0]
 
 
-def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig) -> list[int] | None:
-    if cfg.focus == "all":
+def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig, loaded: LoadedGraph) -> list[int] | None:
+    if cfg.focus != "selected":
         return None
+    if not loaded.landmark_keys:
+        raise StageError(
+            "the graph has no landmarks (a pose graph): there are no focused landmarks to localise; to keep the K "
+            "loop closures that best localise the poses, use --set select_measurements.focus=poses"
+        )
     if not ctx.has_input("select_landmarks"):
         raise StageError(
             f"no focused landmarks: select_landmarks has not run in {str(ctx.run.path)!r}; run "
@@ -47,8 +52,8 @@ def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
     """Select the measurements; write ``selected.parquet``; log ``select_measurements.rrd``."""
     from stages.graph.load import load_graph
 
-    tags = _focused_tags(ctx, cfg)
     loaded = load_graph(ctx.input("graph"))
+    tags = _focused_tags(ctx, cfg, loaded)
     system = linear_system(loaded)
     choice = choose(loaded, tags, cfg, system)
     SELECTED.write(ctx.output, selected_table(choice, loaded))
@@ -136,6 +141,9 @@ def _log_replay(
     log_entropy: bool,
 ) -> None:
     """The focused ellipsoids and the kept edges at evenly spaced steps (one sparse factorisation each)."""
+    if choice.focus == "poses":  # the focused set is every pose: the kept loop closures only
+        _log_kept_steps(rec, loaded, choice, cfg)
+        return
     f_keys = [loaded.landmark_keys[t] for t in choice.focused_tag_ids]
     f_xyz = np.array([_xyz(loaded, k) for k in f_keys]).reshape(-1, 3)
     f_labels = [str(t) for t in choice.focused_tag_ids]
@@ -160,6 +168,20 @@ def _log_replay(
             rec.log(f"{ENTITY}/kept", kept)
         if log_entropy:
             rec.log(f"{ENTITY}/entropy", rr.Scalars(entropy))
+
+
+def _log_kept_steps(
+    rec: rr.RecordingStream, loaded: LoadedGraph, choice: MeasurementChoice, cfg: SelectMeasurementsConfig
+) -> None:
+    """The kept edges at evenly spaced steps (no covariance replay)."""
+    K = len(choice.factor_indices)
+    for k in sorted({K, *np.round(np.linspace(0, K, min(K, cfg.max_replay_steps) + 1)).astype(int).tolist()}):
+        if k:
+            set_step(rec, k)
+            rec.log(
+                f"{ENTITY}/kept",
+                rr.LineStrips3D([_edge(loaded, i) for i in choice.factor_indices[:k]], colors=[KEPT], radii=0.006),
+            )
 
 
 def _log_focused(

@@ -97,9 +97,33 @@ def _case(name: str) -> Case:
             cand = _touching(pp, system, lms[:3])
             return Case(system, cand, lms[:3], default_base(system, cand), 14)
         return Case(system, pp.measurement_factors, lms, default_base(system, pp.measurement_factors), 24)
+    if name == "poses_with_landmarks":
+        pp, system, lms = _planar_with_loops()
+        poses = system.variables_of_kind("pose")
+        loops = [i for i, f in enumerate(system.factors) if i >= pp.graph.size()]
+        return Case(system, loops, poses, default_base(system, loops) + pp.measurement_factors, 7)
+    if name.startswith("w100-poses-"):
+        n_keep = int(name.split("-")[2])
+        system, odo, loops = _pose_graph("w100.graph", n_keep)
+        return Case(system, loops, list(range(len(system.variables))), odo, min(10, len(loops) - 1))
     n_keep = int(name.split("-")[1])
     system, odo, loops = _pose_graph("w100.graph", n_keep)
     return Case(system, loops, [n_keep - 1, n_keep // 2], odo, min(6, len(loops) - 1))
+
+
+@functools.cache
+def _planar_with_loops() -> tuple[PlanarProblem, LinearSystem, list[int]]:
+    """A planar landmark graph plus 30 loop closures between random pose pairs (appended after its factors)."""
+    pp = planar_problem(60, 8, 60, seed=5, extent=30.0, sensor_range=12.0)
+    rng = np.random.default_rng(5)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.1, 0.02]))
+    graph = gtsam.NonlinearFactorGraph(pp.graph)
+    for _ in range(30):
+        i, j = sorted(rng.choice(60, size=2, replace=False))
+        a, b = gtsam.Pose2(*pp.poses[i]), gtsam.Pose2(*pp.poses[j])
+        graph.add(gtsam.BetweenFactorPose2(gtsam.symbol("x", i), gtsam.symbol("x", j), a.between(b), noise))
+    system = LinearSystem.from_gtsam(graph, pp.values)
+    return pp, system, system.variables_of_kind("landmark")
 
 
 @functools.cache
@@ -138,6 +162,43 @@ def test_fast_equals_reference_all_landmarks_focused() -> None:
 def test_fast_equals_reference_on_slam_graphs(n_keep: int) -> None:
     assert len(_case(f"w100-{n_keep}").cand) > 5
     _check_against_reference(f"w100-{n_keep}", 2)
+
+
+@pytest.mark.parametrize(
+    ("case", "tracker"),
+    [
+        ("w100-poses-100", "capacitance"),
+        ("w100-poses-60", "window"),
+        ("poses_with_landmarks", "capacitance"),
+        ("poses_with_landmarks", "window"),
+    ],
+)
+def test_pose_focus_equals_reference(case: str, tracker: str) -> None:
+    """Poses focused, loop closures the candidates (every candidate inside the focus): the path that tracks no
+    ``Σ_F`` picks what Alg. 1 as written picks, with the same gains, and its sparse entropies are the dense ones
+    (with unfocused landmarks in the graph too)."""
+    fast = _check_against_reference(case, 4, TrackerOptions(tracker=tracker))  # type: ignore[arg-type]
+    assert fast.stats["full_focus"] == 1.0
+    c = _case(case)
+    dense_before = focused_entropy(c.system, c.base, c.focused)
+    np.testing.assert_allclose(fast.entropy_before, dense_before, rtol=1e-9)
+    dense_after = focused_entropy(c.system, c.base + fast.picks, c.focused)
+    np.testing.assert_allclose(fast.entropy_after, dense_after, rtol=1e-9)
+
+
+def test_sparse_focused_entropy_equals_dense() -> None:
+    """Above DENSE_FOCUS_MAX focused columns, focused_entropy uses sparse log-determinants: same value."""
+    import stages.estimation.measurement_selection as ms
+
+    c = _case("poses_with_landmarks")
+    dense = focused_entropy(c.system, c.base, c.focused)
+    old = ms.DENSE_FOCUS_MAX
+    ms.DENSE_FOCUS_MAX = 0
+    try:
+        sparse = focused_entropy(c.system, c.base, c.focused)
+    finally:
+        ms.DENSE_FOCUS_MAX = old
+    np.testing.assert_allclose(sparse, dense, rtol=1e-10)
 
 
 def test_budget_edge_cases() -> None:
