@@ -492,7 +492,7 @@ def view(
     ] = 0.5,
 ) -> None:
     """Open every stage recording of a run in the Rerun viewer, as one recording."""
-    from pipeline.viewer import rerun_executable
+    from pipeline.viewer import display_problem, rerun_executable
     from pipeline.viewer import screenshot as take_screenshot
 
     run = _open_run(run_dir)
@@ -508,6 +508,12 @@ def view(
     if print_only:
         typer.echo(" ".join(cmd))
         return
+    no_screen = display_problem()
+    if no_screen is not None:
+        raise InputError(
+            f"cannot open the viewer window: {no_screen}; open the run folder on a machine with a screen "
+            "(focusmap view RUN), or save a picture here with --screenshot PNG"
+        )
     raise typer.Exit(subprocess.call(cmd))
 
 

@@ -42,6 +42,16 @@ def rerun_executable() -> str:
     return found
 
 
+def display_problem(env: dict[str, str] | None = None) -> str | None:
+    """Why a viewer window cannot open on this machine (Linux without X11 or Wayland), else None."""
+    env = dict(os.environ) if env is None else env
+    if sys.platform.startswith("linux") and not any(
+        env.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")
+    ):
+        return "there is no display here (neither DISPLAY nor WAYLAND_DISPLAY is set)"
+    return None
+
+
 def screenshot(files: Sequence[Path], out: Path, at: float = 0.5, timeout_s: float = 120.0) -> Path:
     """Open ``files`` in a headless viewer, put the cursor at fraction ``at`` of the ``time`` timeline, save a PNG.
 

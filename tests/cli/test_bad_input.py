@@ -155,6 +155,19 @@ def test_view_opens_every_stage_recording_with_the_run_layout(
     assert_one_error_line(proc, "does not exist")
 
 
+def test_view_without_a_display_is_one_error_line(minimal_run: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
+    """No X11 or Wayland display: one line saying so and what to do instead, before any viewer starts."""
+    import os
+
+    run, ingested = minimal_run
+    assert ingested.returncode == 0, ingested.stderr
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")}
+    proc = subprocess.run([*FOCUSMAP, "view", str(run)], capture_output=True, text=True, cwd=ROOT, timeout=60, env=env)
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the display check is for Linux")
+    assert_one_error_line(proc, "no display", "--screenshot")
+
+
 def test_view_screenshot_from_a_headless_viewer(
     headless_viewer: None, minimal_run: tuple[Path, subprocess.CompletedProcess[str]], tmp_path: Path
 ) -> None:
