@@ -233,7 +233,9 @@ def choose(inputs: LandmarkInputs, cfg: SelectLandmarksConfig, with_risk: bool =
         )
     params = inputs.params
     geo = inputs.geometry
-    if strategy == "collision":
+    if strategy == "all" or (L and cfg.budget >= L):  # every landmark: no greedy to run (in tag order)
+        sel = LandmarkSelection(list(range(L)), [float("nan")] * L, "ok" if L else "no_landmarks")
+    elif strategy == "collision":
         sel = collision_greedy(geo, lm, cfg.budget, params)
     elif strategy in ("mutual-information", "leverage"):
         if cfg.budget <= 0:
@@ -248,10 +250,8 @@ def choose(inputs: LandmarkInputs, cfg: SelectLandmarksConfig, with_risk: bool =
                 )
     elif strategy == "uniform":
         sel = select_landmark_uniform(lm.positions, cfg.budget)
-    elif strategy == "random":
-        sel = select_landmark_random(L, cfg.budget, cfg.seed)
     else:
-        sel = LandmarkSelection(list(range(L)), [float("nan")] * L, "ok" if L else "no_landmarks")
+        sel = select_landmark_random(L, cfg.budget, cfg.seed)
     if strategy != "all" and sel.status == "ok" and cfg.budget > L:
         sel.status = "budget_exceeds_landmarks"
     tag_ids = [int(lm.tag_ids[i]) for i in sel.picks]

@@ -86,8 +86,10 @@ def log_recording(
         draw.landmarks("landmarks/unselected", ~selected, UNSELECTED, static=True)
     draw.risk_timeline(choice)
     ctx.rec.reset_time()
-    # the greedy picks, replayed on selection_step (step 0: nothing picked)
-    for k in range(min(len(choice.tag_ids), cfg.max_replay_steps) + 1):
+    # the greedy picks, replayed on selection_step (step 0: nothing picked); every landmark at once: before and after
+    n = len(choice.tag_ids)
+    at_once = choice.strategy == "all" or n == choice.n_landmarks
+    for k in [0, n] if at_once else range(min(n, cfg.max_replay_steps) + 1):
         set_step(ctx.rec, k)
         draw.step(choice, k)
     ctx.rec.reset_time()

@@ -152,6 +152,26 @@ def test_strategies_by_api(inputs: LandmarkInputs) -> None:
     assert all(g1 >= g2 - 1e-9 for g1, g2 in itertools.pairwise(gains))  # submodular: gains fall
 
 
+@pytest.mark.parametrize("strategy", ["mutual-information", "leverage", "collision"])
+def test_a_budget_at_or_above_the_landmarks_takes_them_all_without_a_greedy(
+    inputs: LandmarkInputs, strategy: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Budget ≥ landmarks: every landmark, at once (the greedy would end with the same set after L steps, each of
+    which costs a dense update of the trajectory information: minutes on a 3D graph)."""
+    import stages.select_landmarks.core as core
+
+    def no_greedy(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the greedy ran")
+
+    for name in ("select_mutual_information", "select_landmark_leverage", "collision_greedy"):
+        monkeypatch.setattr(core, name, no_greedy)
+    n = len(inputs.landmarks.tag_ids)
+    for budget, status in ((n, "ok"), (n + 5, "budget_exceeds_landmarks")):
+        c = choose(inputs, SelectLandmarksConfig(strategy=strategy, budget=budget), with_risk=False)
+        assert sorted(c.tag_ids) == sorted(int(t) for t in inputs.landmarks.tag_ids)
+        assert c.status == status, c.message
+
+
 def test_visibility_window_and_no_laser(inputs: LandmarkInputs) -> None:
     loaded = inputs.loaded
     narrow = path_geometry(loaded, None, None, None, RiskParams(visibility_window_s=0.0))
