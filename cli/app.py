@@ -371,7 +371,8 @@ def _stage_command(stage: AnyStage) -> None:
             overrides = _overrides([stage], options)
             with _locked_run(run_dir) as run:
                 settings = _settings(config, set_, overrides, run.path, reset, [stage.name])
-                _run_stages(run, [stage.name], settings, force)
+                results = _run_stages(run, [stage.name], settings, force)
+            _print_headline(results)  # evaluate: its report's path and headline row, as run prints them
 
         command = _with_options(handled(on_run_folder), [stage], after="run_dir")
     help_text = stage.help or f"Run the {stage.command} stage on a run folder."
@@ -490,19 +491,21 @@ def view(
     at: Annotated[
         float, typer.Option("--at", min=0.0, max=1.0, help="With --screenshot: time cursor, as a fraction of the run.")
     ] = 0.5,
+    stage: Annotated[
+        str | None,
+        typer.Option("--stage", help="The stage whose tab to show (default: the last stage that has run)."),
+    ] = None,
 ) -> None:
     """Open every stage recording of a run in the Rerun viewer, as one recording."""
-    from pipeline.viewer import display_problem, rerun_executable
+    from pipeline.viewer import display_problem, rerun_executable, viewer_files
     from pipeline.viewer import screenshot as take_screenshot
 
     run = _open_run(run_dir)
-    files = sorted(str(p) for p in run.path.glob("*.rrd"))
-    if not files:
-        raise InputError(f"no .rrd recordings in {str(run.path)!r}; run a stage first")
-    if (run.path / "focusmap.rbl").is_file():
-        files.append(str(run.path / "focusmap.rbl"))
+    shown = None if stage is None else _registry()[stage].name
+    paths, tab = viewer_files(run.path, _registry().names, shown)
+    files = [str(p) for p in paths]
     if screenshot is not None:
-        typer.echo(f"picture: {take_screenshot([Path(f) for f in files], screenshot, at=at)}")
+        typer.echo(f"picture: {take_screenshot(paths, screenshot, at=at, tab=tab)}")
         return
     cmd = [rerun_executable(), *files]
     if print_only:

@@ -14,11 +14,19 @@ REGISTRY_SPEC = "stages:REGISTRY"
 PREFLIGHT_SPEC = "stages.ingest.bags:detect_format"
 
 RecordingsArg = Annotated[
-    list[str],
+    list[str] | None,
     typer.Argument(
         help="Recordings (ROS 1 .bag, ROS 2 bag folder, .db3, .mcap) or glob patterns such as 'bags/**/*.bag' "
-        "(quote a pattern to let focusmap expand it).",
+        "(quote a pattern to let focusmap expand it); optional with --file.",
         show_default=False,
+    ),
+]
+BatchFileOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--file",
+        help="Batch file (.yaml or .csv) listing recordings, each with its run folder name and its own settings "
+        "(recording, name, config, camera, start, end, stride, salvage, SECTION.KEY): see docs/batch.md.",
     ),
 ]
 BatchOutOpt = Annotated[
@@ -29,6 +37,9 @@ BatchOutOpt = Annotated[
         help="Folder that holds one run folder per recording and batch_summary.parquet (created if absent). "
         "With --scheduler, the Dask workers write here: it must be storage every worker shares, at the same path.",
     ),
+]
+FromOpt = Annotated[
+    str | None, typer.Option("--from", help="First stage to run (earlier ones must exist in every run folder).")
 ]
 UntilOpt = Annotated[str | None, typer.Option("--until", help="Last stage to run (default: every stage).")]
 WorkersOpt = Annotated[
@@ -48,7 +59,11 @@ SchedulerOpt = Annotated[
 BATCH_HELP = (
     "Run the pipeline over many recordings: one run folder each, a summary table, resumable.\n\n"
     "Each recording gets the run folder 'focusmap run' would give it (OUT/<file name without extension>, or the "
-    "folder's name for a ROS 2 bag); two recordings with the same name are an error before anything runs. "
+    "folder's name for a ROS 2 bag); recordings that share a name get the shortest end of their paths that tells "
+    "them apart (a/run_bag and b/run_bag: OUT/a_run_bag and OUT/b_run_bag), the same every time the batch runs. "
+    "A batch file (--file) names each recording's run folder and gives it its own settings (tag size, camera "
+    "file, topics) on top of --config, --set and the options below; it is checked whole before anything runs. "
+    "The settings a run folder keeps from earlier commands are not used: a batch's settings are its own. "
     "Stages already up to date are skipped, so running the same batch again finishes what an interrupted one left "
     "and skips what is complete. A broken recording is listed as failed with its reason and the others go on; "
     "the exit code is 1 if any failed. The table is also written to OUT/batch_summary.parquet.\n\n"
@@ -59,18 +74,22 @@ BATCH_HELP = (
 
 
 def batch(
-    recordings: RecordingsArg,
+    recordings: RecordingsArg = None,
+    batch_file: BatchFileOpt = None,
     out: BatchOutOpt = Path("runs"),
+    start_stage: FromOpt = None,
     until: UntilOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     force: ForceOpt = False,
+    **options: object,
 ) -> None:
     """Run the pipeline over many recordings: one run folder each, a summary table, resumable."""
     from rich.console import Console
 
+    from cli.app import _overrides, _source_stages
     from pipeline.batch import (
         collect_recordings,
         plan_tasks,
@@ -80,20 +99,31 @@ def batch(
         write_errors,
         write_summary,
     )
+    from pipeline.batch_file import BatchEntry, read_batch_file
     from pipeline.config import load_settings
+    from pipeline.errors import InputError
     from pipeline.progress import terminal
     from stages import REGISTRY
 
-    settings = load_settings(REGISTRY.models(), config, set_ or [])
-    stages = [s.name for s in REGISTRY.between(None, until)]
+    if not recordings and batch_file is None:
+        raise InputError("no recordings given; pass bag files, ROS 2 bag folders, glob patterns or --file FILE")
+    overrides = _overrides(_source_stages(REGISTRY), options)
+    settings = load_settings(REGISTRY.models(), config, [*(set_ or []), *overrides])
+    stages = [s.name for s in REGISTRY.between(start_stage, until)]
+    entries: list[BatchEntry] = [BatchEntry(r) for r in collect_recordings(recordings)] if recordings else []
+    problems: list[str] = []
+    if batch_file is not None:
+        listed, problems = read_batch_file(batch_file, REGISTRY, settings)
+        entries += listed
     tasks = plan_tasks(
-        collect_recordings(recordings),
+        entries,
         out,
         stages,
         settings,
         force=force,
         registry=REGISTRY_SPEC,
         preflight=PREFLIGHT_SPEC,
+        problems=problems,
     )
     where = (
         f"on the Dask cluster at {scheduler}" if scheduler else f"with {min(workers or _cores(), len(tasks))} workers"
@@ -122,6 +152,7 @@ def _cores() -> int:
 
 def register(app: typer.Typer) -> None:
     """Add the ``batch`` command to the focusmap application."""
-    from cli.app import handled  # cli.app calls register() at its end, after defining handled
+    # cli.app calls register() at its end, after defining these; batch takes run's input options (--camera, ...)
+    from cli.app import _registry, _source_stages, _with_options, handled
 
-    app.command(name="batch", help=BATCH_HELP)(handled(batch))
+    app.command(name="batch", help=BATCH_HELP)(_with_options(handled(batch), _source_stages(_registry())))

@@ -1,7 +1,8 @@
 """Batch execution: the pipeline over many recordings, in local worker processes or on a Dask cluster.
 
 One task per recording. A task runs the requested stages of the registry on the recording's run
-folder (``OUT/<run name>``, named as ``focusmap run`` names it) with :func:`pipeline.runner.run_stage`,
+folder (``OUT/<run name>``, named as ``focusmap run`` names it, or by a longer path suffix when
+two recordings share that name: :func:`run_names`) with :func:`pipeline.runner.run_stage`,
 so up-to-date stages are skipped and every stage appears whole or not at all. A task never raises:
 whatever goes wrong becomes a ``failed`` :class:`Outcome` with a one-line reason, and the other
 recordings go on.
@@ -44,6 +45,7 @@ from typing import TYPE_CHECKING, Any, Final, Literal
 
 import pyarrow as pa
 
+from pipeline.batch_file import BatchEntry, BatchFileError
 from pipeline.config import Settings
 from pipeline.errors import InputError, PipelineError
 from pipeline.json_types import JSONValue
@@ -71,7 +73,7 @@ class BatchTask:
         recording: the recording (a bag file or a ROS 2 bag folder).
         run_dir: its run folder, ``OUT/<run name>``.
         stages: names of the stages to run, in order.
-        settings: the resolved settings (the same for every task).
+        settings: the recording's resolved settings (the batch's, or its own from a batch file).
         force: re-run stages even if they are up to date.
         registry: ``"module:attribute"`` of the :class:`~pipeline.registry.Registry`.
         preflight: optional ``"module:function"`` called with the recording's path before the run
@@ -171,8 +173,42 @@ def run_name(recording: Path) -> str:
     return base.name if base.is_dir() else base.stem
 
 
+def _name_parts(recording: Path) -> tuple[str, ...]:
+    """The resolved path's folders (without the root) and the recording's run name, outermost first."""
+    base = recording.resolve()
+    return (*(p for p in base.parent.parts if p != base.anchor), run_name(recording))
+
+
+def run_names(recordings: Sequence[Path]) -> list[str | None]:
+    """Run folder names for a batch: ``focusmap run``'s name, made unique by the shortest distinguishing path suffix.
+
+    A recording whose name no other one shares keeps it (``OUT/<stem>``). Recordings that share one get the
+    shortest suffix of their resolved path that none of the others ends with, joined by ``_``: ``a/run_bag``
+    and ``b/run_bag`` become ``a_run_bag`` and ``b_run_bag``; ``x/a/day.bag`` beside ``y/a/day.bag`` and
+    ``z/b/day.bag`` gives ``x_a_day``, ``y_a_day`` and ``b_day``. The names depend only on the recordings'
+    paths, so the same batch run again gets the same folders. None where nothing distinguishes a recording
+    (the same one listed twice).
+    """
+    parts = [_name_parts(r) for r in recordings]
+    groups: dict[str, list[int]] = {}
+    for i, p in enumerate(parts):
+        groups.setdefault(p[-1], []).append(i)
+    names: list[str | None] = [p[-1] for p in parts]
+    for members in groups.values():
+        if len(members) < 2:
+            continue
+        for i in members:
+            names[i] = None
+            for k in range(2, len(parts[i]) + 1):
+                suffix = parts[i][-k:]
+                if all(parts[j][-k:] != suffix for j in members if j != i):
+                    names[i] = "_".join(suffix)
+                    break
+    return names
+
+
 def plan_tasks(
-    recordings: Sequence[Path],
+    recordings: Sequence[Path | BatchEntry],
     out: Path,
     stages: Sequence[str],
     settings: Settings,
@@ -180,36 +216,60 @@ def plan_tasks(
     force: bool = False,
     registry: str = "stages:REGISTRY",
     preflight: str | None = None,
+    problems: Sequence[str] = (),
 ) -> list[BatchTask]:
-    """One task per recording, in order; run folders ``OUT/<run name>``.
+    """One task per recording, in order, in run folder ``OUT/<name>`` (:func:`run_names`, or the entry's name).
+
+    ``settings`` are those of every recording given as a path or as an entry without settings of its own.
+    ``problems`` are those found earlier (a batch file's, :func:`pipeline.batch_file.read_batch_file`): they
+    are reported with those of the names.
 
     Raises:
-        InputError: when two recordings would share a run folder (``a/x.bag`` and ``b/x.bag``), before
-            anything runs. Rename one of them or give them separate batches with different ``--out``.
+        BatchFileError: ``problems`` and those of the names, one per line, before anything runs: a recording
+            listed twice without names, two recordings that would share a run folder (a given name that
+            another recording's name takes).
     """
     out = out.expanduser().resolve()
-    by_name: dict[str, list[Path]] = {}
-    for rec in recordings:
-        by_name.setdefault(run_name(rec), []).append(rec)
-    clashes = {name: recs for name, recs in by_name.items() if len(recs) > 1}
-    if clashes:
-        name, recs = next(iter(clashes.items()))
-        more = f" (and {len(clashes) - 1} more names)" if len(clashes) > 1 else ""
-        raise InputError(
-            f"recordings {', '.join(repr(str(r)) for r in recs)} would all write run folder {str(out / name)!r}"
-            f"{more}; rename them or run them in separate batches with different --out"
-        )
+    entries = [r if isinstance(r, BatchEntry) else BatchEntry(Path(r)) for r in recordings]
+    derived = run_names([e.recording for e in entries if e.name is None])
+    names: list[str | None] = []
+    for e in entries:
+        names.append(e.name if e.name is not None else derived.pop(0))
+    problems = list(problems)
+    unnamed: set[Path] = set()
+    for e, name in zip(entries, names, strict=True):
+        key = e.recording.resolve()
+        if name is None and key not in unnamed:
+            unnamed.add(key)
+            problems.append(
+                f"recording {str(e.recording)!r}: no path suffix tells it from another recording of the batch (or it "
+                "is listed twice); give each its own name in a batch file"
+            )
+    by_name: dict[str, list[BatchEntry]] = {}
+    for e, name in zip(entries, names, strict=True):
+        if name is not None:
+            by_name.setdefault(name, []).append(e)
+    for name, clash in by_name.items():
+        if len(clash) > 1:
+            shown = ", ".join(f"{c.where} ({c.recording})" if c.where else repr(str(c.recording)) for c in clash)
+            problems.append(
+                f"duplicate name {name!r}: {shown} would all write run folder {str(out / name)!r}; "
+                "give them different names in a batch file"
+            )
+    if problems:
+        raise BatchFileError(problems)
     return [
         BatchTask(
-            recording=str(rec.resolve()),
-            run_dir=str(out / run_name(rec)),
+            recording=str(e.recording.resolve()),
+            run_dir=str(out / name),
             stages=tuple(stages),
-            settings=settings,
+            settings=e.settings if e.settings is not None else settings,
             force=force,
             registry=registry,
             preflight=preflight,
         )
-        for rec in recordings
+        for e, name in zip(entries, names, strict=True)
+        if name is not None
     ]
 
 

@@ -182,6 +182,43 @@ def test_view_screenshot_from_a_headless_viewer(
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
 
 
+def test_view_opens_the_recording_of_the_stage_to_show_first(tmp_path: Path) -> None:
+    """The viewer takes the layout of the first recording it opens (each has its own stage's tab active)."""
+    from pipeline.errors import InputError
+    from pipeline.viewer import viewer_files
+
+    stages = ["ingest", "detect", "graph"]
+    for name in ("ingest.rrd", "detect.rrd", "focusmap.rbl"):
+        (tmp_path / name).write_bytes(b"x")
+    files, tab = viewer_files(tmp_path, stages)  # default: the last stage that ran
+    assert (tab, [f.name for f in files]) == ("detect", ["detect.rrd", "ingest.rrd", "focusmap.rbl"])
+    files, tab = viewer_files(tmp_path, stages, "ingest")
+    assert (tab, [f.name for f in files]) == ("ingest", ["ingest.rrd", "detect.rrd", "focusmap.rbl"])
+    with pytest.raises(InputError, match=r"stage 'graph' has no recording .* one of: ingest, detect"):
+        viewer_files(tmp_path, stages, "graph")
+
+
+def test_view_screenshot_shows_the_tab_asked_for(headless_viewer: None, tmp_path: Path) -> None:
+    """``--stage`` picks the tab of the picture; skipped where the machine has no Vulkan driver."""
+    from pipeline.errors import PipelineError
+    from pipeline.viewer import screenshot
+    from sample_data.simulate import SimConfig, simulate, write_bag
+
+    rec = simulate(SimConfig(seed=1, path="corridor", duration_s=2.0, image_width=320, image_height=240))
+    bag = write_bag(rec, tmp_path / "short.bag", "ros1")
+    made = focusmap("run", bag, "--out", tmp_path / "runs", "--until", "detect", "--set", "detect.workers=1")
+    assert made.returncode == 0, made.stderr
+    copy = tmp_path / "runs" / "short"
+    files = sorted(copy.glob("*.rrd"))  # detect.rrd first: its layout has the detect tab active
+    out = tmp_path / "ingest.png"
+    screenshot(files, out, timeout_s=60, tab="ingest")  # raises unless the viewer says the ingest tab shows
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(PipelineError, match="no tab 'nope'"):
+        screenshot(files, tmp_path / "nope.png", timeout_s=60, tab="nope")
+    proc = focusmap("view", copy, "--screenshot", tmp_path / "cli.png", "--stage", "ingest")
+    assert proc.returncode == 0 and proc.stdout.strip() == f"picture: {tmp_path / 'cli.png'}", proc.stderr
+
+
 def test_view_screenshot_without_graphics_is_one_error_line(
     viewer_problem: str | None, minimal_run: tuple[Path, subprocess.CompletedProcess[str]], tmp_path: Path
 ) -> None:

@@ -141,3 +141,26 @@ def test_a_run_ends_with_the_report_lines_of_its_stages(capsys: pytest.CaptureFi
     ]
     cli_app._print_headline([StageResult("graph", "done", 1.0, {})])  # evaluate not run: nothing, not an old one
     assert capsys.readouterr().out == ""
+
+
+def test_a_stage_command_ends_with_the_report_lines_of_its_stage(
+    recorded: dict[str, Any], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """``focusmap evaluate RUN`` prints its report's path and headline row, as ``focusmap run`` does."""
+    head = {"focused_entropy": -1.0, "focused_error_cm": 2.0, "max_p_collision": 0.01, "collision_rate": 0.0}
+    summary = {"report": "runs/x/evaluate/report.md", "headline": head}
+    done = [StageResult("evaluate", "done", 1.0, summary)]
+    monkeypatch.setattr(cli_app, "_run_stages", lambda run, names, settings, force: done)
+    result = invoke("evaluate", str(tmp_path))
+    assert result.exit_code == 0, result.output
+    assert "report: runs/x/evaluate/report.md" in result.stdout.splitlines()
+
+
+def test_batch_takes_every_option_of_run_that_is_not_about_one_run_folder() -> None:
+    import typer.main
+
+    commands = typer.main.get_command(cli_app.app).commands  # type: ignore[attr-defined]
+    flags = {name: {o for p in commands[name].params for o in p.opts if o.startswith("-")} for name in ("run", "batch")}
+    one_folder = {"--name", "--reset-settings"}  # a batch file names each folder; a batch's settings are its own
+    assert flags["run"] - flags["batch"] == one_folder
+    assert {"--camera", "--start", "--end", "--stride", "--salvage", "--from", "--file"} <= flags["batch"]

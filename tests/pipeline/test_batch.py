@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
@@ -32,8 +33,10 @@ from pipeline.batch import (
     collect_recordings,
     plan_tasks,
     run_name,
+    run_names,
     summary_table,
 )
+from pipeline.batch_file import BatchEntry, BatchFileError, load_batch_file
 from pipeline.config import load_settings
 from pipeline.errors import InputError
 from pipeline.registry import Headline, Registry
@@ -158,15 +161,118 @@ def test_collect_recordings_globs_dedupes_and_names_the_missing(tmp_path: Path) 
         collect_recordings([str(tmp_path / "*.db3")])
 
 
-def test_two_recordings_with_one_name_are_an_error_before_anything_runs(tmp_path: Path) -> None:
+def test_recordings_sharing_a_name_get_the_shortest_path_suffix_that_tells_them_apart(tmp_path: Path) -> None:
+    for folder in ("a/run_bag", "b/run_bag", "x/a/run_bag"):
+        (tmp_path / folder).mkdir(parents=True)
+    for file in ("x/a/day.bag", "y/a/day.bag", "z/b/day.bag", "solo.bag"):
+        (tmp_path / file).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / file).write_bytes(b"x")
+    recs = [tmp_path / p for p in ("a/run_bag", "x/a/run_bag", "b/run_bag", "x/a/day.bag", "y/a/day.bag")]
+    recs += [tmp_path / p for p in ("z/b/day.bag", "solo.bag")]
+    names = run_names(recs)
+    # T/a/run_bag ends like T/x/a/run_bag up to 'a': the folder above it (T itself) tells them apart
+    top = f"{tmp_path.name}_a_run_bag"
+    assert names == [top, "x_a_run_bag", "b_run_bag", "x_a_day", "y_a_day", "b_day", "solo"]
+    assert run_names(recs[::-1]) == names[::-1]  # a recording's name does not depend on the order
+    assert run_names([tmp_path / "a" / "run_bag", tmp_path / "a" / "run_bag"]) == [None, None]
+
+    settings = load_settings(_registry().models())
+    tasks = plan_tasks(recs[:3], tmp_path / "runs", ["ingest"], settings)
+    assert [Path(t.run_dir).name for t in tasks] == [top, "x_a_run_bag", "b_run_bag"]
+    assert not (tmp_path / "runs").exists()
+
+
+def test_names_that_still_clash_are_one_error_line_each_before_anything_runs(tmp_path: Path) -> None:
     for d in ("x", "y"):
         (tmp_path / d).mkdir()
         (tmp_path / d / "day.bag").write_bytes(b"x")
+    (tmp_path / "x_day.bag").write_bytes(b"x")
     settings = load_settings(_registry().models())
-    recs = [tmp_path / "x" / "day.bag", tmp_path / "y" / "day.bag"]
-    with pytest.raises(InputError, match=r"would all write run folder .*day'; rename them"):
-        plan_tasks(recs, tmp_path / "runs", ["ingest"], settings)
+    x, y = tmp_path / "x" / "day.bag", tmp_path / "y" / "day.bag"
+    entries = [BatchEntry(x), BatchEntry(x), BatchEntry(y, name="x_day"), tmp_path / "x_day.bag"]
+    with pytest.raises(BatchFileError) as info:
+        plan_tasks(entries, tmp_path / "runs", ["ingest"], settings, problems=["earlier problem"])
+    problems = info.value.problems
+    assert len(problems) == 3, problems
+    assert problems[0] == "earlier problem"
+    assert "listed twice" in problems[1] and str(x) in problems[1]
+    assert problems[2].startswith("duplicate name 'x_day': ") and str(y) in problems[2]
+    assert str(info.value).count("\nerror: ") == 2  # the CLI prints one error: line per problem
     assert not (tmp_path / "runs").exists()
+
+
+def test_batch_file_entries_layer_their_settings_over_the_batch(tmp_path: Path) -> None:
+    for d in ("a", "b"):
+        (tmp_path / d / "run_bag").mkdir(parents=True)
+    (tmp_path / "cams").mkdir()
+    (tmp_path / "cams" / "b.yaml").write_text("x")
+    (tmp_path / "rig_b.yaml").write_text("detect:\n  tag_size_m: 0.3\n  workers: 2\n")
+    yaml_file = tmp_path / "fleet.yaml"
+    yaml_file.write_text(
+        "recordings:\n"
+        "  - recording: a/run_bag\n"
+        "  - {recording: b/run_bag, name: rig_b, config: rig_b.yaml, camera: cams/b.yaml, stride: 3,\n"
+        "     detect: {tag_size_m: 0.2}, ingest.image_topic: /cam}\n"
+    )
+    csv_file = tmp_path / "fleet.csv"
+    csv_file.write_text(
+        "# one row per recording\nrecording,name,config,camera,stride,detect.tag_size_m,ingest.image_topic\n"
+        "a/run_bag,,,,,,\nb/run_bag,rig_b,rig_b.yaml,cams/b.yaml,3,0.2,/cam\n"
+    )
+    registry = _registry()
+    base = load_settings(registry.models(), None, ["detect.tag_size_m=0.1", "detect.workers=1"])
+    for path in (yaml_file, csv_file):
+        a, b = load_batch_file(path, registry, base)
+        assert (a.recording, a.name, a.settings) == (tmp_path / "a" / "run_bag", None, None)  # the batch's
+        assert (b.recording, b.name) == (tmp_path / "b" / "run_bag", "rig_b")
+        assert b.settings is not None
+        detect, ingest = b.settings["detect"].model_dump(), b.settings["ingest"].model_dump()
+        assert detect["tag_size_m"] == 0.2  # the entry's key over its config file over the batch's --set
+        assert detect["workers"] == 2  # the entry's config file over the batch's --set
+        assert ingest["camera_file"] == str(tmp_path / "cams" / "b.yaml")  # relative to the batch file
+        assert (ingest["frame_stride"], ingest["image_topic"]) == (3, "/cam")
+        tasks = plan_tasks([a, b], tmp_path / "runs", ["ingest"], base)
+        assert [Path(t.run_dir).name for t in tasks] == ["run_bag", "rig_b"]
+        assert tasks[0].settings is base and tasks[1].settings is b.settings
+
+
+def test_every_problem_of_a_batch_file_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        "- {recording: a, detect.tag_sise_m: 0.16, tagsize: 3}\n"
+        "- {recording: missing, name: x}\n"
+        "- {recording: a, name: x, stride: 0, detect.tag_size_m: -1, camera: nope.yaml}\n"
+        "- {name: y}\n"
+    )
+    registry = _registry()
+    base = load_settings(registry.models())
+    with pytest.raises(BatchFileError) as info:
+        load_batch_file(bad, registry, base)
+    problems = info.value.problems
+    expected = [
+        ("bad.yaml entry 1 (a): ", "unknown setting 'detect.tag_sise_m' (did you mean 'tag_size_m'?)"),
+        ("bad.yaml entry 1 (a): ", "unknown key 'tagsize'"),
+        ("bad.yaml entry 2 (missing): ", "recording '" + str(tmp_path / "missing") + "' does not exist"),
+        ("bad.yaml entry 3 (a): ", "stride: must be at least 1"),
+        ("bad.yaml entry 3 (a): ", "detect.tag_size_m: Input should be greater than 0"),
+        ("bad.yaml entry 3 (a): ", "camera: camera file '" + str(tmp_path / "nope.yaml") + "' not found"),
+        ("bad.yaml entry 4: ", "no 'recording'"),
+    ]
+    assert len(problems) == len(expected), problems
+    for problem, (where, what) in zip(problems, expected, strict=True):
+        assert problem.startswith(where + what), problem
+    csv_file = tmp_path / "bad.csv"
+    csv_file.write_text("name,bogus,detect.nope,detect.tag_size_m,name\nx,1,2,3,y\n")
+    with pytest.raises(BatchFileError) as info:
+        load_batch_file(csv_file, registry, base)
+    problems = info.value.problems
+    assert [p.removeprefix(f"{csv_file}: ").split(";")[0] for p in problems] == [
+        "column 'name' appears more than once",
+        "no 'recording' column",
+        "column 'bogus': unknown key 'bogus'",
+        "column 'detect.nope': unknown setting 'detect.nope'",
+    ]
 
 
 def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None:
@@ -339,3 +445,112 @@ def test_killed_batch_loses_nothing_and_resumes_without_redoing_stages(
         assert not (out / name / ".partial").exists()
     assert any(r["status"] == "done" for r in rows.values())
     shutil.rmtree(out)
+
+
+# --- batch files, clashing names, run's input options ---------------------------------------------------------
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two rigs' folders each holding a ROS 2 bag called ``run_bag`` (the same 2 s recording, 0.16 m tags)."""
+    from sample_data.simulate import SimConfig, simulate, write_bag
+
+    root = tmp_path_factory.mktemp("fleet")
+    rec = simulate(SimConfig(seed=4, path="corridor", duration_s=2.0, image_width=320, image_height=240))
+    for rig in ("rig_a", "rig_b"):
+        write_bag(rec, root / rig / "run_bag", "ros2-sqlite")
+    (root / "fleet.csv").write_text("recording,detect.tag_size_m\nrig_a/run_bag,0.16\nrig_b/run_bag,0.2\n")
+    return root
+
+
+def _detections(run: Path) -> dict[tuple[int, int], tuple[float, float]]:
+    """Per (frame, tag id): the tag size detect used and the tag's distance from the camera."""
+    rows = pq.read_table(run / "detect" / "detections.parquet").to_pylist()
+    return {
+        (r["frame"], r["tag_id"]): (r["size_m"], float(np.linalg.norm(np.reshape(r["T_camera_tag"], (4, 4))[:3, 3])))
+        for r in rows
+    }
+
+
+def test_batch_file_gives_clashing_recordings_their_own_folders_and_tag_sizes(
+    fleet: Path, env: dict[str, str], tmp_path: Path
+) -> None:
+    out = tmp_path / "runs"
+    cmd = _cli("batch", "--file", str(fleet / "fleet.csv"), "--out", str(out), "--until", UNTIL, "-j", "2", *SETS)
+    first = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
+    assert first.returncode == 0, first.stderr
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["rig_a_run_bag", "rig_b_run_bag"]
+    sizes = {}
+    for run, size in (("rig_a_run_bag", 0.16), ("rig_b_run_bag", 0.2)):
+        settings = json.loads((out / run / "settings.json").read_text())
+        assert settings["detect"]["tag_size_m"] == size
+        assert settings["detect"]["workers"] == 1  # the batch's --set under the entry's own
+        sizes[run] = _detections(out / run)
+        assert {s for s, _ in sizes[run].values()} == {size}
+    a, b = sizes["rig_a_run_bag"], sizes["rig_b_run_bag"]
+    assert a.keys() == b.keys() and len(a) > 5  # the same recording, the same tags seen
+    for key in a:  # a tag believed 0.2 m wide instead of 0.16 m is seen from 1.25 times as far
+        assert b[key][1] / a[key][1] == pytest.approx(0.2 / 0.16, rel=1e-3)
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=env["PYTHONPATH"])
+    assert again.returncode == 0, again.stderr
+    rows = {r["run"]: r["status"] for r in pq.read_table(out / SUMMARY_FILE).to_pylist()}
+    assert rows == {"rig_a_run_bag": "skipped", "rig_b_run_bag": "skipped"}  # the same folders: nothing to redo
+
+
+def test_bad_batch_file_is_one_error_line_per_problem_and_runs_nothing(
+    fleet: Path, env: dict[str, str], tmp_path: Path
+) -> None:
+    bad = tmp_path / "bad.csv"
+    rig_a = fleet / "rig_a" / "run_bag"
+    bad.write_text(f"recording,name,stride,detect.tag_size_m\n{rig_a},x,0,0.2\n{fleet / 'gone'},x,2,big\n")
+    out = tmp_path / "runs"
+    cmd = _cli("batch", "--file", str(bad), "--out", str(out), "--until", UNTIL)
+    result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120, cwd=env["PYTHONPATH"])
+    assert result.returncode == 1
+    lines = result.stderr.strip().splitlines()
+    assert all(
+        line.startswith("error: bad.csv line ") or line.startswith("error: duplicate name 'x'") for line in lines
+    )
+    expected = [
+        "line 2 (" + str(rig_a) + "): stride: must be at least 1",
+        "line 3 (" + str(fleet / "gone") + "): recording",
+        "line 3 (" + str(fleet / "gone") + "): detect.tag_size_m: Input should be a valid number",
+        "duplicate name 'x'",
+    ]
+    assert len(lines) == len(expected), lines
+    for line, what in zip(lines, expected, strict=True):
+        assert what in line, line
+    assert not out.exists() and result.stdout == ""
+
+
+def test_start_end_stride_on_batch_give_the_ingest_of_run(
+    bags: list[Path], env: dict[str, str], tmp_path: Path
+) -> None:
+    window = ("--start", "0.4", "--end", "1.6", "--stride", "2")
+    common = ("--until", "ingest", *window)
+    by_run = subprocess.run(
+        _cli("run", str(bags[0]), "--out", str(tmp_path / "run"), *common),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=env["PYTHONPATH"],
+    )
+    assert by_run.returncode == 0, by_run.stderr
+    by_batch = subprocess.run(
+        _cli("batch", str(bags[0]), "--out", str(tmp_path / "batch"), *common),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=env["PYTHONPATH"],
+    )
+    assert by_batch.returncode == 0, by_batch.stderr
+    run_dir, batch_dir = tmp_path / "run" / "s1", tmp_path / "batch" / "s1"
+    ingest = [json.loads((d / "manifest.json").read_text())["stages"]["ingest"] for d in (run_dir, batch_dir)]
+    assert ingest[0]["fingerprint"] == ingest[1]["fingerprint"]  # same code, source and settings
+    assert _stable(ingest[0]["summary"]) == _stable(ingest[1]["summary"])
+    frames = [pq.read_table(d / "ingest" / "frames.parquet") for d in (run_dir, batch_dir)]
+    assert frames[0].equals(frames[1])
+    stamps = frames[1].column("stamp_ns").to_pylist()
+    start_ns = ingest[1]["summary"]["start_ns"]
+    assert 0 < len(stamps) <= 4  # 10 frames in 2 s; every second one of those between 0.4 s and 1.6 s
+    assert all(0.4e9 <= s - start_ns <= 1.6e9 for s in stamps)
