@@ -229,20 +229,28 @@ def _truncation_hint(path: Path, err: Exception) -> InputError:
     )
 
 
+def _ros1_damage(path: Path, err: Exception) -> InputError:
+    """The error for a ROS 1 bag rosbags cannot read: where the bag is damaged, when a scan finds it."""
+    from stages.ingest.salvage import first_damage
+
+    where = first_damage(path)
+    if where is None:
+        return _truncation_hint(path, err)
+    return InputError(
+        f"{str(path)!r} cannot be read, it looks truncated or damaged ({where}); copy it again, "
+        "or read every intact chunk with --salvage"
+    )
+
+
 class _Ros1(_Impl):
-    """ROS 1 bags through rosbags (index) or, with --salvage, a sequential scan of the records."""
+    """ROS 1 bags through rosbags (index) or, with --salvage, a scan of the records that skips the damage."""
 
     def __init__(self, rec: Recording) -> None:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.highlevel import AnyReader
 
         self.rec = rec
         self.reader: Any = None
-        try:
-            reader = AnyReader([rec.path])
-            rec._stack.enter_context(reader)
-        except (AnyReaderError, Exception) as err:
-            if not rec.salvage:
-                raise _truncation_hint(rec.path, err) from None
+        if rec.salvage:
             from stages.ingest.salvage import Ros1Salvage
 
             self.salvage = Ros1Salvage(rec.path)
@@ -250,6 +258,11 @@ class _Ros1(_Impl):
             rec.reader = "salvage"
             self.topics = self.salvage.topics
             return
+        try:
+            reader = AnyReader([rec.path])
+            rec._stack.enter_context(reader)
+        except Exception as err:  # rosbags' errors vary with the damage
+            raise _ros1_damage(rec.path, err) from None
         self.reader = reader
         self.topics = {}
         for conn in reader.connections:
@@ -282,7 +295,7 @@ class _Ros1(_Impl):
         except InputError:
             raise
         except Exception as err:
-            raise _truncation_hint(self.rec.path, err) from None
+            raise _ros1_damage(self.rec.path, err) from None
 
 
 class _Rosbags2(_Impl):
