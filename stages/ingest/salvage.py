@@ -202,6 +202,7 @@ class Ros1Scan(ChunkLosses):
                 # the index records that follow list what the damaged stretch held (a chunk hidden by its header)
                 self._current = _Chunk(pos, lost=lost, before=self._current)
                 self.chunks.append(self._current)
+                self._plain_records(bytes(buf[pos:nxt]), self._current)
                 pos = nxt
                 continue
             follows = rec.end == size or (rec.end < size and _record_at(buf, rec.end, _OUTER) is not None)
@@ -280,6 +281,25 @@ class Ros1Scan(ChunkLosses):
             chunk.lost = self._problem(
                 Lost(chunk.offset, f"the chunk at byte {chunk.offset} has {skipped} bytes of damaged records")
             )
+
+    def _plain_records(self, region: bytes, chunk: _Chunk) -> None:
+        """The messages of a damaged stretch that is an uncompressed chunk behind a damaged header: kept when whole
+        records cover nearly all of it (compressed data cannot look like that)."""
+        first = _resync(region, 0, _INNER)
+        records: list[_Record] = []
+        pos = first if first is not None else len(region)
+        while (r := _record_at(region, pos, _INNER)) is not None and r.end <= len(region):
+            records.append(r)
+            pos = r.end
+        if sum(r.end - r.start for r in records) < 0.9 * len(region):
+            return
+        for r in records:
+            if r.op == _OP_CONN:
+                self._conn(r, region[r.data_start : r.end])
+            else:
+                self._message(r, region[r.data_start : r.end], chunk)
+        if chunk.lost is not None:
+            chunk.lost.reason += f"; {len(records)} whole uncompressed records in it are kept"
 
     def _cut(self, buf: Any, rec: _Record) -> None:
         """The record the file ends in: of a chunk, every whole message before the cut is kept."""
@@ -368,6 +388,9 @@ class Ros1Scan(ChunkLosses):
             lost = chunk.lost
             if chunk.listed is not None:
                 missing = chunk.missing()
+                if not missing:  # every message it lists was read after all: the problem stays, no loss
+                    self.lost.remove(lost)
+                    continue
                 lost.counts = dict(Counter(conn for conn, _ in missing.elements()))
                 times = [t for _, t in missing]
                 if times and not lost.cut:

@@ -75,14 +75,17 @@ def test_a_damaged_chunk_is_named_and_only_it_dropped(
     with pytest.raises(InputError, match=rf"truncated or damaged \(the (chunk|record) at byte {start} .*--salvage"):
         read_all(bag, salvage=False)
     got, report = read_all(bag, salvage=True)
-    assert got == everything - Counter(keys)
     assert report is not None and report["chunks"] == len(chunks) - 1
+    assert f"at byte {start}" in report["stopped_at"]
+    if fmt == "plain":  # an uncompressed chunk behind a damaged header: its whole records are still read
+        assert got == everything and report["lost"]["messages"] == 0
+        return
+    assert got == everything - Counter(keys)
     lost = report["lost"]
     assert lost["messages"] == len(keys) and lost["topics"] == per_topic(keys)
     t0 = min(t for _, t in everything)
     assert lost["start_s"] == round((min(t for _, t in keys) - t0) * 1e-9, 3)
     assert lost["end_s"] == round((max(t for _, t in keys) - t0) * 1e-9, 3)
-    assert f"at byte {start}" in report["stopped_at"]
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
