@@ -45,7 +45,7 @@ def _camera_file(path: Path) -> str:
 
 def summary_line(summary: Summary) -> str:
     """The figures of an ingest (without the topic names, camera model and read time)."""
-    return summary_figures(summary, hidden=("seconds", "topics", "camera", "notes", "read_seconds"))
+    return summary_figures(summary, hidden=("seconds", "topics", "camera", "notes", "dropped", "read_seconds"))
 
 
 def remarks(summary: Summary) -> list[tuple[str, str]]:
@@ -53,9 +53,22 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
     from stages.ingest.info import salvage_text
 
     salvaged = summary.get("salvaged")
+    dropped = summary.get("dropped")
+    drops = [
+        f"{topic} {sum(n for n in reasons.values() if isinstance(n, int))} ("
+        + ", ".join(f"{n} with {why}" for why, n in reasons.items())
+        + ")"
+        for topic, reasons in (dropped.items() if isinstance(dropped, dict) else [])
+        if isinstance(reasons, dict)
+    ]
     return [
         *summary_notes(summary),
         *([("salvaged", salvage_text(salvaged) if isinstance(salvaged, dict) else str(salvaged))] if salvaged else []),
+        *(
+            [("warning", "dropped messages with values out of range or that do not decode: " + "; ".join(drops))]
+            if drops
+            else []
+        ),
     ]
 
 

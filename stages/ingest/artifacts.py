@@ -137,6 +137,10 @@ ARTIFACTS: Final = ArtifactSet(
     "What the recording holds, in tables a stage can read in one go; later stages never open the bag again. "
     "All stamps are nanoseconds of the bag clock (the message header stamp; the bag's log time where the header "
     "stamp is zero). The stage's `summary.json` counts `frames`, `odometry`, `scans` and `tag_detections` and gives "
-    "`duration_s`, `start_ns`, `topics` (role to topic), `reader` (`rosbags` or `mcap`) and `format`.",
+    "`duration_s`, `start_ns`, `topics` (role to topic), `reader` (`rosbags`, `mcap`, `sqlite3` or `salvage`) and "
+    "`format`; `dropped` counts, per topic and reason, the messages `--salvage` dropped for values no sensor gives "
+    "(a non-finite pose or twist, a non-finite or denormal covariance, a negative laser range, an image size that "
+    "does not match its data) or for not decoding (without `--salvage` such a message stops the stage); "
+    "`salvaged`, after a `--salvage` read, says what was read and what was lost, per topic and in time.",
     [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, EXTRINSICS],
 )

@@ -12,6 +12,7 @@ records, SQLite's ``messages`` table), never from a ``metadata.yaml`` that may d
 from __future__ import annotations
 
 import sqlite3
+import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -133,9 +134,14 @@ class Recording:
         if self.format == "ros2-db3":
             self.storage = "sqlite3"
             self.reader = "sqlite3"
-            return _Sqlite(self, [self.path])
+            return _Sqlite(self, [self.path], sqlite_check([self.path], self.salvage))
         files, storage = _ros2_files(self.path)
         self.storage = storage
+        if storage == "sqlite3":
+            problems = sqlite_check(files, self.salvage)
+            if problems:  # --salvage: read the rows that still read, row by row
+                self.reader = "sqlite3"
+                return _Sqlite(self, files, problems)
         if storage == "mcap":
             if self.salvage:  # chunk by chunk, dropping the damaged ones
                 self.reader = "mcap"
@@ -150,7 +156,7 @@ class Recording:
             return _Rosbags2(self)
         except InputError:
             self.reader = "sqlite3"
-            return _Sqlite(self, files)
+            return _Sqlite(self, files, [])
 
     # public API -----------------------------------------------------------------------------------
     @property
@@ -229,20 +235,28 @@ def _truncation_hint(path: Path, err: Exception) -> InputError:
     )
 
 
+def _ros1_damage(path: Path, err: Exception) -> InputError:
+    """The error for a ROS 1 bag rosbags cannot read: where the bag is damaged, when a scan finds it."""
+    from stages.ingest.salvage import first_damage
+
+    where = first_damage(path)
+    if where is None:
+        return _truncation_hint(path, err)
+    return InputError(
+        f"{str(path)!r} cannot be read, it looks truncated or damaged ({where}); copy it again, "
+        "or read every intact chunk with --salvage"
+    )
+
+
 class _Ros1(_Impl):
-    """ROS 1 bags through rosbags (index) or, with --salvage, a sequential scan of the records."""
+    """ROS 1 bags through rosbags (index) or, with --salvage, a scan of the records that skips the damage."""
 
     def __init__(self, rec: Recording) -> None:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.highlevel import AnyReader
 
         self.rec = rec
         self.reader: Any = None
-        try:
-            reader = AnyReader([rec.path])
-            rec._stack.enter_context(reader)
-        except (AnyReaderError, Exception) as err:
-            if not rec.salvage:
-                raise _truncation_hint(rec.path, err) from None
+        if rec.salvage:
             from stages.ingest.salvage import Ros1Salvage
 
             self.salvage = Ros1Salvage(rec.path)
@@ -250,6 +264,11 @@ class _Ros1(_Impl):
             rec.reader = "salvage"
             self.topics = self.salvage.topics
             return
+        try:
+            reader = AnyReader([rec.path])
+            rec._stack.enter_context(reader)
+        except Exception as err:  # rosbags' errors vary with the damage
+            raise _ros1_damage(rec.path, err) from None
         self.reader = reader
         self.topics = {}
         for conn in reader.connections:
@@ -282,7 +301,7 @@ class _Ros1(_Impl):
         except InputError:
             raise
         except Exception as err:
-            raise _truncation_hint(self.rec.path, err) from None
+            raise _ros1_damage(self.rec.path, err) from None
 
 
 class _Rosbags2(_Impl):
@@ -324,10 +343,82 @@ class _Rosbags2(_Impl):
             raise _truncation_hint(self.rec.path, err) from None
 
 
+def _sqlite_connect(f: Path) -> sqlite3.Connection:
+    return sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+
+
+def _sqlite_damaged(f: Path, what: str) -> InputError:
+    return InputError(f"{str(f)!r} is damaged: {what}; copy it again, or read the rows that are intact with --salvage")
+
+
+def _sqlite_torn(f: Path) -> str | None:
+    """Whether the file is shorter than its header says (a cut copy), or not whole pages."""
+    with f.open("rb") as fh:
+        head = fh.read(100)
+    size = f.stat().st_size
+    page = int.from_bytes(head[16:18], "big") if len(head) == 100 else 0
+    page = 65536 if page == 1 else page
+    if not page:
+        return f"its header is cut ({size} bytes)"
+    pages = int.from_bytes(head[28:32], "big")
+    valid = head[24:28] == head[92:96]  # the header's page count is kept up to date
+    if size % page or (valid and pages * page > size):
+        return f"the file is cut: it is {size} bytes, its header says {pages} pages of {page} bytes"
+    return None
+
+
+def _sqlite_readable(f: Path, tmp: Path) -> Path:
+    """``f``, or a copy padded with zero bytes to the size its header states (SQLite refuses a shorter file;
+    the rows on the pages that are there still read)."""
+    if _sqlite_torn(f) is None:
+        return f
+    with f.open("rb") as fh:
+        head = fh.read(100)
+    page = int.from_bytes(head[16:18], "big") if len(head) == 100 else 4096
+    page = 65536 if page == 1 else page or 4096
+    want = max(int.from_bytes(head[28:32], "big") * page, -(-f.stat().st_size // page) * page)
+    copy = tmp / f.name
+    with f.open("rb") as src, copy.open("wb") as dst:
+        while block := src.read(1 << 20):
+            dst.write(block)
+        dst.truncate(want)
+    return copy
+
+
+def sqlite_check(files: list[Path], salvage: bool) -> list[str]:
+    """SQLite's own consistency check (``PRAGMA quick_check``) of each storage file: the problems found.
+
+    Raises:
+        InputError: without ``salvage``, for the first file with a problem (a torn or inconsistent database).
+    """
+    problems: list[str] = []
+    for f in files:
+        torn = _sqlite_torn(f)
+        if torn is not None:
+            if not salvage:
+                raise _sqlite_damaged(f, torn)
+            problems.append(f"{f.name}: {torn}")
+            continue
+        con = _sqlite_connect(f)
+        try:
+            found = [str(r[0]) for r in con.execute("PRAGMA quick_check(20)") if r[0] != "ok"]
+        except sqlite3.DatabaseError as err:
+            found = [str(err)]
+        finally:
+            con.close()
+        if not found:
+            continue
+        what = f"SQLite's quick_check finds {len(found)}{'+' if len(found) == 20 else ''} problems (first: {found[0]})"
+        if not salvage:
+            raise _sqlite_damaged(f, what)
+        problems.append(f"{f.name}: {what}")
+    return problems
+
+
 def _sqlite_counts(files: list[Path]) -> dict[str, tuple[int, int | None, int | None]]:
     out: dict[str, list[Any]] = {}
     for f in files:
-        con = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+        con = _sqlite_connect(f)
         try:
             rows = con.execute(
                 "SELECT t.name, COUNT(m.id), MIN(m.timestamp), MAX(m.timestamp) "
@@ -458,43 +549,129 @@ def _salvaged_messages(fh: Any, scan: Any, topics: set[str]) -> Iterator[Any]:
 
 
 class _Sqlite(_Impl):
-    """ROS 2 SQLite storage files read directly (a lone .db3, or a folder rosbags cannot open)."""
+    """ROS 2 SQLite storage files read directly (a lone .db3, a folder rosbags cannot open, or a damaged one with
+    --salvage: then every row that still reads is read at once, and ``rec.salvaged`` says what was lost)."""
 
-    def __init__(self, rec: Recording, files: list[Path]) -> None:
+    _QUERY = "SELECT m.timestamp, t.name, t.type, m.data FROM messages m JOIN topics t ON m.topic_id = t.id"
+
+    def __init__(self, rec: Recording, files: list[Path], problems: list[str]) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.rec = rec
         self.files = files
         self.typestore = get_typestore(Stores.LATEST)
         self.topics = {}
+        self.rows: list[tuple[int, str, str, bytes]] | None = None
         for f in files:
-            con = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+            con = _sqlite_connect(f)
             try:
                 for name, typ in con.execute("SELECT name, type FROM topics"):
                     self.topics.setdefault(name, TopicInfo(name, _normalise_type(typ)))
             except sqlite3.DatabaseError as err:
-                raise InputError(f"{str(f)!r} is not a readable ROS 2 SQLite bag ({err}); copy it again") from None
+                if not problems:
+                    raise InputError(f"{str(f)!r} is not a readable ROS 2 SQLite bag ({err}); copy it again") from None
+                problems.append(f"{f.name}: its topics table does not read ({err})")
             finally:
                 con.close()
+        if problems:
+            self._salvage(problems)
+            return
         for name, (n, first, last) in _sqlite_counts(files).items():
             info = self.topics[name]
             info.count, info.first_ns, info.last_ns = n, first, last
+
+    def _salvage(self, problems: list[str]) -> None:
+        """Every row that reads; the topic counts are what was read, the loss what the tables' counts say."""
+        try:
+            listed: dict[str, int] | None = {k: v[0] for k, v in _sqlite_counts(self.files).items()}
+        except InputError:
+            listed = None
+        self.rows = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for f in self.files:
+                before = len(self.rows)
+                con = _sqlite_connect(_sqlite_readable(f, Path(tmp)))
+                try:
+                    skipped = self._read_rows(con, sum(listed.values()) if listed else 0)
+                finally:
+                    con.close()
+                if skipped:
+                    problems.append(f"{f.name}: {skipped} row ids do not read; {len(self.rows) - before} rows read")
+        self.rows.sort(key=lambda r: r[0])
+        for stamp, name, typ, _ in self.rows:
+            info = self.topics.setdefault(name, TopicInfo(name, _normalise_type(typ)))
+            info.count += 1
+            info.first_ns = stamp if info.first_ns is None else min(info.first_ns, stamp)
+            info.last_ns = stamp if info.last_ns is None else max(info.last_ns, stamp)
+        lost = {n: c - self.topics[n].count for n, c in (listed or {}).items() if n in self.topics}
+        lost = {n: c for n, c in sorted(lost.items()) if c > 0}
+        self.rec.salvaged = {
+            "messages": len(self.rows),
+            "chunks": None,
+            "chunks_total": None,
+            "crc_checked": False,
+            "stopped_at": problems[0],
+            "problems": problems,
+            "lost": {
+                "messages": sum(lost.values()) if listed is not None else None,
+                "topics": lost,
+                "start_s": None,
+                "end_s": None,
+            },
+        }
+
+    def _read_rows(self, con: sqlite3.Connection, expected: int) -> int:
+        """Every message row that reads, in id order: a scan that, at a damaged page, looks the ids up one by one
+        until one reads again. Returns the ids that did not read."""
+        assert self.rows is not None
+        last, skipped, misses = 0, 0, 0
+        q = f"{self._QUERY} WHERE m.id > ? ORDER BY m.id"
+        one = f"{self._QUERY.replace('SELECT ', 'SELECT m.id, ')} WHERE m.id = ?"
+        try:
+            top = int(con.execute("SELECT max(id) FROM messages").fetchone()[0] or 0)
+        except sqlite3.DatabaseError:
+            top = 0
+        top = max(top, expected, last + 1)
+        while True:
+            try:
+                for row in con.execute(f"SELECT m.id, {q[len('SELECT ') :]}", (last,)):
+                    last = row[0]
+                    self.rows.append(row[1:])
+                return skipped
+            except sqlite3.DatabaseError:
+                pass
+            # the scan met a damaged page: find the next id that reads
+            while True:
+                last += 1
+                if last > top + misses:
+                    return skipped
+                try:
+                    found = con.execute(one, (last,)).fetchall()
+                except sqlite3.DatabaseError:
+                    found = []
+                if found:
+                    self.rows.append(found[0][1:])
+                    break
+                skipped += 1
+                misses = min(misses + 1, 4096)
 
     def _decode(self, data: bytes, typ: str) -> Any:
         return self.typestore.deserialize_cdr(data, typ)
 
     def messages(self, topics: set[str]) -> Iterator[RawMessage]:
-        rows: list[tuple[int, str, str, bytes]] = []
-        for f in self.files:
-            con = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
-            try:
-                q = (
-                    "SELECT m.timestamp, t.name, t.type, m.data FROM messages m JOIN topics t ON m.topic_id = t.id "
-                    f"WHERE t.name IN ({','.join('?' * len(topics))}) ORDER BY m.timestamp"
-                )
-                rows.extend(con.execute(q, sorted(topics)).fetchall())
-            finally:
-                con.close()
-        rows.sort(key=lambda r: r[0])
+        if self.rows is not None:
+            rows = [r for r in self.rows if r[1] in topics]
+        else:
+            rows = []
+            for f in self.files:
+                con = _sqlite_connect(f)
+                try:
+                    q = f"{self._QUERY} WHERE t.name IN ({','.join('?' * len(topics))}) ORDER BY m.timestamp"
+                    rows.extend(con.execute(q, sorted(topics)).fetchall())
+                except sqlite3.DatabaseError as err:
+                    raise _sqlite_damaged(f, f"its messages do not read ({err})") from None
+                finally:
+                    con.close()
+            rows.sort(key=lambda r: r[0])
         for stamp, name, typ, data in rows:
             yield RawMessage(name, _normalise_type(typ), stamp, bytes(data), self._decode)

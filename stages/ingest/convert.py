@@ -197,3 +197,52 @@ def chain(edges: list[tuple[str, str, np.ndarray]], source: str, target: str) ->
             seen.add(nxt)
             queue.append((nxt, T_next))
     return None
+
+
+_TINY = 1e-300
+"""Below this (and not zero), a covariance entry is a denormal: a damaged number, not a variance."""
+_BYTES_PER_PIXEL = {"mono8": 1, "8UC1": 1, "mono16": 2, "16UC1": 2, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}
+
+
+def _bad_covariance(values: list[float]) -> str | None:
+    a = np.asarray(values, dtype=float)
+    if not np.isfinite(a).all():
+        return "a non-finite covariance"
+    if ((a != 0) & (np.abs(a) < _TINY)).any():
+        return "a denormal covariance"
+    return None
+
+
+def odometry_problem(row: dict[str, Any]) -> str | None:
+    """Why an odometry row holds values no odometry gives (None when it is fine): a non-finite pose or twist, a
+    non-finite or denormal covariance (exactly 0 is fine)."""
+    if not np.isfinite([row[c] for c in (*POSITION, *QUATERNION, *VELOCITY)]).all():
+        return "a non-finite pose or twist"
+    return _bad_covariance(row[POSE_COV]) or _bad_covariance(row[TWIST_COV])
+
+
+def scan_problem(row: dict[str, Any]) -> str | None:
+    """Why a laser scan holds impossible values (None when it is fine). Following REP 117, +inf (no return),
+    -inf (too close) and NaN (an erroneous reading) are legal ranges, and so is a range outside
+    [range_min, range_max] (to be discarded by the reader); a negative finite range, non-finite limits or angles,
+    or range_min > range_max are not."""
+    limits = [row[c] for c in (ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX)]
+    if not np.isfinite(limits).all():
+        return "non-finite angles or range limits"
+    if row[RANGE_MIN] > row[RANGE_MAX]:
+        return "range_min > range_max"
+    r = np.asarray(row[RANGES], dtype=float)
+    if (np.isfinite(r) & (r < 0)).any():
+        return "negative ranges"
+    return None
+
+
+def image_problem(row: dict[str, Any]) -> str | None:
+    """Why a raw image's size does not match its data (None when it does, and for compressed images)."""
+    if row[FORMAT] in ("jpeg", "png") or not row[HEIGHT]:
+        return None
+    h, w, step, n = row[HEIGHT], row[WIDTH], row[STEP], len(row[DATA])
+    bpp = _BYTES_PER_PIXEL.get(row[FORMAT])
+    if h < 0 or w <= 0 or step * h != n or (bpp is not None and step < w * bpp):
+        return f"an image size that does not match its data ({w}x{h}, step {step}, {n} bytes)"
+    return None

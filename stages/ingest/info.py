@@ -63,6 +63,8 @@ def salvage_text(report: dict[str, Any]) -> str:
     lost = report["lost"]
     if not report.get("problems"):
         return parts[0] + "; nothing lost"
+    if lost["messages"] == 0:  # damage that cost no message (a length field read around)
+        return "; ".join([parts[0], "nothing lost", *report["problems"]])
     count = f"{lost['messages']} messages" if lost["messages"] is not None else "an unknown number of messages"
     start = f"{lost['start_s']:.3f} s" if lost["start_s"] is not None else "?"
     end = f"{lost['end_s']:.3f} s" if lost["end_s"] is not None else "the unknown end"

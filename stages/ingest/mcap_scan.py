@@ -25,6 +25,9 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Message, MessageIndex,
 from mcap.stream_reader import breakup_chunk
 
 from pipeline.errors import InputError
+from stages.ingest.losses import ChunkLosses, Lost, salvage_report
+
+__all__ = ["Block", "Lost", "McapScan", "salvage_report", "scan_mcap"]
 
 _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_MESSAGE_INDEX = 0x03, 0x04, 0x05, 0x06, 0x07
 _OP_FOOTER, _OP_DATA_END = 0x02, 0x0F
@@ -43,47 +46,13 @@ class Block:
 
 
 @dataclass
-class Lost:
-    """A stretch of the file that could not be read: a damaged chunk or the part after a cut."""
+class McapScan(ChunkLosses):
+    """What one MCAP file holds, checked chunk by chunk (``chunks_total``, ``expected`` and the time range come
+    from the summary's chunk indexes and statistics)."""
 
-    offset: int
-    reason: str
-    start_ns: int | None = None
-    end_ns: int | None = None
-    counts: dict[int, int] | None = None
-    """Messages per channel id, where an index says so."""
-    cut: bool = False
-    """The file ends here: what followed is unknown."""
-
-
-@dataclass
-class McapScan:
-    """What one MCAP file holds, checked chunk by chunk."""
-
-    path: Path
-    size: int
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     blocks: list[Block] = field(default_factory=list)
-    lost: list[Lost] = field(default_factory=list)
-    counts: dict[int, int] = field(default_factory=dict)
-    first_ns: dict[int, int] = field(default_factory=dict)
-    last_ns: dict[int, int] = field(default_factory=dict)
-    chunks_total: int | None = None
-    """Chunks the summary lists (None without a readable summary)."""
-    chunks_read: int = 0
-    expected: dict[int, int] | None = None
-    """Messages per channel id from the summary's statistics (None without them)."""
-    start_ns: int | None = None
-    end_ns: int | None = None
-    """Message time range from the summary's statistics."""
-    problems: list[str] = field(default_factory=list)
-    crcs: bool = False
-    """Whether any chunk carried a CRC."""
-
-    @property
-    def messages_read(self) -> int:
-        return sum(self.counts.values())
 
     def topic_of(self, channel_id: int) -> str:
         ch = self.channels.get(channel_id)
@@ -105,10 +74,7 @@ class McapScan:
                 self.channels[r.id] = r
             elif isinstance(r, Message):
                 msgs.append(r)
-                cid, t = r.channel_id, r.log_time
-                self.counts[cid] = self.counts.get(cid, 0) + 1
-                self.first_ns[cid] = min(self.first_ns.get(cid, t), t)
-                self.last_ns[cid] = max(self.last_ns.get(cid, t), t)
+                self.count(r.channel_id, r.log_time)
         if block is None:
             times = [m.log_time for m in msgs] or [0]
             block = Block(min(times), max(times), messages=msgs)
@@ -402,59 +368,3 @@ def _scan_linear(fh: IO[bytes], scan: McapScan, salvage: bool) -> None:
     block = scan._take(loose, None)
     if block.messages:
         scan.blocks.append(block)
-
-
-def salvage_report(scans: list[McapScan]) -> dict[str, Any]:
-    """What a salvage read of ``scans`` kept and lost: messages, chunks, the damage, and the loss per topic
-    and in time (counts from the summary's statistics or the lost chunks' message indexes where present)."""
-    read = sum(s.messages_read for s in scans)
-    lost_topics: dict[str, int] = {}
-    known = True
-    starts: list[int] = []
-    ends: list[int] = []
-    first_read = [t for s in scans for t in s.first_ns.values()]
-    origins = [s.start_ns for s in scans if s.start_ns is not None] + first_read
-    for s in scans:
-        per_channel: dict[int, int] = {}
-        if s.expected is not None:
-            for cid, n in s.expected.items():
-                per_channel[cid] = n - s.counts.get(cid, 0)
-        else:
-            for lost in s.lost:
-                if lost.counts is None:
-                    known = False
-                for cid, n in (lost.counts or {}).items():
-                    per_channel[cid] = per_channel.get(cid, 0) + n
-        for cid, n in per_channel.items():
-            if n > 0:
-                topic = s.topic_of(cid)
-                lost_topics[topic] = lost_topics.get(topic, 0) + n
-        for lost in s.lost:
-            start = lost.start_ns
-            if start is None:  # nothing known of the cut part: it starts after the last message read
-                start = max(s.last_ns.values(), default=s.start_ns)
-            if start is not None:
-                starts.append(start)
-            end = s.end_ns if lost.cut else lost.end_ns
-            if end is None:
-                known = False  # the recording went on past the cut for an unknown time
-            if end is not None:
-                ends.append(end)
-    origin = min(origins + starts) if origins + starts else 0
-    lost_report: dict[str, Any] = {
-        "messages": sum(lost_topics.values()) if known else None,
-        "topics": dict(sorted(lost_topics.items())),
-        "start_s": round((min(starts) - origin) * 1e-9, 3) if starts else None,
-        "end_s": round((max(ends) - origin) * 1e-9, 3) if ends and known else None,
-    }
-    problems = [f"{s.path.name}: {p}" for s in scans for p in s.problems]
-    totals = [s.chunks_total for s in scans]
-    return {
-        "messages": read,
-        "chunks": sum(s.chunks_read for s in scans),
-        "chunks_total": sum(t for t in totals if t is not None) if None not in totals else None,
-        "crc_checked": any(s.crcs for s in scans),
-        "stopped_at": problems[0] if problems else None,
-        "problems": problems,
-        "lost": lost_report,
-    }

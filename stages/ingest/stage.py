@@ -7,6 +7,7 @@ them, AprilTag detections. Writes the artifacts declared in :mod:`stages.ingest.
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -89,7 +90,7 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         if cfg.camera_file:
             ctx.outside_file(cfg.camera_file)  # a changed calibration file re-runs ingest
         plan = _plan(rec, cfg)
-        reading = _Reading(ctx.output, plan, cfg.frame_stride)
+        reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage)
         total = sum(rec.topics[t].count for t in plan.wanted)
         for raw in ctx.progress(rec.messages(plan.wanted), "ingest", total=total):
             reading.add(raw)
@@ -108,6 +109,7 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         **bag,
         "camera": camera.model_dump(include={"width", "height", "distortion_model", "frame_id", "source"}),
         "notes": notes,
+        "dropped": {t: dict(sorted(c.items())) for t, c in sorted(reading.dropped.items())},
         "read_seconds": round(time.perf_counter() - started, 3),
     }
     if salvaged is not None:
@@ -165,8 +167,10 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
 class _Reading:
     """The messages as they stream by: table writers, the static transforms, the camera and frame names."""
 
-    def __init__(self, out: StageOutput, plan: _Plan, frame_stride: int = 1) -> None:
-        self.out, self.plan, self.frame_stride = out, plan, frame_stride
+    def __init__(self, out: StageOutput, plan: _Plan, frame_stride: int = 1, salvage: bool = False) -> None:
+        self.out, self.plan, self.frame_stride, self.salvage = out, plan, frame_stride, salvage
+        self.dropped: dict[str, Counter[str]] = {}
+        """Per topic, the messages dropped (--salvage) for each reason: values out of range, or no decoding."""
         self.frames = _TableWriter(out, FRAMES)
         self.odom = _TableWriter(out, ODOMETRY, batch=4096)
         self.scans = _TableWriter(out, SCANS, batch=1024)
@@ -179,11 +183,35 @@ class _Reading:
         self.odom_frame = ""
         self.scan_frame = ""
 
+    def _bad(self, raw: RawMessage, why: str | None) -> bool:
+        """Whether the message is to be dropped for ``why``; without --salvage, stop with one line."""
+        if why is None:
+            return False
+        if not self.salvage:
+            raise InputError(
+                f"a {raw.type.split('/')[-1]} message on {raw.topic} (log time {raw.log_time_ns} ns) has {why}; "
+                "the recording is damaged or wrong: drop such messages with --salvage"
+            )
+        self.dropped.setdefault(raw.topic, Counter())[why] += 1
+        return True
+
+    def _decode(self, raw: RawMessage) -> Any:
+        """The message, or None when it does not decode and --salvage drops it."""
+        try:
+            return raw.decode()
+        except InputError as err:
+            if not self.salvage:
+                raise InputError(f"{err}; the recording may be damaged: drop such messages with --salvage") from None
+            self._bad(raw, "no decoding")
+            return None
+
     def add(self, raw: RawMessage) -> None:
         """Take one message: a static transform, a camera frame (or its detections), or a sensor message."""
         topics = self.plan.topics
         if raw.topic == topics["tf_static"]:
-            self.edges.extend(convert.transform_edges(raw.decode()))
+            tf = self._decode(raw)
+            if tf is not None:
+                self.edges.extend(convert.transform_edges(tf))
         elif raw.topic in (topics["image"], topics["detections"]):
             self._frame(raw)
         elif self.plan.in_window(raw.log_time_ns):
@@ -195,14 +223,19 @@ class _Reading:
         self.frame_index[raw.topic] = index + 1
         if not self.plan.in_window(raw.log_time_ns) or index % self.frame_stride:
             return
-        msg = raw.decode()
+        msg = self._decode(raw)
+        if msg is None:
+            return
         stamp = convert.stamp_ns(msg, raw.log_time_ns)
-        self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
         if raw.topic == self.plan.topics["image"]:
             row = convert.image_row(msg, compressed=raw.type.endswith("CompressedImage"))
+            if self._bad(raw, convert.image_problem(row)):
+                return
+            self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
             self.frames.add({FRAME: index, STAMP_NS: stamp, TOPIC: raw.topic, **row})
         else:
             assert self.dets is not None
+            self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
             for r in _detection_rows(msg, index, stamp, raw.topic):
                 self.dets.add(r)
 
@@ -211,16 +244,22 @@ class _Reading:
         topics = self.plan.topics
         if raw.topic == topics["camera_info"] and self.camera is not None:
             return  # the first calibration in the window is the one used
-        msg = raw.decode()
+        msg = self._decode(raw)
+        if msg is None:
+            return
         if raw.topic == topics["camera_info"]:
             self.camera = convert.camera_from_info(msg, raw.topic)
         elif raw.topic == topics["odometry"]:
             row = convert.odometry_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
+            if self._bad(raw, convert.odometry_problem(row)):
+                return
             self.base_frame = self.base_frame or row[CHILD_FRAME_ID]
             self.odom_frame = self.odom_frame or row[FRAME_ID]
             self.odom.add(row)
         elif raw.topic == topics["scan"]:
             row = convert.scan_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
+            if self._bad(raw, convert.scan_problem(row)):
+                return
             if self.scans.count == 0:
                 self.scan_frame = row[FRAME_ID]  # the laser's frame is that of the first scan
             self.scans.add(row)

@@ -1,6 +1,6 @@
-"""MCAP salvage: messages recovered per cut and per flipped byte on one generated multi-chunk file.
+"""Salvage: messages recovered per cut and per flipped byte on generated multi-chunk files (MCAP, ROS 1).
 
-    python tests/benchmarks/bench_salvage.py [--seconds 8] [--cuts 12] [--flips 6] [--seed 1]
+    python tests/benchmarks/bench_salvage.py [--seconds 8] [--cuts 12] [--flips 6] [--seed 1] [--ros1-before REV]
 
 Simulates a recording, writes it as MCAP with small zstd chunks (chunk CRCs on), then
 - cuts the file at ``--cuts`` seeded offsets and reads each with ``--salvage``: "whole chunks" are the
@@ -8,6 +8,13 @@ Simulates a recording, writes it as MCAP with small zstd chunks (chunk CRCs on),
   salvage read recovered;
 - flips one byte inside ``--flips`` seeded chunks: "normal read" is whether a read without --salvage
   stops with an error, "read" what a salvage read recovers, "expected" every message of the other chunks.
+
+ROS 1 (plain, bz2, lz4; the same recording with ~64 kB chunks): per cut, and per damage to chunk k (a flipped
+byte in its header, in its data, in its length field), the messages of the intact chunks ("expected"), what
+the salvage read recovers now ("after") and what the scan of git revision ``--ros1-before`` recovered
+("before", run side by side on the same file; "exc" where it raised). ROS 1 has no checksums: a flip inside
+plain or lz4 chunk data reads silently, and a plain chunk behind a damaged header keeps its whole records, so
+"after" can exceed "expected" there.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from mcap.writer import CompressionType, Writer  # noqa: E402
 from pipeline.errors import InputError  # noqa: E402
 from sample_data.simulate import SimConfig, simulate, write_bag  # noqa: E402
 from stages.ingest.bags import Recording  # noqa: E402
+from tests.fixtures.bags import rewrite_ros1, ros1_chunks  # noqa: E402
 
 
 def rechunk(src: Path, dst: Path, chunk_size: int) -> None:
@@ -62,6 +70,71 @@ def salvage_read(path: Path) -> tuple[int, str]:
     return n, f"{count} msgs, {start} .. {end}"
 
 
+def old_ros1_salvage(rev: str) -> type | None:
+    """``Ros1Salvage`` as it was at git revision ``rev`` (None when git cannot show it)."""
+    import importlib.util
+    import subprocess
+
+    try:
+        text = subprocess.run(
+            ["git", "show", f"{rev}:stages/ingest/salvage.py"], capture_output=True, text=True, check=True, cwd=ROOT
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    path = Path(tempfile.mkdtemp()) / "old_salvage.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location("old_salvage", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.Ros1Salvage
+
+
+def ros1_section(src: Path, root: Path, rng: np.random.Generator, cuts: int, before_rev: str) -> None:
+    old = old_ros1_salvage(before_rev)
+
+    def before(path: Path) -> str:
+        if old is None:
+            return "-"
+        try:
+            return str(len(old(path).msgs))
+        except Exception as err:
+            return f"exc {type(err).__name__}"
+
+    def after(path: Path) -> tuple[int, str]:
+        return salvage_read(path)
+
+    print()
+    print(f"ROS 1, before = revision {before_rev}")
+    print(f"{'format':>6} {'damage':>16} {'expected':>9} {'before':>22} {'after':>6}  reported lost")
+    for fmt in ("plain", "bz2", "lz4"):
+        bag = rewrite_ros1(src, root / f"{fmt}.bag", None if fmt == "plain" else fmt)
+        data = bag.read_bytes()
+        chunks = ros1_chunks(bag)
+        total = sum(len(k) for *_, k in chunks)
+        damaged = root / "damaged.bag"
+        for cut in sorted(int(c) for c in rng.integers(chunks[0][0] + 1, len(data), size=cuts)):
+            damaged.write_bytes(data[:cut])
+            whole = sum(len(k) for _s, e, k in chunks if e <= cut)
+            n, lost = after(damaged)
+            print(f"{fmt:>6} {f'cut {100 * cut / len(data):.0f}%':>16} {whole:>9} {before(damaged):>22} {n:>6}  {lost}")
+        k = len(chunks) // 2
+        start, end, keys = chunks[k]
+        (hlen,) = np.frombuffer(data[start : start + 4], dtype="<u4")
+        for what, at, mask in (
+            ("header", start + 6, 0x20),
+            ("data", (start + end) // 2, 0x10),
+            ("length", start + 4 + int(hlen) + 2, 0x01),
+        ):
+            flipped = bytearray(data)
+            flipped[at] ^= mask
+            damaged.write_bytes(bytes(flipped))
+            expected = total if what == "length" else total - len(keys)
+            n, lost = after(damaged)
+            label = f"{what} chunk {k}/{len(chunks)}"
+            print(f"{fmt:>6} {label:>16} {expected:>9} {before(damaged):>22} {n:>6}  {lost}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=8.0)
@@ -69,6 +142,7 @@ def main() -> None:
     parser.add_argument("--flips", type=int, default=6)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--chunk-size", type=int, default=100_000)
+    parser.add_argument("--ros1-before", default="2be492d", help="git revision whose ROS 1 salvage to compare")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
@@ -121,6 +195,9 @@ def main() -> None:
                 normal = "error"
             n, lost = salvage_read(flip_file)
             print(f"{int(k):>13} {normal:>12} {total - per_chunk[k]:>9} {n:>6}  {lost}")
+        ros1 = root / "src.bag"
+        write_bag(rec, ros1, "ros1")
+        ros1_section(ros1, root, rng, max(args.cuts // 2, 1), args.ros1_before)
 
 
 if __name__ == "__main__":
