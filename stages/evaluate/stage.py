@@ -10,6 +10,7 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids
+from stages.estimation.blas import blas_single
 from stages.evaluate import artifacts as art
 from stages.evaluate.cases import (
     EvalInputs,
@@ -52,6 +53,7 @@ PER_CASE = (
 """The columns of every case in the summary's ``table``."""
 
 
+@blas_single
 def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
     t0 = time.perf_counter()

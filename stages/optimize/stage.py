@@ -13,6 +13,7 @@ from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
+from stages.estimation.blas import blas_single
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.outputs import write_artifacts
 from stages.navigation.truth import MapTruth, load_truth
@@ -53,6 +54,7 @@ def load_geometry(ctx: StageContext, loaded: LoadedGraph, params: RiskParams) ->
     return path_geometry(loaded, read.scans, read.T_base_laser, read.detections, params)
 
 
+@blas_single
 def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
     """Build and solve the reduced graph; write graph-like artifacts plus entropy, errors, risk and size."""
     t0 = time.perf_counter()

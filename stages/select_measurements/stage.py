@@ -10,6 +10,7 @@ import rerun as rr
 from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import ellipsoids, set_step
+from stages.estimation.blas import blas_single
 from stages.select_landmarks.artifacts import FOCUSED as FOCUSED_JSON
 from stages.select_measurements.artifacts import SELECTED, SELECTION, SelectedMeasurements, selected_table
 from stages.select_measurements.config import SelectMeasurementsConfig
@@ -48,6 +49,7 @@ def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig, loaded: Load
     return FOCUSED_JSON.read(ctx.input("select_landmarks")).tag_ids
 
 
+@blas_single
 def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
     """Select the measurements; write ``selected.parquet``; log ``select_measurements.rrd``."""
     from stages.graph.load import load_graph
