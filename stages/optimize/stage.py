@@ -9,10 +9,13 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
+from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import colormap, ellipsoids, set_stamp
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
+from stages.graph.factors import build_graph
+from stages.graph.health import graph_health, strict_error
 from stages.graph.load import LoadedGraph, load_graph
 from stages.graph.outputs import write_artifacts
 from stages.navigation.truth import MapTruth, load_truth
@@ -79,6 +82,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
         cfg.relative_error_tol,
         cfg.unobserved_sigma_m,
     )
+    health = reduced_health(graph_in, reduced, cfg)
     summary = write_artifacts(ctx.output, reduced.problem, reduced.solution, reduced.marginals)
     KEPT.write(ctx.output, {INDEX: np.arange(len(reduced.full_index)), FULL_INDEX: reduced.full_index})
     full_map = LandmarkMap.from_graph(loaded)
@@ -120,10 +124,32 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
             "dropped_unfocused_measurements": reduced.dropped_unfocused,
             "initialise_from": cfg.initialise_from,
             "solve": solve_settings(cfg),
+            "health": health,
             "timing_s": {**reduced.timing_s, "total": round(time.perf_counter() - t0, 4)},
         }
     )
     return summary
+
+
+def reduced_health(graph_in: StageInput, reduced: ReducedMap, cfg: OptimizeConfig) -> dict[str, Any]:
+    """The health checks of the solved reduced graph (:mod:`stages.graph.health`); with ``optimize.strict`` a failed
+    one stops the stage."""
+    graph_summary = graph_in.read_json("summary.json") if graph_in.exists("summary.json") else {}
+    size = graph_summary.get("tag_size_m") if isinstance(graph_summary, dict) else None
+    problem, solution = reduced.problem, reduced.solution
+    health = graph_health(
+        problem,
+        build_graph(problem.rows),
+        solution.values,
+        reduced.marginals,
+        solution.iterations,
+        cfg.max_iterations,
+        "optimize",
+        float(size) if isinstance(size, int | float) else None,
+    )
+    if cfg.strict and not health["ok"]:
+        raise StageError(strict_error("optimize", health))
+    return health
 
 
 def error_table(
