@@ -242,16 +242,20 @@ def _new_run(path: Path, source: Path, kind: str = "bag") -> Iterator[RunFolder]
 
 
 def _print_result(stage: AnyStage, result: StageResult) -> None:
-    """The stage's line (name, status, its figures) and, when it ran, its remarks (notes, ...)."""
+    """The stage's line (name, status, its figures) and, when it ran, its remarks (notes, ...).
+
+    ``note:`` and ``warning:`` lines go to stderr (diagnostics), the stage's line and its other remarks to stdout.
+    """
     from rich.console import Console
 
     console = Console(stderr=False, highlight=False, soft_wrap=True)
+    diagnostics = Console(stderr=True, highlight=False, soft_wrap=True)
     status = "up to date" if result.status == "skipped" else f"done in {result.seconds:.1f} s"
     console.print(f"[bold]{result.stage:<20}[/bold] {status:<16} {stage.summary_line(result.summary)}")
     for label, text in stage.remarks(result.summary) if result.status == "done" else []:
-        console.print(f"  [yellow]{label}:[/yellow] {text}")
+        (diagnostics if label in ("note", "warning") else console).print(f"  [yellow]{label}:[/yellow] {text}")
     for text in result.warnings:
-        console.print(f"  [yellow]warning:[/yellow] {text}")
+        diagnostics.print(f"  [yellow]warning:[/yellow] {text}")
 
 
 def _run_stages(run: RunFolder, names: list[str], settings: Settings, force: bool) -> list[StageResult]:
@@ -441,12 +445,21 @@ def run_pipeline(
     set_: SetOpt = None,
     force: ForceOpt = False,
     reset: ResetOpt = False,
+    strict: Annotated[
+        bool,
+        typer.Option(
+            "--strict",
+            help="Stop with an error when a health check of graph or optimize fails (graph.strict, optimize.strict).",
+        ),
+    ] = False,
     **options: object,
 ) -> None:
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
     registry = _registry()
     stages = [s.name for s in registry.between(start_stage, until)]
     overrides = _overrides(_source_stages(registry), options)
+    if strict:
+        overrides += [f"{s.name}.strict=true" for s in registry if any(o.key == "strict" for o in s.options)]
     settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, stages)
     run, results = _run_on_bag(bag, out, name, stages, settings, force)
     _print_headline(results)

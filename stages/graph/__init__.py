@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Final
 
 from pipeline.lazy import lazy_exports
-from pipeline.stage import Stage, lazy
+from pipeline.stage import Option, Stage, Summary, lazy, summary_notes
 from stages.graph.config import GRAPH_SOURCE, GraphConfig
 
 if TYPE_CHECKING:
@@ -39,6 +39,29 @@ def blueprint() -> Any:
     )
 
 
+STRICT: Final = Option(
+    "--strict",
+    "strict",
+    "Stop with an error when a health check fails (fit far outside the noise models, tag scale off its prior, "
+    "iteration cap, moved tags, trajectory against dead reckoning).",
+    kind=bool,
+)
+"""The ``--strict`` option of the graph and optimize commands (their ``strict`` setting)."""
+
+
+def remarks(summary: Summary) -> list[tuple[str, str]]:
+    """The notes, the model ``auto`` chose (and why), and one ``warning`` per failed health check."""
+    out = summary_notes(summary)
+    choice = summary.get("model_choice")
+    if isinstance(choice, dict) and choice.get("setting") == "auto":
+        out.append(("note", f"graph model {choice.get('model')} (graph.model=auto): {choice.get('reason')}"))
+    health = summary.get("health")
+    warnings = health.get("warnings") if isinstance(health, dict) else None
+    if isinstance(warnings, list):
+        out += [("warning", str(w)) for w in warnings]
+    return out
+
+
 STAGE: Final = Stage(
     name="graph",
     config_type=GraphConfig,
@@ -48,6 +71,8 @@ STAGE: Final = Stage(
     version="1",
     blueprint=blueprint,
     help="Build the full factor graph (odometry + every tag), optimise it and compute every marginal.",
+    options=(STRICT,),
+    remarks=remarks,
 )
 
 __all__ = ["STAGE", "GraphConfig", "LoadedGraph", "blueprint", "build_reduced", "import_run", "load_graph"]

@@ -29,11 +29,12 @@ from gtsam.symbol_shorthand import L, X
 
 from pipeline.errors import InputError, StageError
 from stages.columns import FRAME, POSITION, QUATERNION, STAMP_NS, TAG_ID
-from stages.detect.artifacts import AMBIGUOUS, CAMERA, DETECTIONS, REPROJECTION_PX, T_CAMERA_TAG
+from stages.detect.artifacts import AMBIGUOUS, CAMERA, DETECTIONS, REPROJECTION_PX, SIZE_M, T_CAMERA_TAG
 from stages.detect.artifacts import POSE_COV as DETECTION_POSE_COV
 from stages.geometry import pose3_from_matrix
 from stages.graph.config import GraphConfig
 from stages.graph.factors import SCALE_KEY, FactorRow
+from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
@@ -45,8 +46,8 @@ __all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic"
 
 DETECTION_COLUMNS = (FRAME, STAMP_NS, CAMERA, TAG_ID, T_CAMERA_TAG, DETECTION_POSE_COV)
 """Columns of ``detections.parquet`` the graph needs."""
-DETECTION_FILTER_COLUMNS = (AMBIGUOUS, REPROJECTION_PX)
-"""Columns of ``detections.parquet`` the graph filters on (when present)."""
+DETECTION_FILTER_COLUMNS = (AMBIGUOUS, REPROJECTION_PX, SIZE_M)
+"""Columns of ``detections.parquet`` the graph filters on or reports (when present)."""
 ODOMETRY_COLUMNS = (STAMP_NS, *POSITION, *QUATERNION, ODOMETRY_POSE_COV)
 """Columns of ``odometry.parquet`` the graph needs."""
 
@@ -77,10 +78,14 @@ def build_problem(
         StageError: when nothing is left to build a graph from.
         InputError: when the detection table lacks a needed column.
     """
-    model = graph_model(cfg.model)
     det, usable, info = _usable_detections(detections, cfg)
     stamps = np.asarray(det[STAMP_NS], dtype=np.int64)
     odom = Odometry.from_table(odometry)
+    choice = choose_model(cfg.model, odom, det, usable, lambda cam: camera_extrinsic(extrinsics, cam)[0], det[TAG_ID])
+    model = graph_model(choice.model)
+    info["model_choice"] = choice.summary()
+    if SIZE_M in det:
+        info["tag_size_m"] = _common_size(det[SIZE_M], usable)
     path = _keyframe_path(np.unique(stamps[usable]), odom, cfg, info)
     rows = _prior_rows(model, cfg, path.pose_keys[0])
     rows += _motion_rows(model, cfg, odom, path, info)
@@ -107,6 +112,12 @@ def build_problem(
         landmark_heights=sightings.landmark_heights(),
         info=info,
     )
+
+
+def _common_size(sizes: list[Any], usable: np.ndarray) -> float | None:
+    """The tag size most usable detections assumed (the health check names it), None when unknown."""
+    counts = Counter(float(sizes[r]) for r in usable if sizes[r] is not None)
+    return counts.most_common(1)[0][0] if counts else None
 
 
 def _usable_detections(

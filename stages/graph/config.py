@@ -16,10 +16,12 @@ GRAPH_SOURCE = "graph"
 class GraphConfig(SettingsModel):
     """The full factor graph: model, keyframes, noise, robust kernel and optimiser."""
 
-    model: Literal["planar", "3d"] = Field(
-        "planar",
+    model: Literal["auto", "planar", "3d"] = Field(
+        "auto",
         description="planar: Pose2 robot poses and (x, y) tag landmarks (ground robots); "
-        "3d: Pose3 robot poses and Pose3 tags.",
+        "3d: Pose3 robot poses and Pose3 tags; auto: 3d when the motion is not planar (no odometry, or the "
+        "odometry's height, roll or pitch vary, or tags seen from the base change height or tilt), planar "
+        "otherwise (stages/graph/model_choice.py; the summary's model_choice says which and why).",
     )
     # keyframes
     keyframe_max_gap_s: float = Field(
@@ -100,6 +102,11 @@ class GraphConfig(SettingsModel):
     )
     max_iterations: int = Field(100, ge=1, description="Maximum optimiser iterations.")
     relative_error_tol: float = Field(1e-6, gt=0, description="Stop when the error falls by less than this fraction.")
+    strict: bool = Field(
+        False,
+        description="Make a failed health check (stages/graph/health.py: chi2 per factor kind, tag scale, iteration "
+        "cap, moved tags, dead reckoning) an error: the stage stops and its results are not kept (--strict).",
+    )
     # recording
     pose_ellipse_stride: int = Field(
         10, ge=1, description="Draw the covariance ellipse of every n-th pose in graph.rrd."

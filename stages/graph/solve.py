@@ -20,9 +20,51 @@ from stages.graph.problem import GraphProblem
 from stages.graph.python_loop import optimise_in_python
 from stages.graph.variables import SCALE
 
-_FIX = (
-    "add odometry or enable graph.motion_prior, drop the tag with graph.min_tag_observations, or check its detections"
-)
+
+def fix_for(problem: GraphProblem, key: int | None) -> str:
+    """What would make the variable ``key`` determined in this graph (None: GTSAM did not say which variable).
+
+    Only fixes that apply: ``graph.motion_prior`` when the run has no odometry and the prior is off,
+    ``graph.model=3d`` for a planar pose (one tag sighting fixes a Pose3, not a Pose2's heading),
+    ``graph.min_tag_observations`` with the count that drops the tag named, and the graph file itself for an
+    imported graph (whose factors no setting changes).
+    """
+    source = problem.info.get("odometry_noise")  # messages / settings / motion_prior / none; None: imported
+    if source is None:
+        return "the graph file leaves it unconstrained: add a prior or an edge to it in the file"
+    poses = set(problem.pose_keys)
+    tags = {k: t for t, k in problem.landmark_keys.items()}
+    fixes: list[str] = []
+    if key is None or key in poses:
+        if source == "none":
+            fixes.append("enable graph.motion_prior (the run has no odometry; it joins consecutive keyframes)")
+        elif source == "motion_prior":
+            fixes.append(
+                f"a stronger zero-motion prior (graph.motion_prior_sigma_m, now {_motion_prior_sigma(problem):.3g} m)"
+            )
+        if problem.model == "planar" and source in ("none", "motion_prior"):
+            fixes.append("graph.model=3d (one tag sighting fixes a 3D pose)")
+        if source in ("messages", "settings"):
+            fixes.append("check that the odometry covers the keyframe (its messages, ingest's start and end)")
+    if key is not None and key in tags:
+        n = sum(1 for r in problem.rows if r.kind == "tag" and key in r.keys)
+        fixes.append(
+            f"drop tag {tags[key]} (seen {n} times) with graph.min_tag_observations={n + 1} (drops every tag "
+            f"seen fewer times), or check its detections"
+        )
+    if key is not None and key == problem.scale_key:
+        fixes.append("graph.tag_scale_sigma=0 (no tag measurement carries the tag scale)")
+    if not fixes:
+        fixes.append("check the detections and odometry around it")
+    return "; or ".join(fixes)
+
+
+def _motion_prior_sigma(problem: GraphProblem) -> float:
+    row = next((r for r in problem.rows if r.kind == "motion_prior"), None)
+    if row is None:
+        return float("nan")
+    cov = np.asarray(row.covariance, dtype=float).reshape(row.dim, row.dim)
+    return float(np.sqrt(cov[0, 0] if problem.model == "planar" else cov[3, 3]))  # x: (x, y, yaw) / (r, t) order
 
 
 def _row_label(problem: GraphProblem, i: int) -> str:
@@ -48,11 +90,11 @@ def check_problem(problem: GraphProblem) -> None:
             touched[k] += row.dim
     for k in keys:
         if touched[k] == 0:
-            raise StageError(f"{problem.describe(k)} is in no factor, so nothing constrains it; {_FIX}")
+            raise StageError(f"{problem.describe(k)} is in no factor, so nothing constrains it; {fix_for(problem, k)}")
         if touched[k] < problem.kind(k).dim:
             raise StageError(
                 f"{problem.describe(k)} is under-constrained ({touched[k]} measurement dimensions for "
-                f"{problem.kind(k).dim} unknowns); {_FIX}"
+                f"{problem.kind(k).dim} unknowns); {fix_for(problem, k)}"
             )
     loose = _unanchored(problem)
     if loose:
@@ -60,7 +102,7 @@ def check_problem(problem: GraphProblem) -> None:
         first = poses[0] if poses else loose[0]
         raise StageError(
             f"{len(loose)} variables are not connected to the first pose, starting with "
-            f"{problem.describe(first)}; {_FIX}"
+            f"{problem.describe(first)}; {fix_for(problem, first)}"
         )
 
 
@@ -131,13 +173,14 @@ def indeterminant_message(problem: GraphProblem, err: Exception, during: str) ->
     """One line naming the variable GTSAM found ill-posed."""
     text = str(err)
     m = _KEY_RE.search(text)
-    who = "an unknown variable"
+    key: int | None = None
     if m:
-        if m.group(1):
-            who = problem.describe(int(gtsam.symbol(m.group(1), int(m.group(2)))))
-        else:
-            who = problem.describe(int(m.group(3)))
-    return f"the graph is singular near {who} ({during}: GTSAM found an indeterminant linear system); {_FIX}"
+        key = int(gtsam.symbol(m.group(1), int(m.group(2)))) if m.group(1) else int(m.group(3))
+    who = problem.describe(key) if key is not None else "an unknown variable"
+    return (
+        f"the graph is singular near {who} ({during}: GTSAM found an indeterminant linear system); "
+        f"{fix_for(problem, key)}"
+    )
 
 
 def _is_indeterminant(err: Exception) -> bool:

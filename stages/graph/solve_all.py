@@ -8,8 +8,10 @@ from typing import Any
 import rerun as rr
 
 from pipeline.artifacts import StageOutput
+from pipeline.errors import StageError
 from stages.graph.config import GraphConfig
 from stages.graph.factors import build_graph
+from stages.graph.health import graph_health, strict_error
 from stages.graph.outputs import log_recording, write_artifacts
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import check_problem, marginal_covariances, optimise
@@ -21,7 +23,10 @@ def solve_and_write(
     """Check the graph, optimise it, take every marginal from one factorisation, write the artifacts, log.
 
     Returns:
-        The stage summary (counts, errors, iterations, timings, and the problem's notes).
+        The stage summary (counts, errors, iterations, timings, the problem's notes and the health checks).
+
+    Raises:
+        StageError: with ``graph.strict``, when a health check fails (nothing is written).
     """
     t0 = time.perf_counter()
     check_problem(problem)
@@ -30,11 +35,24 @@ def solve_and_write(
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
     t2 = time.perf_counter()
     marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    health = graph_health(
+        problem,
+        graph,
+        solution.values,
+        marginals,
+        solution.iterations,
+        cfg.max_iterations,
+        "graph",
+        problem.info.get("tag_size_m"),
+    )
+    if cfg.strict and not health["ok"]:
+        raise StageError(strict_error("graph", health))
     t3 = time.perf_counter()
     summary = write_artifacts(out, problem, solution, marginals)
     if rec is not None:
         log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride)
     summary.update(problem.info)
+    summary["health"] = health
     summary["timing_s"] = {
         "check_and_build": round(t1 - t0, 4),
         "optimise": round(t2 - t1, 4),

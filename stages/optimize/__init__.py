@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 from pipeline.lazy import lazy_exports
 from pipeline.stage import Stage, lazy
+from stages.graph import STRICT, remarks
 from stages.optimize.config import OptimizeConfig
 
 if TYPE_CHECKING:
@@ -73,6 +74,8 @@ STAGE: Final = Stage(
     version="1",
     blueprint=blueprint,
     help="Re-optimise the reduced graph (focused landmarks, selected measurements); entropy, errors, risk, size.",
+    options=(STRICT,),
+    remarks=remarks,
 )
 
 __all__ = [

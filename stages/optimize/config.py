@@ -27,4 +27,9 @@ class OptimizeConfig(SettingsModel):
         description="A focused landmark that keeps no measurement enters the focused entropy with this isotropic "
         "standard deviation per dimension, m (the weak landmark prior of measurement selection).",
     )
+    strict: bool = Field(
+        False,
+        description="Make a failed health check of the reduced graph (stages/graph/health.py) an error: the stage "
+        "stops and its results are not kept (--strict).",
+    )
     pose_ellipse_stride: int = Field(10, ge=1, description="Draw the covariance ellipse of every n-th pose.")

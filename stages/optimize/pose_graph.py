@@ -24,6 +24,7 @@ from stages.graph.load import LoadedGraph
 from stages.graph.outputs import write_artifacts
 from stages.graph.solve import check_problem, optimise
 from stages.optimize.artifacts import FULL_INDEX, INDEX, KEPT
+from stages.optimize.checks import reduced_health
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import marginals_of
 from stages.select_measurements.artifacts import SelectedMeasurements
@@ -55,6 +56,7 @@ def run_pose_focus(
     graph = build_graph(rows)
     solution = optimise(problem, graph, "lm", cfg.max_iterations, cfg.relative_error_tol)
     marginals = marginals_of(problem, graph, solution)
+    health = reduced_health(ctx.input("graph"), problem, solution, marginals, cfg)
     summary = write_artifacts(ctx.output, problem, solution, marginals)
     log_pose_graph(ctx.rec, loaded, solution.values, [int(i) for i in selection.factor_indices])
     KEPT.write(ctx.output, {INDEX: np.arange(len(keep)), FULL_INDEX: keep})
@@ -74,6 +76,7 @@ def run_pose_focus(
             "trajectory_vs_full": trajectory_difference(loaded, solution.values, loaded.values),
             "final_error_full_graph_at_reduced_solution": float(loaded.graph.error(solution.values)),
             "final_error_full_graph": float(loaded.graph.error(loaded.values)),
+            "health": health,
         }
     )
     return summary

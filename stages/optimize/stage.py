@@ -32,6 +32,7 @@ from stages.optimize.artifacts import (
     RISK,
     SIGMA_M,
 )
+from stages.optimize.checks import reduced_health
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
@@ -81,6 +82,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
         cfg.relative_error_tol,
         cfg.unobserved_sigma_m,
     )
+    health = reduced_health(graph_in, reduced.problem, reduced.solution, reduced.marginals, cfg)
     summary = write_artifacts(ctx.output, reduced.problem, reduced.solution, reduced.marginals)
     KEPT.write(ctx.output, {INDEX: np.arange(len(reduced.full_index)), FULL_INDEX: reduced.full_index})
     full_map = LandmarkMap.from_graph(loaded)
@@ -122,6 +124,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
             "dropped_unfocused_measurements": reduced.dropped_unfocused,
             "initialise_from": cfg.initialise_from,
             "solve": solve_settings(cfg),
+            "health": health,
             "timing_s": {**reduced.timing_s, "total": round(time.perf_counter() - t0, 4)},
         }
     )

@@ -113,13 +113,14 @@ def test_a_stage_line_shows_the_figures_its_stage_chooses(capsys: pytest.Capture
     }
     cli_app._print_result(REGISTRY["ingest"], StageResult("ingest", "done", 1.25, summary))
     cli_app._print_result(REGISTRY["graph"], StageResult("graph", "skipped", 0.0, {"poses": 5, "notes": ["old"]}))
-    assert capsys.readouterr().out.splitlines() == [
+    printed = capsys.readouterr()
+    assert printed.out.splitlines() == [
         "ingest               done in 1.2 s    frames=12  odometry=40  duration_s=4.0  start_ns=17  reader=rosbags  "
         "format=ros1",
-        "  note: odometry has gaps",
         "  salvaged: {'messages': 3}",
         "graph                up to date       poses=5",
     ]
+    assert printed.err.splitlines() == ["  note: odometry has gaps"]  # notes and warnings go to stderr
 
 
 def test_a_run_ends_with_the_report_lines_of_its_stages(capsys: pytest.CaptureFixture[str]) -> None:

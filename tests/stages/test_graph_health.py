@@ -1,0 +1,190 @@
+"""Health checks after graph and optimize, ``graph.model: auto``, and singular-graph fixes (issue #13 items 4, 6, 7).
+
+Each check must stay quiet on a world with correct settings and fire on the world made to break it: tags of
+another size than the settings say, a tag that moves, an optimiser capped at one iteration, wheels that report the
+wrong distance. The worlds are synthetic runs (ingest- and detect-shaped tables) run through the stage runner; the
+command line is exercised on one of them (warnings on stderr, ``--strict``), optimize on the bundled sample.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from typer.testing import CliRunner
+
+from cli.app import app
+from pipeline.config import load_settings
+from pipeline.errors import StageError
+from pipeline.registry import Registry
+from pipeline.run_folder import RunFolder
+from pipeline.runner import run_stage
+from stages import graph as graph_stage
+from stages.graph.build import build_problem
+from stages.graph.config import GraphConfig
+from stages.graph.solve import check_problem, fix_for
+from tests.fixtures.office import copy_run, run_select
+from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
+from tests.fixtures.upstream import seed_upstream, stand_in
+
+REG = Registry([stand_in("ingest"), stand_in("detect", "ingest"), graph_stage.STAGE])
+SIZE = 0.16  # the size the synthetic detections assume
+
+
+def _graph(tmp_path: Path, sim: SyntheticRun, *overrides: str) -> tuple[RunFolder, dict[str, Any]]:
+    run = RunFolder.create(tmp_path / "run", None)
+    seed_upstream(run, sim)
+    result = run_stage(run, REG, "graph", load_settings(REG.models(), overrides=list(overrides)))
+    return run, result.summary
+
+
+def _failed(summary: dict[str, Any]) -> set[str]:
+    return {name for name, check in summary["health"]["checks"].items() if not check["ok"]}
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return _graph(tmp_path_factory.mktemp("good"), synthetic_run(seed=3, loops=2.0))[1]
+
+
+def test_a_world_with_correct_settings_passes_every_check(good: dict[str, Any]) -> None:
+    health = good["health"]
+    assert health["ok"] and health["warnings"] == [] and _failed(good) == set()
+    checks = health["checks"]
+    assert checks["chi2"]["by_kind"]["tag"]["chi2_per_dof"] < 2
+    assert checks["chi2"]["by_kind"]["odometry"]["chi2_per_dof"] < 2
+    assert abs(checks["tag_scale"]["prior_sigmas_from_1"]) < 3 and checks["tag_scale"]["tag_size_m"] == SIZE
+    assert checks["iterations"]["iterations"] < checks["iterations"]["max_iterations"]
+    assert checks["moved_tags"]["tags"] == [] and checks["moved_tags"]["tags_judged"] > 10
+    assert checks["dead_reckoning"]["compared"] == good["poses"]
+    assert checks["dead_reckoning"]["max_d2_per_dim"] < 25
+    # a wheeled robot on a flat floor: auto picks the planar model and says why
+    assert good["model"] == "planar" and good["model_choice"]["setting"] == "auto"
+    assert good["model_choice"]["reason"].startswith("planar motion")
+
+
+def test_a_wrong_tag_size_names_the_setting_and_the_size_the_data_suggest(tmp_path: Path) -> None:
+    """0.20 m tags detected as the 0.162 m default: every translation 0.81 times the truth."""
+    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, range_scale=0.162 / 0.20))
+    assert "tag_scale" in _failed(summary)
+    scale = summary["health"]["checks"]["tag_scale"]
+    assert scale["value"] > 1.05 and scale["prior_sigmas_from_1"] > 3
+    line = next(w for w in summary["health"]["warnings"] if "tag scale" in w)
+    assert "detect.tag_size_m=0.16" in line and f"{SIZE * scale['value']:.3f} m" in line
+
+
+def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
+    """Tag 3 (south wall) slides 0.5 m along its wall halfway through two loops."""
+    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, moved_tag=(3, 0.5, (0.5, 0.0, 0.0))))
+    moved = summary["health"]["checks"]["moved_tags"]
+    assert "moved_tags" in _failed(summary)
+    assert moved["tags"][0] == 3 and len(moved["tags"]) <= 2
+    assert any("tag(s) look like they moved" in w and ": 3 (" in w for w in summary["health"]["warnings"])
+
+
+def test_an_optimiser_at_its_iteration_cap_is_not_converged(tmp_path: Path) -> None:
+    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0), "graph.max_iterations=1")
+    assert "iterations" in _failed(summary)
+    assert any("graph.max_iterations=1" in w for w in summary["health"]["warnings"])
+
+
+def test_odometry_with_a_yaw_bias_disagrees_with_the_trajectory(tmp_path: Path) -> None:
+    """The odometry turns 0.02 rad/s more than the robot (about 1.2 rad over the run); its covariances do not know it.
+
+    (A distance scale error would not do: the shared tag scale takes it, as it should.)"""
+    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, odom_yaw_bias_radps=0.02))
+    assert "dead_reckoning" in _failed(summary)
+    assert summary["health"]["checks"]["dead_reckoning"]["max_d2_per_dim"] > 25
+
+
+def test_strict_makes_a_failed_check_an_error_and_keeps_nothing(tmp_path: Path) -> None:
+    sim = synthetic_run(seed=3, loops=2.0, range_scale=0.162 / 0.20)
+    run = RunFolder.create(tmp_path / "run", None)
+    seed_upstream(run, sim)
+    with pytest.raises(StageError, match=r"^graph\.strict: a health check failed: .*detect\.tag_size_m") as err:
+        run_stage(run, REG, "graph", load_settings(REG.models(), overrides=["graph.strict=true"]))
+    assert "\n" not in str(err.value)
+    assert run.stage_entry("graph") is None and not run.stage_dir("graph").exists()
+
+
+def test_the_command_line_prints_warnings_on_stderr_and_strict_exits_non_zero(tmp_path: Path) -> None:
+    run = RunFolder.create(tmp_path / "run", None)
+    seed_upstream(run, synthetic_run(seed=3, loops=1.0))
+    ok = CliRunner().invoke(app, ["graph", str(run.path), "--set", "graph.max_iterations=1"])
+    assert ok.exit_code == 0, ok.output
+    assert "warning: the optimiser stopped at its iteration cap" in ok.stderr
+    assert "note: graph model planar (graph.model=auto)" in ok.stderr
+    assert "warning:" not in ok.stdout and ok.stdout.startswith("graph ")
+    strict = CliRunner().invoke(app, ["graph", str(run.path), "--set", "graph.max_iterations=1", "--strict"])
+    assert strict.exit_code == 1
+    assert strict.stderr.startswith("error: graph.strict: a health check failed: the optimiser stopped")
+    assert json.loads((run.stage_dir("graph") / "summary.json").read_text())["health"]["ok"] is False  # the old one
+
+
+def test_optimize_checks_its_reduced_graph(office_run: Path, tmp_path: Path) -> None:
+    """On the bundled sample: quiet with the defaults, the iteration cap fires at 1, strict keeps nothing."""
+    run = copy_run(office_run, tmp_path)
+    assert json.loads((run.stage_dir("graph") / "summary.json").read_text())["health"]["ok"]
+    run_select(run, "select_landmarks", ["select_landmarks.budget=10"])
+    run_select(run, "select_measurements", ["select_landmarks.budget=10", "select_measurements.budget=30"])
+    base = ["select_landmarks.budget=10", "select_measurements.budget=30"]
+    assert run_select(run, "optimize", base)["health"]["ok"]
+    capped = run_select(run, "optimize", [*base, "optimize.max_iterations=1"])["health"]
+    assert not capped["checks"]["iterations"]["ok"]
+    assert any("optimize.max_iterations=1" in w for w in capped["warnings"])
+    before = run.stage_entry("optimize")
+    with pytest.raises(StageError, match=r"^optimize\.strict: .*optimize\.max_iterations=1"):
+        run_select(run, "optimize", [*base, "optimize.max_iterations=1", "optimize.strict=true"])
+    assert run.stage_entry("optimize") == before  # the earlier result stays, the strict one is not recorded
+
+
+# --- graph.model: auto ------------------------------------------------------------------------------
+
+
+def _without_odometry(sim: SyntheticRun) -> SyntheticRun:
+    return SyntheticRun(sim.odometry.slice(0, 0), sim.detections, sim.extrinsics, sim.true_stamps_ns, sim.true_poses)
+
+
+def test_auto_picks_3d_without_odometry_and_when_the_odometry_leaves_the_plane() -> None:
+    sim = synthetic_run(seed=3, loops=0.5)
+    cfg = GraphConfig()
+    none = build_problem(sim.detections, None, sim.extrinsics, cfg)
+    assert none.model == "3d" and "no odometry" in none.info["model_choice"]["reason"]
+    z = np.linspace(0.0, 0.5, sim.odometry.num_rows)
+    ramp = sim.odometry.set_column(sim.odometry.schema.get_field_index("z"), "z", pa.array(z))
+    climbing = build_problem(sim.detections, ramp, sim.extrinsics, cfg)
+    assert climbing.model == "3d" and "height spans 0.50 m" in climbing.info["model_choice"]["reason"]
+    flat = build_problem(sim.detections, sim.odometry, sim.extrinsics, cfg)
+    assert flat.model == "planar"
+    assert build_problem(sim.detections, None, sim.extrinsics, GraphConfig(model="planar")).model == "planar"
+
+
+# --- singular graphs name a fix that applies ---------------------------------------------------------
+
+
+def test_an_under_constrained_pose_names_the_fixes_of_its_graph() -> None:
+    """Planar, no odometry: a keyframe that sees one tag has 2 measurement dimensions for 3 unknowns."""
+    sim = synthetic_run(seed=3, loops=0.5)
+    off = build_problem(sim.detections, None, sim.extrinsics, GraphConfig(model="planar", motion_prior=False))
+    with pytest.raises(StageError) as err:
+        check_problem(off)
+    line = str(err.value)
+    assert "under-constrained" in line and "enable graph.motion_prior" in line and "graph.model=3d" in line
+    assert "min_tag_observations" not in line  # it cannot drop a pose
+    on = build_problem(sim.detections, None, sim.extrinsics, GraphConfig(model="planar"))
+    fix = fix_for(on, on.pose_keys[5])
+    assert "enable graph.motion_prior" not in fix and "graph.motion_prior_sigma_m, now 1 m" in fix
+    with_odometry = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig())
+    assert "motion_prior" not in fix_for(with_odometry, with_odometry.pose_keys[5])
+
+
+def test_a_singular_tag_names_the_count_that_drops_it() -> None:
+    sim = synthetic_run(seed=3, loops=0.5)
+    problem = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig())
+    tag, key = next(iter(problem.landmark_keys.items()))
+    n = sum(1 for r in problem.rows if r.kind == "tag" and r.tag_id == tag)
+    assert f"drop tag {tag} (seen {n} times) with graph.min_tag_observations={n + 1}" in fix_for(problem, key)
