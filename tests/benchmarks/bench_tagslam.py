@@ -27,6 +27,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -98,7 +99,7 @@ def read_reference(bag: Path) -> tuple[np.ndarray, np.ndarray]:
     with AnyReader([bag]) as reader:
         conns = [c for c in reader.connections if c.topic == REFERENCE_TOPIC]
         for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)
             stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
             p = msg.pose.pose.position
             xyz.append((p.x, p.y, p.z))
@@ -138,7 +139,7 @@ def path_length(xyz: np.ndarray) -> float:
 def evo_ate(t_est: np.ndarray, xyz_est: np.ndarray, t_ref: np.ndarray, xyz_ref: np.ndarray) -> float | None:
     """evo's APE (translation RMSE) with ``--align`` and 10 ms association, when evo imports; else None."""
     try:
-        from evo.core import metrics, sync, trajectory
+        from evo.core import metrics, sync, trajectory  # type: ignore[import-not-found]
     except ImportError:
         return None
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_est), 1))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -179,7 +180,7 @@ def test_stereo_tagslam_recording_uses_each_cameras_calibration(tmp_path: Path) 
     ]
     run = RunFolder.create(tmp_path / "run", bag)
     settings = load_settings(registry.models(), None, sets)
-    summary = run_stage(run, registry, "ingest", settings).summary
+    summary: dict[str, Any] = run_stage(run, registry, "ingest", settings).summary
     assert summary["camera_topics"] == ["/stereo/left/tags", "/stereo/right/tags"]
     assert summary["warnings"] == []
     out = run.stage_dir("ingest")
@@ -193,9 +194,9 @@ def test_stereo_tagslam_recording_uses_each_cameras_calibration(tmp_path: Path) 
     assert np.allclose(np.asarray(right["T_base_sensor"])[:3, 3], [0.08058282, 0.00047375, -0.07335839])
     assert cams["/stereo/right/tags"]["K"][0] == pytest.approx(471.126)  # cam1's, not cam0's 470.338
     assert cams["/stereo/left/tags"]["K"][0] == pytest.approx(470.338)
-    det = run_stage(run, registry, "detect", settings).summary
+    det: dict[str, Any] = run_stage(run, registry, "detect", settings).summary
     assert det["families"] == ["tag36h11"] and det["detections"] > 0
-    g = run_stage(run, registry, "graph", settings).summary
+    g: dict[str, Any] = run_stage(run, registry, "graph", settings).summary
     assert set(g["extrinsics"]) == {"/stereo/left/tags", "/stereo/right/tags"}
     assert "dropped_camera_without_extrinsics" not in g
 
@@ -224,12 +225,12 @@ def test_camera_without_extrinsics_is_a_warning_and_left_out(tmp_path: Path) -> 
     ]
     run = RunFolder.create(tmp_path / "run", bag)
     settings = load_settings(registry.models(), None, sets)
-    summary = run_stage(run, registry, "ingest", settings).summary
+    summary: dict[str, Any] = run_stage(run, registry, "ingest", settings).summary
     (warning,) = summary["warnings"]
     assert "'cam1'" in warning and "left out of the graph" in warning and "--extrinsics" in warning
     assert ("warning", warning) in remarks(summary)
     run_stage(run, registry, "detect", settings)
-    g = run_stage(run, registry, "graph", settings).summary
+    g: dict[str, Any] = run_stage(run, registry, "graph", settings).summary
     assert list(g["dropped_camera_without_extrinsics"]) == ["/stereo/right/tags"]
     assert g["dropped_camera_without_extrinsics"]["/stereo/right/tags"] > 0
     assert set(g["extrinsics"]) == {"/stereo/left/tags"}
