@@ -104,10 +104,13 @@ def observations_to_rows(
     dropped: Counter[str],
     apply_quality: bool = True,
 ) -> list[DetectionRow]:
-    """Filter observations by the settings and estimate each one's pose; one row per kept tag."""
+    """Filter observations by the settings and estimate each one's pose; one row per kept tag.
+
+    ``apply_quality=False`` (detections a bag holds) keeps every family and skips the decoding checks.
+    """
     rows = []
     for obs in observations:
-        if obs.family not in cfg.families:
+        if apply_quality and obs.family not in cfg.families:  # a bag's detections: any family, no decoding
             dropped["family"] += 1
             continue
         if apply_quality and obs.hamming > cfg.max_hamming:
@@ -160,12 +163,25 @@ def detect_image(
 
 
 class FrameProcessor:
-    """A detector and a camera model, built once per worker process."""
+    """A detector and the camera models, built once per worker process."""
 
-    def __init__(self, cfg: DetectConfig, camera: CameraModel, with_detector: bool = True) -> None:
+    def __init__(
+        self,
+        cfg: DetectConfig,
+        camera: CameraModel,
+        with_detector: bool = True,
+        cameras: dict[str, CameraModel] | None = None,
+    ) -> None:
+        """``camera``: the camera of every frame; ``cameras``: of a rig, each camera by its topic (a frame's
+        ``camera``), ``camera`` for the others."""
         self.cfg = cfg
         self.camera = colmap_camera(camera)
+        self.cameras = {topic: colmap_camera(model) for topic, model in (cameras or {}).items()}
         self.detector = make_detector(cfg) if with_detector else None
+
+    def camera_of(self, job: FrameJob) -> pycolmap.Camera:
+        """The camera that took ``job``'s frame."""
+        return self.cameras.get(job.camera, self.camera)
 
     def process(self, jobs: list[FrameJob]) -> BatchResult:
         """Process a batch of frames; corrupt frames are listed, not raised."""
@@ -174,7 +190,7 @@ class FrameProcessor:
             result.frames += 1
             if job.observations is not None:
                 result.rows += observations_to_rows(
-                    job.observations, job, self.cfg, self.camera, result.dropped, apply_quality=False
+                    job.observations, job, self.cfg, self.camera_of(job), result.dropped, apply_quality=False
                 )
                 continue
             try:
@@ -183,17 +199,22 @@ class FrameProcessor:
                 result.corrupt.append((job.frame, str(err)))
                 continue
             assert self.detector is not None
-            result.rows += detect_image(gray, self.detector, self.camera, self.cfg, job, result.dropped)
+            result.rows += detect_image(gray, self.detector, self.camera_of(job), self.cfg, job, result.dropped)
         return result
 
 
 _PROCESSOR: FrameProcessor | None = None
 
 
-def init_worker(cfg_data: dict[str, Any], camera: CameraModel, with_detector: bool) -> None:
-    """Worker-process initializer: build the detector and camera once."""
+def init_worker(
+    cfg_data: dict[str, Any],
+    camera: CameraModel,
+    with_detector: bool,
+    cameras: dict[str, CameraModel] | None = None,
+) -> None:
+    """Worker-process initializer: build the detector and cameras once."""
     global _PROCESSOR
-    _PROCESSOR = FrameProcessor(DetectConfig.model_validate(cfg_data), camera, with_detector)
+    _PROCESSOR = FrameProcessor(DetectConfig.model_validate(cfg_data), camera, with_detector, cameras)
 
 
 def process_in_worker(jobs: list[FrameJob]) -> BatchResult:

@@ -48,6 +48,7 @@ from stages.detect.core import (
 from stages.detect.pose import pose_covariance
 from stages.ingest.artifacts import CAMERA as CAMERA_MODEL
 from stages.ingest.artifacts import (
+    CAMERAS,
     DATA,
     FORMAT,
     FRAMES,
@@ -132,12 +133,19 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
             f"ingest wrote no {CAMERA_MODEL.file} (no camera_info in the bag); re-run ingest with --camera FILE"
         )
     camera = CAMERA_MODEL.read(ingest)
+    cameras = CAMERAS.read(ingest).cameras if ingest.exists(CAMERAS.file) else None
     from_bag = ingest.exists(TAG_DETECTIONS.file)
     _log_static(ctx.rec, camera)
     batches, total, workers = _batches(ingest, cfg, from_bag)
-    found = _detect(ctx, cfg, camera, from_bag, batches, total, workers)
+    found = _detect(ctx, cfg, (camera, cameras), from_bag, batches, total, workers)
     sigma, sigma_source = _corner_sigma(found.rows, cfg)
     table, n_ambiguous, n_dropped_ambiguous = _table(found.rows, sigma, cfg)
+    if table.num_rows == 0 and from_bag:
+        raise StageError(
+            f"no usable tags in the bag's detections ({found.frames} frames, dropped: "
+            f"{', '.join(f'{k} {v}' for k, v in found.dropped.items() if v) or 'none'}); check the tag sizes "
+            "(detect.tag_size_m) and max_reprojection_px / min_side_px"
+        )
     if table.num_rows == 0:
         raise StageError(
             f"no {'/'.join(cfg.families)} tags found in {found.frames} frames ({len(found.corrupt)} corrupt) with "
@@ -157,7 +165,7 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         ),
         "detector": "bag" if from_bag else cfg.backend,
         "source": "tag_detections" if from_bag else "images",
-        "families": list(cfg.families),
+        "families": sorted(set(table.column(FAMILY).to_pylist())) if from_bag else list(cfg.families),
         "corrupt_frames": len(found.corrupt),
         "corrupt_frame_ids": [f for f, _ in found.corrupt][:100],
         "dropped": {k: int(found.dropped.get(k, 0)) for k in DROP_REASONS} | {"ambiguous": n_dropped_ambiguous},
@@ -189,22 +197,26 @@ def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Ite
 def _detect(
     ctx: StageContext,
     cfg: DetectConfig,
-    camera: CameraModel,
+    rig: tuple[CameraModel, dict[str, CameraModel] | None],
     from_bag: bool,
     batches: Iterable[list[FrameJob]],
     total: int,
     workers: int,
 ) -> BatchResult:
-    """Process the batches (in ``workers`` processes when more than one), logging the frames as they come."""
+    """Process the batches (in ``workers`` processes when more than one), logging the frames as they come.
+
+    ``rig``: the camera, and of a rig with several, each camera by its topic.
+    """
+    camera, cameras = rig
     pool = None
     if workers > 1:
         # Its workers die with this process and leave Ctrl-C to it (pipeline.workers).
         pool = WorkerPool(
-            workers, initializer=init_worker, initargs=(cfg.model_dump(mode="json"), camera, not from_bag)
+            workers, initializer=init_worker, initargs=(cfg.model_dump(mode="json"), camera, not from_bag, cameras)
         )
         fn = process_in_worker
     else:
-        fn = FrameProcessor(cfg, camera, with_detector=not from_bag).process
+        fn = FrameProcessor(cfg, camera, with_detector=not from_bag, cameras=cameras).process
     found = BatchResult()  # the sum over every batch
     try:
         stream = _bounded_map(fn, batches, pool, 2 * workers)

@@ -39,10 +39,10 @@ from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
 from stages.graph.variables import SCALE
-from stages.ingest.artifacts import EXTRINSICS, Extrinsics
+from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount
 from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
 
-__all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic"]
+__all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic", "camera_mount"]
 
 DETECTION_COLUMNS = (FRAME, STAMP_NS, CAMERA, TAG_ID, T_CAMERA_TAG, DETECTION_POSE_COV)
 """Columns of ``detections.parquet`` the graph needs."""
@@ -55,15 +55,32 @@ ODOMETRY_COLUMNS = (STAMP_NS, *POSITION, *QUATERNION, ODOMETRY_POSE_COV)
 def camera_extrinsic(extrinsics: Extrinsics | None, camera: str) -> tuple[gtsam.Pose3, str]:
     """``T_base_camera`` for a detection's ``camera`` value (a sensor role, else a sensor's frame id, else the
     ``camera`` role), and where it came from."""
-    sensors = extrinsics.sensors if extrinsics is not None else {}
-    entry = sensors.get(camera)
-    if entry is None:
-        entry = next((s for s in sensors.values() if s.frame_id == camera), None)
-    if entry is None:
-        entry = sensors.get("camera")
+    entry = camera_mount(extrinsics, camera)
     if entry is None:
         return gtsam.Pose3(), f"identity (no base-to-camera transform in {EXTRINSICS.file})"
     return pose3_from_matrix(entry.T_base_sensor), EXTRINSICS.file
+
+
+def camera_mount(extrinsics: Extrinsics | None, camera: str) -> SensorMount | None:
+    """The mount of a detection's ``camera`` value: the sensor of that role, else of that topic, else of that
+    frame id, else the ``camera`` role; None when there is none."""
+    sensors = extrinsics.sensors if extrinsics is not None else {}
+    entry = sensors.get(camera)
+    if entry is None:
+        entry = next((s for s in sensors.values() if s.topic == camera), None)
+    if entry is None:
+        entry = next((s for s in sensors.values() if s.frame_id == camera), None)
+    return entry if entry is not None else sensors.get("camera")
+
+
+def _cameras_without_mount(cameras: list[Any], extrinsics: Extrinsics | None) -> set[str]:
+    """Of a rig with several cameras, those whose mount was assumed (no transform recorded or given): their
+    detections would place the tags wrongly, so the graph leaves them out (ingest warns about each)."""
+    names = {str(c) for c in set(cameras)}
+    if len(names) < 2:
+        return set()
+    mounts = {c: camera_mount(extrinsics, c) for c in names}
+    return {c for c, m in mounts.items() if m is not None and m.assumed}
 
 
 def build_problem(
@@ -78,7 +95,7 @@ def build_problem(
         StageError: when nothing is left to build a graph from.
         InputError: when the detection table lacks a needed column.
     """
-    det, usable, info = _usable_detections(detections, cfg)
+    det, usable, info = _usable_detections(detections, cfg, extrinsics)
     stamps = np.asarray(det[STAMP_NS], dtype=np.int64)
     odom = Odometry.from_table(odometry)
     choice = choose_model(cfg.model, odom, det, usable, lambda cam: camera_extrinsic(extrinsics, cam)[0], det[TAG_ID])
@@ -121,7 +138,7 @@ def _common_size(sizes: list[Any], usable: np.ndarray) -> float | None:
 
 
 def _usable_detections(
-    detections: pa.Table, cfg: GraphConfig
+    detections: pa.Table, cfg: GraphConfig, extrinsics: Extrinsics | None = None
 ) -> tuple[dict[str, list[Any]], np.ndarray, dict[str, Any]]:
     """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
     if missing := sorted(set(DETECTION_COLUMNS) - set(detections.column_names)):
@@ -140,6 +157,12 @@ def _usable_detections(
         bad = ~(rep <= cfg.max_reprojection_px)
         info["dropped_reprojection"] = int((bad & keep).sum())
         keep &= ~bad
+    if unmounted := _cameras_without_mount(det[CAMERA], extrinsics):
+        off = np.isin(np.asarray(det[CAMERA], dtype=object), sorted(unmounted))
+        info["dropped_camera_without_extrinsics"] = {
+            c: int((off & keep)[np.asarray(det[CAMERA]) == c].sum()) for c in sorted(unmounted)
+        }
+        keep &= ~off
     counts = Counter(int(t) for t, k in zip(det[TAG_ID], keep, strict=True) if k)
     rare = sorted(t for t, c in counts.items() if c < cfg.min_tag_observations)
     info["tags_dropped_few_observations"] = rare

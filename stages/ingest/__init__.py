@@ -43,13 +43,26 @@ def _camera_file(path: Path) -> str:
     return json.dumps(str(path.resolve()))
 
 
+def _extrinsics_file(path: Path) -> str:
+    """``--extrinsics``: an existing file, as an absolute path."""
+    if not path.is_file():
+        raise InputError(
+            f"extrinsics file {str(path)!r} not found; pass an existing camera_poses.yaml, Kalibr camchain or "
+            "frame: 4x4 YAML to --extrinsics"
+        )
+    return json.dumps(str(path.resolve()))
+
+
 def summary_line(summary: Summary) -> str:
     """The figures of an ingest (without the topic names, camera model and read time)."""
-    return summary_figures(summary, hidden=("seconds", "topics", "camera", "notes", "dropped", "read_seconds"))
+    return summary_figures(
+        summary,
+        hidden=("seconds", "topics", "camera", "notes", "warnings", "camera_topics", "dropped", "read_seconds"),
+    )
 
 
 def remarks(summary: Summary) -> list[tuple[str, str]]:
-    """Notes, and how much of a damaged bag was salvaged."""
+    """Warnings (an assumed identity extrinsic), notes, and how much of a damaged bag was salvaged."""
     from stages.ingest.info import salvage_text
 
     salvaged = summary.get("salvaged")
@@ -61,7 +74,11 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
         for topic, reasons in (dropped.items() if isinstance(dropped, dict) else [])
         if isinstance(reasons, dict)
     ]
+    warnings = summary.get("warnings")
+    cameras = summary.get("camera_topics")
     return [
+        *(("warning", str(w)) for w in (warnings if isinstance(warnings, list) else [])),
+        *([("cameras", ", ".join(str(c) for c in cameras))] if isinstance(cameras, list) else []),
         *summary_notes(summary),
         *([("salvaged", salvage_text(salvaged) if isinstance(salvaged, dict) else str(salvaged))] if salvaged else []),
         *(
@@ -82,6 +99,14 @@ OPTIONS: Final = (
         "Camera calibration (Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML).",
         Path,
         value=_camera_file,
+    ),
+    Option(
+        "--extrinsics",
+        "extrinsics_file",
+        "Where the cameras sit on the rig (TagSLAM camera_poses.yaml, Kalibr camchain, or frame: 4x4 "
+        "T_base_frame YAML); default: /tf_static.",
+        Path,
+        value=_extrinsics_file,
     ),
     Option("--salvage", "salvage", "Read a damaged bag up to the damage and say how much was recovered.", bool),
 )

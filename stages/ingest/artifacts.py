@@ -99,7 +99,28 @@ class CameraModel(BaseModel):
     source: str = Field("", description="`camera_info` or the calibration file it came from")
 
 
-CAMERA: Final = JsonSpec("camera.json", "the camera model the frames were taken with", CameraModel)
+CAMERA: Final = JsonSpec(
+    "camera.json", "the camera model the frames were taken with (a rig's first camera)", CameraModel
+)
+
+
+class Rig(BaseModel):
+    """The cameras of a rig with several, each with its own calibration."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    cameras: dict[str, CameraModel] = Field(
+        description="by the topic its frames or detections come from (the `topic` of `frames.parquet` and "
+        "`tag_detections.parquet`, detect's `camera`): the camera model"
+    )
+
+
+CAMERAS: Final = JsonSpec(
+    "cameras.json",
+    "every camera of a rig with several (the first is also `camera.json`); absent for one camera",
+    Rig,
+    optional=True,
+)
 
 
 # extrinsics.json ---------------------------------------------------------------------------------------
@@ -111,23 +132,36 @@ class SensorMount(BaseModel):
     frame_id: str = Field(description="the sensor's frame")
     T_base_sensor: list[list[float]] = Field(description="4x4, maps points in the sensor frame into the base frame")
     assumed: bool = Field(False, description="true when no transform was recorded and identity was assumed")
+    topic: str | None = Field(None, description="a camera's image or detections topic (detect's `camera`)")
+    source: str = Field(
+        "",
+        description="where the transform came from: `/tf_static`, `base frame` (the sensor is the base), "
+        "`FILE (kind) ENTRY` for --extrinsics, or `identity (assumed)`",
+    )
 
 
 class Extrinsics(BaseModel):
-    """The robot's frames and its sensors' mounts, from ``/tf_static``."""
+    """The robot's frames and its sensors' mounts, from ``/tf_static`` or an extrinsics file."""
 
     model_config = ConfigDict(extra="forbid")
 
     base_frame: str = Field(description="the odometry's child frame (the robot's base)")
     odom_frame: str | None = Field(None, description="the odometry's frame")
     sensors: dict[str, SensorMount] = Field(
-        default_factory=dict, description="by role (`camera`, `laser`): the sensor's frame and mount"
+        default_factory=dict,
+        description="by role (`camera`: the first camera, `laser`), and each further camera of a rig by its topic: "
+        "the sensor's frame and mount",
+    )
+    file: str | None = Field(
+        None, description="the extrinsics file given (--extrinsics), absolute; null = `/tf_static` only"
     )
 
 
 EXTRINSICS: Final = JsonSpec(
     "extrinsics.json",
-    "the robot's frames and where its sensors sit, from the static transforms (`/tf_static`)",
+    "the robot's frames and where its sensors sit, from the static transforms (`/tf_static`) or the file given "
+    "with --extrinsics (TagSLAM camera_poses.yaml, Kalibr camchain or frame: 4x4 T_base_frame), per sensor with "
+    "its source",
     Extrinsics,
 )
 
@@ -142,5 +176,5 @@ ARTIFACTS: Final = ArtifactSet(
     "(a non-finite pose or twist, a non-finite or denormal covariance, a negative laser range, an image size that "
     "does not match its data) or for not decoding (without `--salvage` such a message stops the stage); "
     "`salvaged`, after a `--salvage` read, says what was read and what was lost, per topic and in time.",
-    [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, EXTRINSICS],
+    [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, CAMERAS, EXTRINSICS],
 )

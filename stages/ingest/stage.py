@@ -19,9 +19,11 @@ from pipeline.context import StageContext
 from pipeline.contracts import TableSpec
 from pipeline.errors import InputError
 from stages.columns import CORNERS, FAMILY, FRAME, FRAME_ID, STAMP_NS, TAG_ID, TOPIC
+from stages.extrinsics import ExtrinsicsFile
 from stages.ingest import convert
 from stages.ingest.artifacts import (
     CAMERA,
+    CAMERAS,
     CHILD_FRAME_ID,
     EXTRINSICS,
     FRAMES,
@@ -30,12 +32,14 @@ from stages.ingest.artifacts import (
     TAG_DETECTIONS,
     CameraModel,
     Extrinsics,
+    Rig,
     SensorMount,
 )
 from stages.ingest.bags import RawMessage, Recording
 from stages.ingest.config import IngestConfig
 from stages.ingest.record import log_ingest
-from stages.ingest.topics import ROLES, resolve_topic
+from stages.ingest.topics import ROLES, resolve_camera_topics, resolve_topic
+from stages.tag_families import bag_family
 
 
 def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[str, Any]]:
@@ -43,9 +47,7 @@ def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[s
     rows: list[dict[str, Any]] = []
     for det in convert.get(msg, "apriltags", "detections", default=[]):
         corners = [float(v) for c in det.corners for v in (c.x, c.y)]
-        family = str(convert.get(det, "family", default="") or "tag36h11")
-        if family and not family.startswith("tag"):
-            family = f"tag{family}"
+        family = bag_family(str(convert.get(det, "family", default="") or ""))
         rows.append(
             {FRAME: frame, STAMP_NS: stamp, TOPIC: topic, TAG_ID: int(det.id), FAMILY: family, CORNERS: corners[:8]}
         )
@@ -77,10 +79,44 @@ class _TableWriter:
         self.writer.close()
 
 
-def _load_camera_file(path: str) -> CameraModel:
-    from stages.camera import load_camera_file
+def _calibrated_topics(path: str) -> list[set[str]]:
+    """The topic names (and name) of each camera of a calibration file, in the file's order."""
+    from stages.camera import load_camera_file, load_camera_files
 
-    return load_camera_file(Path(path))
+    load_camera_file(Path(path))  # one error line for an unreadable or malformed file
+    return [{name, *(t for t in (m.topic, m.tag_topic) if t)} for name, m in load_camera_files(Path(path)).items()]
+
+
+def _load_cameras(path: str, topics: list[str]) -> dict[str, CameraModel]:
+    """The calibration of each camera topic from the file: the camera whose ``rostopic``/``tagtopic`` (or name)
+    is the topic; a file with one camera serves a single topic whatever its topic names.
+
+    Raises:
+        InputError: a topic that no camera of a multi-camera file names.
+    """
+    from stages.camera import load_camera_file, load_camera_files
+
+    cams = load_camera_files(Path(path))
+    out: dict[str, CameraModel] = {}
+    for topic in topics:
+        found = [m for n, m in cams.items() if topic in (n, m.topic, m.tag_topic)]
+        if found:
+            out[topic] = found[0]
+        elif len(cams) == 1 and len(topics) == 1:
+            out[topic] = load_camera_file(Path(path))
+        else:
+            listed = ", ".join(f"{n} ({m.topic}, {m.tag_topic})" for n, m in cams.items())
+            raise InputError(
+                f"no camera in {path!r} for topic {topic!r}; its cameras: {listed}; set its rostopic/tagtopic "
+                "or pick another topic with --set ingest.detections_topic=... / ingest.image_topic=..."
+            )
+    return out
+
+
+def _load_extrinsics_file(path: str) -> ExtrinsicsFile:
+    from stages.extrinsics import load_extrinsics_file
+
+    return load_extrinsics_file(Path(path))
 
 
 def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
@@ -89,6 +125,8 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
     with Recording(ctx.source, salvage=cfg.salvage) as rec:
         if cfg.camera_file:
             ctx.outside_file(cfg.camera_file)  # a changed calibration file re-runs ingest
+        if cfg.extrinsics_file:
+            ctx.outside_file(cfg.extrinsics_file)
         plan = _plan(rec, cfg)
         reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage)
         total = sum(rec.topics[t].count for t in plan.wanted)
@@ -97,7 +135,7 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         reading.close()
         bag = {"reader": rec.reader, "format": rec.format, "storage": rec.storage}
         bag_start, bag_end, salvaged = rec.start_ns, rec.end_ns, rec.salvaged
-    camera, extrinsics, notes = _write_calibration(ctx.output, reading, _check_read(plan, reading, cfg))
+    camera, extrinsics, notes, warnings = _write_calibration(ctx.output, reading, _check_read(plan, reading, cfg))
     summary = {
         "frames": reading.frames.count,
         "tag_detections": reading.dets.count if reading.dets else 0,
@@ -110,8 +148,11 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         "camera": camera.model_dump(include={"width", "height", "distortion_model", "frame_id", "source"}),
         "notes": notes,
         "dropped": {t: dict(sorted(c.items())) for t, c in sorted(reading.dropped.items())},
+        "warnings": warnings,
         "read_seconds": round(time.perf_counter() - started, 3),
     }
+    if len(plan.camera_topics) > 1:
+        summary["camera_topics"] = plan.camera_topics
     if salvaged is not None:
         summary["salvaged"] = salvaged
     log_ingest(ctx, camera, extrinsics)
@@ -123,15 +164,26 @@ class _Plan:
     """What to read: the topic of each role, whether tags come as detections, the calibration file, the window."""
 
     topics: dict[str, str | None]
+    """The topic of each role; of a rig's cameras, the first one's."""
+    image_topics: list[str]
+    detection_topics: list[str]
     use_detections: bool
-    camera: CameraModel | None
-    """The calibration from ``camera_file``; None: from the first CameraInfo message in the window."""
+    cameras: dict[str, CameraModel] | None
+    """The calibration of each camera topic from ``camera_file``; None: from the first CameraInfo message."""
+    extrinsics: ExtrinsicsFile | None
     start_ns: int
     end_ns: int | None
 
     @property
+    def camera_topics(self) -> list[str]:
+        """The topics whose frames or detections detect reads: one per camera, the first camera's first."""
+        return self.detection_topics if self.use_detections else self.image_topics
+
+    @property
     def wanted(self) -> list[str]:
-        return [t for t in self.topics.values() if t]
+        return list(
+            dict.fromkeys([*(t for t in self.topics.values() if t), *self.image_topics, *self.detection_topics])
+        )
 
     def in_window(self, stamp_ns: int) -> bool:
         return not (stamp_ns < self.start_ns or (self.end_ns is not None and stamp_ns > self.end_ns))
@@ -141,7 +193,17 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
     """Resolve the topics and the time window; fail early when the recording cannot give frames or a camera."""
     if rec.message_count == 0:
         raise InputError(f"{rec.path.name} holds no messages; record again or pick another bag")
-    topics = {name: resolve_topic(rec, role, getattr(cfg, role.setting)) for name, role in ROLES.items()}
+    calibrated = _calibrated_topics(cfg.camera_file) if cfg.camera_file else None
+    images = resolve_camera_topics(rec, ROLES["image"], cfg.image_topic, calibrated)
+    detections = resolve_camera_topics(rec, ROLES["detections"], cfg.detections_topic, calibrated)
+    topics = {
+        name: resolve_topic(rec, role, getattr(cfg, role.setting))
+        for name, role in ROLES.items()
+        if name not in ("image", "detections")
+    }
+    topics["image"] = images[0] if images else None
+    topics["detections"] = detections[0] if detections else None
+    topics = {name: topics[name] for name in ROLES}
     if topics["image"] is None and topics["detections"] is None:
         present = ", ".join(f"{n} ({t.type})" for n, t in sorted(rec.topics.items()))
         raise InputError(
@@ -149,10 +211,10 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
             f"detections; topics present: {present}"
         )
     use_detections = bool(topics["detections"] is not None and (topics["image"] is None or cfg.detections_topic))
-    if use_detections:
-        topics["image"] = None if not cfg.image_topic else topics["image"]
-    camera = _load_camera_file(cfg.camera_file) if cfg.camera_file else None
-    if camera is None and topics["camera_info"] is None:
+    if use_detections and not cfg.image_topic:
+        topics["image"], images = None, []
+    cameras = _load_cameras(cfg.camera_file, detections if use_detections else images) if cfg.camera_file else None
+    if cameras is None and topics["camera_info"] is None:
         raise InputError(
             f"{rec.path.name} has no CameraInfo topic; pass the calibration with --camera FILE "
             "(Kalibr/TagSLAM cameras.yaml or ROS camera_info YAML)"
@@ -161,7 +223,13 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
     end_ns = rec.start_ns + int(cfg.end_s * 1e9) if cfg.end_s is not None else None
     if end_ns is not None and end_ns <= start_ns:
         raise InputError(f"--end {cfg.end_s} s is not after --start {cfg.start_s} s")
-    return _Plan(topics, use_detections, camera, start_ns, end_ns)
+    if cameras is None and len(images if not use_detections else detections) > 1:
+        raise InputError(
+            f"{rec.path.name}: several cameras need a calibration file with one entry per camera; pass --camera "
+            "cameras.yaml (Kalibr/TagSLAM, rostopic/tagtopic naming each topic)"
+        )
+    extrinsics = _load_extrinsics_file(cfg.extrinsics_file) if cfg.extrinsics_file else None
+    return _Plan(topics, images, detections, use_detections, cameras, extrinsics, start_ns, end_ns)
 
 
 class _Reading:
@@ -177,8 +245,10 @@ class _Reading:
         self.dets = _TableWriter(out, TAG_DETECTIONS, batch=4096) if plan.use_detections else None
         self.edges: list[tuple[str, str, np.ndarray]] = []
         self.frame_index: dict[str, int] = {}
-        self.camera = plan.camera
-        self.image_frame_id = ""
+        self.camera = next(iter(plan.cameras.values())) if plan.cameras else None
+        self.camera_topics = {*plan.image_topics, *plan.detection_topics}
+        self.frame_ids: dict[str, str] = {}
+        """The frame id of each camera topic's first message."""
         self.base_frame = ""
         self.odom_frame = ""
         self.scan_frame = ""
@@ -212,7 +282,7 @@ class _Reading:
             tf = self._decode(raw)
             if tf is not None:
                 self.edges.extend(convert.transform_edges(tf))
-        elif raw.topic in (topics["image"], topics["detections"]):
+        elif raw.topic in self.camera_topics:
             self._frame(raw)
         elif self.plan.in_window(raw.log_time_ns):
             self._sensor(raw)
@@ -227,15 +297,15 @@ class _Reading:
         if msg is None:
             return
         stamp = convert.stamp_ns(msg, raw.log_time_ns)
-        if raw.topic == self.plan.topics["image"]:
+        if raw.topic in self.plan.image_topics:
             row = convert.image_row(msg, compressed=raw.type.endswith("CompressedImage"))
             if self._bad(raw, convert.image_problem(row)):
                 return
-            self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
+            self.frame_ids.setdefault(raw.topic, convert.frame_id(msg))
             self.frames.add({FRAME: index, STAMP_NS: stamp, TOPIC: raw.topic, **row})
         else:
             assert self.dets is not None
-            self.image_frame_id = self.image_frame_id or convert.frame_id(msg)
+            self.frame_ids.setdefault(raw.topic, convert.frame_id(msg))
             for r in _detection_rows(msg, index, stamp, raw.topic):
                 self.dets.add(r)
 
@@ -273,7 +343,7 @@ def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> CameraMode
     """The camera calibration; fail when the window held no camera frame or no calibration."""
     topics = plan.topics
     if reading.frames.count == 0 and (
-        reading.dets is None or reading.frame_index.get(topics["detections"] or "", 0) == 0
+        reading.dets is None or not any(reading.frame_index.get(t, 0) for t in plan.detection_topics)
     ):
         window = f" between {cfg.start_s} s and {cfg.end_s} s" if cfg.start_s or cfg.end_s else ""
         raise InputError(
@@ -286,25 +356,69 @@ def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> CameraMode
 
 def _write_calibration(
     out: StageOutput, reading: _Reading, camera: CameraModel
-) -> tuple[CameraModel, Extrinsics, list[str]]:
-    """``camera.json`` and ``extrinsics.json`` (base to camera and laser from the static transforms)."""
-    camera_frame = camera.frame_id or reading.image_frame_id
-    camera = camera.model_copy(update={"frame_id": camera_frame})
-    base = reading.base_frame or camera_frame
-    sensors: dict[str, SensorMount] = {}
+) -> tuple[CameraModel, Extrinsics, list[str], list[str]]:
+    """``camera.json`` (``cameras.json`` for a rig of several) and ``extrinsics.json``: base to each camera and
+    the laser, from the extrinsics file where it names the sensor, else from the static transforms."""
+    plan = reading.plan
+    topics = plan.camera_topics
+    models = plan.cameras or {topics[0]: camera}
+    models = {
+        t: m.model_copy(update={"frame_id": m.frame_id or reading.frame_ids.get(t, "")}) for t, m in models.items()
+    }
+    camera = next(iter(models.values()))
+    file = plan.extrinsics
+    base = reading.base_frame or (file.base_frame if file else camera.frame_id)
     notes: list[str] = []
-    for role, frame in (("camera", camera_frame), ("laser", reading.scan_frame)):
-        if not frame:
-            continue
-        T = convert.chain(reading.edges, base, frame)
-        assumed = T is None
-        if T is None:
-            notes.append(f"no static transform from {base!r} to {role} frame {frame!r}; identity assumed")
-            T = np.eye(4)
-        sensors[role] = SensorMount(frame_id=frame, T_base_sensor=T.tolist(), assumed=assumed)
-    extrinsics = Extrinsics(base_frame=base, odom_frame=reading.odom_frame, sensors=sensors)
+    warnings: list[str] = []
+    if file and reading.base_frame and reading.base_frame != file.base_frame:
+        notes.append(
+            f"the transforms of {Path(file.path).name} (from its {file.base_frame!r} frame) are taken as from the "
+            f"odometry's child frame {reading.base_frame!r}"
+        )
+    sensors: dict[str, SensorMount] = {}
+    for i, (topic, model) in enumerate(models.items()):
+        mount = _mount(reading, file, base, model.frame_id, (topic, model.topic, model.tag_topic))
+        sensors["camera" if i == 0 else topic] = mount.model_copy(update={"topic": topic})
+    if reading.scan_frame:
+        sensors["laser"] = _mount(reading, file, base, reading.scan_frame, ())
+    for role, mount in sensors.items():
+        if mount.assumed:
+            what = "camera" if role == "camera" else ("laser" if role == "laser" else f"camera {role}")
+            where = f"in {Path(file.path).name} or " if file else ""
+            consequence = "its detections are left out of the graph" if len(models) > 1 else "identity assumed"
+            warnings.append(
+                f"no transform {where}on /tf_static from {base!r} to the {what} frame {mount.frame_id!r}; "
+                f"{consequence}; give it with --extrinsics FILE (TagSLAM camera_poses.yaml, Kalibr camchain or "
+                "frame: 4x4 T_base_frame)"
+            )
+    extrinsics = Extrinsics(
+        base_frame=base,
+        odom_frame=reading.odom_frame,
+        sensors=sensors,
+        file=str(Path(file.path).resolve()) if file else None,
+    )
     CAMERA.write(out, camera)
+    if len(models) > 1:
+        CAMERAS.write(out, Rig(cameras=models))
     EXTRINSICS.write(out, extrinsics)
     if reading.dets is None:
         out.file(TAG_DETECTIONS.file).unlink(missing_ok=True)
-    return camera, extrinsics, notes
+    return camera, extrinsics, notes, warnings
+
+
+def _mount(
+    reading: _Reading, file: ExtrinsicsFile | None, base: str, frame: str, names: tuple[str | None, ...]
+) -> SensorMount:
+    """Where ``frame`` sits: the file's entry named by the frame or one of ``names``, else the static transforms
+    from ``base``, else identity (assumed)."""
+    found = file.find(frame, *names) if file else None
+    if file is not None and found is not None:
+        entry, T = found
+        return SensorMount(
+            frame_id=frame, T_base_sensor=T.tolist(), source=f"{Path(file.path).name} ({file.kind}) {entry}"
+        )
+    chained = convert.chain(reading.edges, base, frame)
+    if chained is not None:
+        source = "base frame" if frame == base else "/tf_static"
+        return SensorMount(frame_id=frame, T_base_sensor=chained.tolist(), source=source)
+    return SensorMount(frame_id=frame, T_base_sensor=np.eye(4).tolist(), assumed=True, source="identity (assumed)")

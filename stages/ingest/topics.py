@@ -65,3 +65,33 @@ def resolve_topic(rec: Recording, role: Role, explicit: str) -> str | None:
             f"pick one with --set ingest.{role.setting}={candidates[0]}"
         )
     return candidates[0] if candidates else None
+
+
+def resolve_camera_topics(
+    rec: Recording, role: Role, explicit: str | list[str], calibrated: list[set[str]] | None = None
+) -> list[str]:
+    """The topics of a camera role (images or detections): the explicit one(s), checked; the only one of its
+    type; or, when there are several, those a multi-camera calibration file names (``calibrated``: the topic
+    names of each of its cameras, in the file's order).
+
+    Raises:
+        InputError: an explicit topic is absent or of the wrong type, or several topics match and no
+            calibration file tells which.
+    """
+    if isinstance(explicit, list):
+        return [t for t in (resolve_topic(rec, role, name) for name in explicit) if t]
+    if explicit:
+        return [t for t in (resolve_topic(rec, role, explicit),) if t]
+    candidates = rec.topics_of_type(*role.types)
+    if len(candidates) <= 1:
+        return candidates
+    if calibrated and len(calibrated) > 1:
+        named = [t for names in calibrated for t in candidates if t in names]
+        if named:
+            return list(dict.fromkeys(named))
+    raise InputError(
+        f"{rec.path.name} has several {role.label} topics {candidates}; "
+        f"pick one with --set ingest.{role.setting}={candidates[0]} (or a list, "
+        f"--set 'ingest.{role.setting}=[{candidates[0]}, {candidates[1]}]', or give --camera a cameras.yaml whose "
+        "rostopic/tagtopic name them)"
+    )

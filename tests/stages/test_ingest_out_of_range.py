@@ -114,5 +114,5 @@ def test_cli_warning_line_names_topic_and_count(clean: Path, tmp_path: Path) -> 
     assert line.startswith("error: ") and "/odom" in line and "--salvage" in line
     proc = subprocess.run([*cmd, "--salvage"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    warnings = [ln for ln in proc.stdout.splitlines() if ln.strip().startswith("warning:")]
+    warnings = [ln for ln in proc.stderr.splitlines() if ln.strip().startswith("warning:")]
     assert len(warnings) == 1 and "/odom 1 (1 with a denormal covariance)" in warnings[0]
