@@ -244,8 +244,8 @@ def _csv(loaded: LoadedGraph, out: Path, focused: set[int] | None) -> list[Path]
         ):
             t = np.asarray(p.translation())
             q = p.rotation().toQuaternion()
-            pc = kind.position_cov(kind.read(loaded.values, key), loaded.marginals[key])
-            row = [*t, q.x(), q.y(), q.z(), q.w(), *(pc[a, b] for a, b in _POS_IDX)]
+            cov = kind.position_cov(kind.read(loaded.values, key), loaded.marginals[key])
+            row = [*t, q.x(), q.y(), q.z(), q.w(), *(cov[a, b] for a, b in _POS_IDX)]
             w.writerow([i, stamp, *(f"{v:.9g}" for v in row)])
     return [lm_path, pose_path]
 

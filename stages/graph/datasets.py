@@ -327,8 +327,9 @@ def _convert_factor(f: Any, c: _Converted, model: GraphModel, offset: int | None
     cov = np.asarray(f.noiseModel().covariance(), dtype=float)
     if isinstance(f, gtsam.BetweenFactorPose2 | gtsam.BetweenFactorPose3):
         i, j = (_pose_id(k, offset, name) for k in keys)
-        m = f.measured()
-        vec = pose2_to_vector(m) if isinstance(f, gtsam.BetweenFactorPose2) else pose3_to_vector(m)
+        vec = (
+            pose2_to_vector(f.measured()) if isinstance(f, gtsam.BetweenFactorPose2) else pose3_to_vector(f.measured())
+        )
         if offset is not None and j >= offset:
             c.rows.append(_tag_row("BetweenFactorPose3", i, j - offset, vec, cov))
         else:
@@ -337,7 +338,7 @@ def _convert_factor(f: Any, c: _Converted, model: GraphModel, offset: int | None
     elif isinstance(f, gtsam.BearingRangeFactor2D | gtsam.BearingRangeFactor3D):
         i = _pose_id(keys[0], offset, name)
         j = gtsam.Symbol(keys[1]).index() - (offset or 0)
-        br = f.measured()
+        br: Any = f.measured()  # BearingRange2D / BearingRange3D
         r = float(br.range())
         if isinstance(f, gtsam.BearingRangeFactor2D):
             b = float(br.bearing().theta())
@@ -383,7 +384,7 @@ def _compose_chain(c: _Converted, model: GraphModel, name: str) -> None:
             a = c.poses[i] = model.pose.from_vector(model.identity)
             c.composed += 1
         if b is None:
-            c.poses[j] = a.compose(m)
+            c.poses[j] = a.compose(m)  # type: ignore[union-attr]  # a is placed here
         else:
             c.poses[i] = b.compose(m.inverse())
         c.composed += 1
