@@ -555,8 +555,10 @@ def show_config(
 
 
 from cli import batch as _batch  # noqa: E402
+from cli import export as _export  # noqa: E402
 
 _batch.register(app)
+_export.register(app)
 
 
 def main() -> None:

@@ -12,9 +12,10 @@ from typing import Final
 
 import numpy as np
 import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.artifacts import StageInput, StageOutput
-from pipeline.contracts import ArtifactSet, Column, FileSpec, TableSpec
+from pipeline.contracts import ArtifactSet, Column, FileSpec, JsonSpec, TableSpec
 from pipeline.errors import InputError
 from stages.columns import FRAME, KEY, QUATERNION, STAMP_NS, TAG_ID, YAW, X, Y, Z
 
@@ -197,13 +198,43 @@ TRAJECTORY: Final = FileSpec(
 DEAD_RECKONING: Final = FileSpec("dead_reckoning.tum", "the initial (dead-reckoning) keyframe poses, as TUM")
 G2O: Final = FileSpec(
     "graph.g2o",
-    "the graph at the solution as g2o (`VERTEX_SE2/SE3:QUAT/XY/TRACKXYZ`, `EDGE_SE2`, `EDGE_SE2_XY`, "
-    "`EDGE_PRIOR_SE2`, `EDGE_SE3:QUAT`, `EDGE_SE3_TRACKXYZ`, `EDGE_SE3_PRIOR`); landmark vertex id = offset + tag "
-    "id, the offset in a `# focusmap: landmark_id_offset N` line; no shared tag scale; `import-graph` reads it",
+    "the graph at the solution as g2o (`VERTEX_SE2/SE3:QUAT/XY/TRACKXYZ`, `EDGE_SE2`, `EDGE_SE2_XY` each followed "
+    "by its copy as GTSAM's `BR` line, `EDGE_PRIOR_SE2`, `EDGE_SE3:QUAT`, `EDGE_SE3_TRACKXYZ`, `EDGE_SE3_PRIOR`); "
+    "no comment lines, so `gtsam.readG2o` reads every edge but the priors; landmark vertex id = offset + tag id "
+    "(the offset in `graph.g2o.json`); no shared tag scale; `import-graph` reads it",
+)
+
+
+class G2oMetadata(BaseModel):
+    """What a reader of ``graph.g2o`` needs beyond its lines."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    landmark_id_offset: int = Field(description="landmark vertex id = this offset + tag id; pose vertex id = index")
+    poses: int = Field(description="pose vertices")
+    landmarks: int = Field(description="landmark vertices")
+    max_tag_id: int = Field(description="the largest tag id (0 without landmarks)")
+    edges: int = Field(description="factors written (a planar tag measurement and its `BR` copy count once)")
+    edges_gtsam_reads: int = Field(description="factors `gtsam.readG2o` returns: every edge but the priors")
+    priors: int = Field(description="`EDGE_PRIOR_SE2` / `EDGE_SE3_PRIOR` lines (GTSAM's reader skips them)")
+    tag_scale: float | None = Field(
+        description="the tag scale the tag measurements are written at (null: the graph has none)"
+    )
+    planar_landmark_br_copies: bool = Field(
+        description="each `EDGE_SE2_XY` line (g2o's) is followed by the same measurement as GTSAM's `BR` line"
+    )
+    br_max_abs_correlation_dropped: float = Field(
+        description="the largest bearing-range correlation of a planar tag measurement (`BR` holds only the two σ)"
+    )
+    not_written: list[str] = Field(description="factor types g2o cannot hold, left out")
+
+
+G2O_META: Final = JsonSpec(
+    "graph.g2o.json", "what a reader of `graph.g2o` needs beyond its lines (it has no comment lines)", G2oMetadata
 )
 
 ARTIFACTS: Final = ArtifactSet(
     "graph",
     "The full factor graph of the run, optimised, with the marginal covariance of every variable.",
-    [FACTORS, VALUES, MARGINALS, POSES, LANDMARKS, TRAJECTORY, DEAD_RECKONING, G2O],
+    [FACTORS, VALUES, MARGINALS, POSES, LANDMARKS, TRAJECTORY, DEAD_RECKONING, G2O, G2O_META],
 )

@@ -2,7 +2,7 @@
 
 Artifacts in ``graph/`` (declared in :mod:`stages.graph.artifacts`): ``factors.parquet``, ``values.npz``,
 ``marginals.npz``, ``poses.parquet``, ``landmarks.parquet``, ``trajectory.tum``, ``dead_reckoning.tum``,
-``graph.g2o`` (and ``summary.json``, written by the runner).
+``graph.g2o``, ``graph.g2o.json`` (and ``summary.json``, written by the runner).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from stages.graph.artifacts import (
     DEAD_RECKONING,
     FACTORS,
     G2O,
+    G2O_META,
     INDEX,
     LANDMARKS,
     POSE_KEY,
@@ -31,11 +32,12 @@ from stages.graph.artifacts import (
     POSITION_COV,
     TANGENT_COVARIANCE,
     TRAJECTORY,
+    G2oMetadata,
     MarginalArrays,
     ValueArrays,
 )
 from stages.graph.factors import rows_to_table
-from stages.graph.g2o import write_g2o
+from stages.graph.g2o import g2o_metadata, write_g2o
 from stages.graph.problem import GraphProblem, values_to_arrays
 from stages.graph.solve import Solution
 
@@ -78,6 +80,7 @@ def write_artifacts(
     _write_poses(out, problem, solution, marginals)
     LANDMARKS.write(out, landmarks_table(problem, solution.values, marginals))
     out.write_text(G2O.file, write_g2o(problem, solution.values))
+    G2O_META.write(out, G2oMetadata(**g2o_metadata(problem, solution.values)))
     kinds = Counter(r.kind for r in problem.rows)
     return {
         "tag_scale": _tag_scale(problem, solution, marginals),

@@ -35,7 +35,8 @@ def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:
 
 def _from_file(ctx: StageContext, cfg: GraphConfig) -> tuple[GraphProblem, GraphConfig]:
     """The problem of the run's g2o / GTSAM file; the model is the file's."""
-    from stages.graph.g2o import read_graph_file
+    from stages.graph.g2o import read_graph_file, side_file
 
+    ctx.outside_file(side_file(ctx.source))  # the landmark id offset of a g2o file focusmap wrote
     problem = read_graph_file(ctx.source, cfg.prior_sigma_m, cfg.prior_sigma_rad)
     return problem, cfg.model_copy(update={"model": problem.model})
