@@ -31,7 +31,18 @@ try:  # Typer 0.2x raises its option errors from its own copy of click
 except ImportError:  # older Typer: click itself
     from click.exceptions import BadParameter, MissingParameter  # type: ignore[assignment]
 
-from cli.options import BagArg, ConfigOpt, ForceOpt, NameOpt, OutOpt, ResetOpt, RunDirArg, SalvageOpt, SetOpt
+from cli.options import (
+    BagArg,
+    ConfigOpt,
+    ForceOpt,
+    NameOpt,
+    OutOpt,
+    ResetOpt,
+    RunDirArg,
+    SalvageOpt,
+    SetOpt,
+    StrictOpt,
+)
 from pipeline.errors import InputError, PipelineError, write_error
 
 if TYPE_CHECKING:
@@ -430,7 +441,31 @@ def import_graph_command(
     with _new_run(run_dir, graph_file, GRAPH_SOURCE) as run:
         _run_stages(run, ["graph"], settings, force)
     typer.echo(f"run folder: {run.path}")
-    typer.echo("the stages after graph that need no camera or laser run on it, e.g. focusmap select-landmarks")
+    typer.echo(_import_hint(run))
+
+
+def _import_hint(run: RunFolder) -> str:
+    """What can run on an imported graph: landmark selection needs landmarks, a pose graph sparsifies loop closures."""
+    entry = run.stage_entry("graph") or {}
+    summary = entry.get("summary")
+    summary = summary if isinstance(summary, dict) else {}
+    by_kind = summary.get("factors_by_kind")
+    landmarks = summary.get("landmarks")
+    loops = by_kind.get("loop", 0) if isinstance(by_kind, dict) else 0
+    landmarks = landmarks if isinstance(landmarks, int) else 0
+    loops = loops if isinstance(loops, int) else 0
+    if landmarks:
+        return (
+            f"next: focusmap select-landmarks {run.path} --set select_landmarks.strategy=mutual-information "
+            "(no laser here: collision needs one), then select-measurements and optimize"
+        )
+    if loops:
+        return (
+            f"a pose graph ({loops} loop closures, no landmarks): keep the K that best localise the poses with "
+            f"focusmap select-measurements {run.path} --budget K --set select_measurements.focus=poses, then "
+            f"focusmap optimize {run.path}"
+        )
+    return "a pose graph without loop closures or landmarks: there is nothing to select; export it with focusmap export"
 
 
 def run_pipeline(
@@ -445,25 +480,22 @@ def run_pipeline(
     set_: SetOpt = None,
     force: ForceOpt = False,
     reset: ResetOpt = False,
-    strict: Annotated[
-        bool,
-        typer.Option(
-            "--strict",
-            help="Stop with an error when a health check of graph or optimize fails (graph.strict, optimize.strict).",
-        ),
-    ] = False,
+    strict: StrictOpt = False,
     **options: object,
 ) -> None:
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
     registry = _registry()
     stages = [s.name for s in registry.between(start_stage, until)]
-    overrides = _overrides(_source_stages(registry), options)
-    if strict:
-        overrides += [f"{s.name}.strict=true" for s in registry if any(o.key == "strict" for o in s.options)]
+    overrides = _overrides(_source_stages(registry), options) + _strict_overrides(registry, strict)
     settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, stages)
     run, results = _run_on_bag(bag, out, name, stages, settings, force)
     _print_headline(results)
     typer.echo(f"open it with: focusmap view {run.path}")
+
+
+def _strict_overrides(registry: Registry, strict: bool) -> list[str]:
+    """``--strict``: the ``strict`` setting of every stage that has one."""
+    return [f"{s.name}.strict=true" for s in registry if strict and any(o.key == "strict" for o in s.options)]
 
 
 def _source_stages(registry: Registry) -> list[AnyStage]:

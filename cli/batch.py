@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from cli.options import ConfigOpt, ForceOpt, SetOpt
+from cli.options import ConfigOpt, ForceOpt, SetOpt, StrictOpt
 
 REGISTRY_SPEC = "stages:REGISTRY"
 PREFLIGHT_SPEC = "stages.ingest.bags:detect_format"
@@ -84,12 +84,13 @@ def batch(
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     force: ForceOpt = False,
+    strict: StrictOpt = False,
     **options: object,
 ) -> None:
     """Run the pipeline over many recordings: one run folder each, a summary table, resumable."""
     from rich.console import Console
 
-    from cli.app import _overrides, _source_stages
+    from cli.app import _overrides, _source_stages, _strict_overrides
     from pipeline.batch import (
         collect_recordings,
         plan_tasks,
@@ -107,7 +108,7 @@ def batch(
 
     if not recordings and batch_file is None:
         raise InputError("no recordings given; pass bag files, ROS 2 bag folders, glob patterns or --file FILE")
-    overrides = _overrides(_source_stages(REGISTRY), options)
+    overrides = _overrides(_source_stages(REGISTRY), options) + _strict_overrides(REGISTRY, strict)
     settings = load_settings(REGISTRY.models(), config, [*(set_ or []), *overrides])
     stages = [s.name for s in REGISTRY.between(start_stage, until)]
     entries: list[BatchEntry] = [BatchEntry(r) for r in collect_recordings(recordings)] if recordings else []

@@ -44,3 +44,10 @@ ResetOpt = Annotated[
         help="Start from the default settings instead of those the run folder keeps from earlier commands.",
     ),
 ]
+StrictOpt = Annotated[
+    bool,
+    typer.Option(
+        "--strict",
+        help="Stop with an error when a health check of graph or optimize fails (graph.strict, optimize.strict).",
+    ),
+]

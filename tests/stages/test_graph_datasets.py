@@ -163,7 +163,7 @@ def test_cli_import_prints_counts_and_one_error_line(tmp_path: Path) -> None:
         check=False,
     )
     assert ok.returncode == 0, ok.stderr
-    assert "poses=95  landmarks=24  factors=517" in ok.stdout and "read with gtsam.load2D" in ok.stdout
+    assert "poses=95  landmarks=24  factors=517" in ok.stdout and "read with gtsam.load2D" in ok.stderr
     for name in ("toy3D.xml", "sphere_smallnoise.graph"):
         bad = subprocess.run(
             ["focusmap", "import-graph", str(_data(name)), "--out", str(tmp_path)],
