@@ -8,6 +8,8 @@ from typing import Any
 import rerun as rr
 
 from pipeline.artifacts import StageOutput
+from stages.graph.calibration import applies as calibration_applies
+from stages.graph.calibration import calibrate
 from stages.graph.config import GraphConfig
 from stages.graph.factors import build_graph
 from stages.graph.outputs import log_recording, write_artifacts
@@ -25,16 +27,26 @@ def solve_and_write(
     """
     t0 = time.perf_counter()
     check_problem(problem)
-    graph = build_graph(problem.rows)
-    t1 = time.perf_counter()
-    solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
-    t2 = time.perf_counter()
-    marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
-    t3 = time.perf_counter()
+    calibration = None
+    if calibration_applies(problem, cfg):
+        t1 = time.perf_counter()
+        result = calibrate(problem, cfg)
+        problem, graph, solution, marginals = result.problem, result.graph, result.solution, result.marginals
+        calibration = result.summary
+        t2 = t3 = time.perf_counter()
+    else:
+        graph = build_graph(problem.rows)
+        t1 = time.perf_counter()
+        solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+        t2 = time.perf_counter()
+        marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+        t3 = time.perf_counter()
     summary = write_artifacts(out, problem, solution, marginals)
     if rec is not None:
         log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride)
     summary.update(problem.info)
+    if calibration is not None:
+        summary["odometry_calibration"] = calibration
     summary["timing_s"] = {
         "check_and_build": round(t1 - t0, 4),
         "optimise": round(t2 - t1, 4),
