@@ -36,7 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from stages.estimation.sparse_cov import SPDSolver
-from stages.geometry import pose3_from_vector
+from stages.geometry import pose3_from_vector, pose3_to_vector
 from stages.graph.config import GraphConfig
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.problem import GraphProblem
@@ -88,8 +88,7 @@ def corrected_increment(m: np.ndarray, c: np.ndarray, model: str) -> np.ndarray:
         return np.array([xc, yc, th_c])
     t_c = np.array([xc, yc, float(t[2]) / k_d])
     R_c = gtsam.Rot3.Yaw(th_c - th).compose(pose.rotation())
-    q = R_c.toQuaternion()
-    return np.array([*t_c, q.x(), q.y(), q.z(), q.w()])
+    return pose3_to_vector(gtsam.Pose3(R_c, t_c))
 
 
 def _local(model: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -133,9 +132,7 @@ def _retract(model: str, m: np.ndarray, d: np.ndarray) -> np.ndarray:
     if model == "planar":
         q = gtsam.Pose2(*m).retract(d)
         return np.array([q.x(), q.y(), q.theta()])
-    P = pose3_from_vector(m).retract(d)
-    t, qq = np.asarray(P.translation()), P.rotation().toQuaternion()
-    return np.array([*t, qq.x(), qq.y(), qq.z(), qq.w()])
+    return pose3_to_vector(pose3_from_vector(m).retract(d))
 
 
 def _whitened_residual(model: str, m: np.ndarray, cov: np.ndarray, c: np.ndarray, pred: Any) -> np.ndarray:
@@ -199,6 +196,7 @@ def _joint_system(
         row = problem.rows[i]
         A, b = f.jacobian()
         keys = list(f.keys())
+        pred: Any
         if problem.model == "planar":
             pred = values.atPose2(keys[0]).between(values.atPose2(keys[1]))
         else:

@@ -64,14 +64,16 @@ def _solve(run: SyntheticRun, cfg: GraphConfig):
 
 
 # the synthetic tags are exactly the size the graph assumes: no tag scale, so the map's scale is the odometry's
-EXACT_TAGS = {"tag_scale_sigma": 0.0}
+EXACT_TAG_SCALE = 0.0
 
 
 def test_calibration_recovers_wheel_errors_and_honest_landmarks(wheel_run: SyntheticRun) -> None:
-    before = _solve(wheel_run, GraphConfig(odometry_calibration=False, noise_estimate="off", **EXACT_TAGS))
+    before = _solve(
+        wheel_run, GraphConfig(odometry_calibration=False, noise_estimate="off", tag_scale_sigma=EXACT_TAG_SCALE)
+    )
     assert _landmark_nees(wheel_run, *before[:3]) > 2.5  # overconfident without the calibration
     problem, values, marginals, summary = _solve(
-        wheel_run, GraphConfig(odometry_calibration=True, noise_estimate="odometry", **EXACT_TAGS)
+        wheel_run, GraphConfig(odometry_calibration=True, noise_estimate="odometry", tag_scale_sigma=EXACT_TAG_SCALE)
     )
     for name, truth in zip(PARAMETERS, TRUE, strict=True):
         est = summary[name]
@@ -87,7 +89,7 @@ def test_noise_estimate_repairs_zero_covariances() -> None:
     the odometry noise estimate scales it to the data."""
     run = synthetic_run(seed=0, loops=2.0, wheel_errors=WHEEL, odom_cov_scale=0.0)
     problem, values, marginals, summary = _solve(
-        run, GraphConfig(odometry_calibration=True, noise_estimate="odometry", **EXACT_TAGS)
+        run, GraphConfig(odometry_calibration=True, noise_estimate="odometry", tag_scale_sigma=EXACT_TAG_SCALE)
     )
     assert problem.info["odometry_noise"] == "settings"
     assert summary["odometry_covariance_scale"] < 0.5
