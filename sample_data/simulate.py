@@ -55,6 +55,7 @@ import shutil
 import sys
 import tempfile
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Final, Literal
@@ -68,7 +69,7 @@ FloatArray = npt.NDArray[np.float64]
 ImageFormat = Literal["jpeg", "png", "mono8", "bgr8"]
 BagFormat = Literal["ros1", "ros2-sqlite", "ros2-mcap", "mcap"]
 Compression = Literal["bz2", "lz4"]
-PathName = Literal["office", "corridor"]
+PathName = Literal["office", "corridor", "corridor_return"]
 
 BAG_FORMATS: Final[tuple[str, ...]] = ("ros1", "ros2-sqlite", "ros2-mcap", "mcap")
 IMAGE_FORMATS: Final[tuple[str, ...]] = ("jpeg", "png", "mono8", "bgr8")
@@ -92,7 +93,8 @@ class SimConfig:
     """Seed of every random draw (odometry, laser and pixel noise). The world is fixed."""
     path: PathName = "office"
     """'office': wander the room, through the door, down the corridor, turn, come back.
-    'corridor': start just before the door and drive down the corridor (short tests)."""
+    'corridor': start just before the door and drive down the corridor (short tests).
+    'corridor_return': start just before the door, drive to the corridor's end, turn in place and come back."""
     duration_s: float | None = None
     """Length of the recording; None = until the path ends. Past its end the robot rests."""
     start_time_ns: int = DEFAULT_START_NS
@@ -136,6 +138,16 @@ class SimConfig:
     """Noise on the forward speed, per odometry sample (white)."""
     odom_yaw_rate_sigma_radps: float = 0.03
     """Noise on the yaw rate, per odometry sample (white)."""
+    odom_distance_scale_error: float = 0.0
+    """Systematic wheel error: the odometry reports (1 + this) times the distance driven (a wrong wheel radius)."""
+    odom_yaw_scale_error: float = 0.0
+    """Systematic wheel error: the odometry reports (1 + this) times the angle turned (a wrong track width)."""
+    odom_yaw_bias_rad_per_m: float = 0.0
+    """Systematic wheel error: the odometry adds this much yaw per metre driven forwards (unequal wheel radii)."""
+    odom_cov_scale: float = 1.0
+    """The pose covariances the odometry messages report: this times the first-order propagation of the white
+    noise above (it grows over the run, as real drivers report; it never contains the systematic errors).
+    < 1: too small; 0: all zero, as drivers that fill in no covariance."""
 
     max_speed_mps: float = 0.45
     max_accel_mps2: float = 0.3
@@ -148,6 +160,8 @@ class SimConfig:
     tag_size_overrides: tuple[tuple[int, float], ...] = ()
     """... except these (tag id, size in m) pairs."""
     tag_spacing_m: float = 0.6
+    corridor_length_m: float = 10.0
+    """Length of the corridor behind the door (x from 8 m to 8 m + this)."""
     first_tag_id: int = 0
     """Tags get ids first_tag_id, first_tag_id + 1, ... in wall order."""
 
@@ -279,7 +293,8 @@ class World:
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-# Room 8 x 6 m (x 0..8, y 0..6), door 0.9 m at x = 8, y 2.55..3.45, corridor x 8..18, y 2.4..3.6.
+# Room 8 x 6 m (x 0..8, y 0..6), door 0.9 m at x = 8, y 2.55..3.45, corridor x 8..18, y 2.4..3.6
+# (the default corridor_length_m of 10 m; office_walls gives other lengths).
 OFFICE_WALLS: Final = np.array(
     [
         [0.0, 0.0, 8.0, 0.0],  # 0 room south
@@ -294,9 +309,17 @@ OFFICE_WALLS: Final = np.array(
 )
 
 
+def office_walls(corridor_length_m: float = 10.0) -> FloatArray:
+    """The office's walls with a corridor of that length (x from 8 m to 8 m + the length)."""
+    walls = OFFICE_WALLS.copy()
+    end = 8.0 + corridor_length_m
+    walls[2, 2] = walls[3, 0] = walls[3, 2] = walls[4, 0] = end
+    return walls
+
+
 def build_world(cfg: SimConfig) -> World:
     """The office: walls and tags (ids contiguous from ``cfg.first_tag_id``, wall order)."""
-    walls = OFFICE_WALLS.copy()
+    walls = office_walls(cfg.corridor_length_m)
     rng = np.random.default_rng(_WORLD_SEED)
     overrides = dict(cfg.tag_size_overrides)
     tags: list[Tag] = []
@@ -342,6 +365,15 @@ _OFFICE_LEG2: Final = [
     (5.8, 3.3), (5.0, 3.9), (3.8, 4.1), (2.4, 4.0),
 ]  # fmt: skip
 _CORRIDOR_LEG: Final = [(6.0, 3.0), (6.6, 3.0), (8.0, 3.0), (10.0, 3.0), (13.0, 3.0), (16.3, 3.0), (17.0, 3.0)]
+
+
+def _corridor_leg(cfg: SimConfig) -> list[tuple[float, float]]:
+    """Just before the door to 1 m before the corridor's end (the default corridor: :data:`_CORRIDOR_LEG`)."""
+    if cfg.corridor_length_m == 10.0:
+        return list(_CORRIDOR_LEG)
+    end = 8.0 + cfg.corridor_length_m - 1.0
+    xs = [6.0, 6.6, 8.0, *np.arange(10.0, end - 0.7, 3.0).tolist(), end - 0.7, end]
+    return [(float(x), 3.0) for x in xs]
 
 
 @dataclass(frozen=True)
@@ -446,9 +478,15 @@ def build_trajectory(cfg: SimConfig) -> Trajectory:
         legs.append(_spin_leg(float(x[-1]), float(y[-1]), float(yaw[-1]), math.pi, cfg))
         legs.append(_drive_leg(_OFFICE_LEG2, cfg))
     elif cfg.path == "corridor":
-        legs = [_drive_leg(_CORRIDOR_LEG, cfg)]
+        legs = [_drive_leg(_corridor_leg(cfg), cfg)]
+    elif cfg.path == "corridor_return":
+        out = _corridor_leg(cfg)
+        legs = [_drive_leg(out, cfg)]
+        _, x, y, yaw, _, _ = legs[0]
+        legs.append(_spin_leg(float(x[-1]), float(y[-1]), float(yaw[-1]), math.pi, cfg))
+        legs.append(_drive_leg(out[::-1], cfg))
     else:
-        msg = f"unknown path {cfg.path!r}; expected 'office' or 'corridor'"
+        msg = f"unknown path {cfg.path!r}; expected 'office', 'corridor' or 'corridor_return'"
         raise ValueError(msg)
     cols: list[list[FloatArray]] = [[] for _ in range(6)]
     t_off = 0.0
@@ -846,6 +884,92 @@ def _T_list(T: FloatArray) -> list[list[float]]:
     return [[_r(v, 12) for v in row] for row in T]
 
 
+def _odometry(
+    cfg: SimConfig,
+    true_pose: Callable[[int], tuple[float, float, float]],
+    traj: Trajectory,
+    odom_ns: list[int],
+    rng: np.random.Generator,
+) -> list[OdometryMsg]:
+    """Wheel odometry: true body-frame increments with the systematic wheel errors, plus white noise on the
+    forward increment and the yaw increment; the pose covariance is the first-order propagation of that white
+    noise times ``cfg.odom_cov_scale`` (the systematic errors are not in it, as in real drivers)."""
+    sv, sw = cfg.odom_v_sigma_mps, cfg.odom_yaw_rate_sigma_radps
+    k_d, k_w, bias = 1.0 + cfg.odom_distance_scale_error, 1.0 + cfg.odom_yaw_scale_error, cfg.odom_yaw_bias_rad_per_m
+    small = 1e-9  # variance of the unmodelled planar dofs (z, roll, pitch / vy, vz, wx, wy)
+    ox = oy = oyaw = 0.0
+    P = np.zeros((3, 3))
+    out: list[OdometryMsg] = []
+    prev = true_pose(odom_ns[0])
+    for k, stamp in enumerate(odom_ns):
+        cur = true_pose(stamp)
+        if k == 0:
+            _, _, _, v_true, w_true = traj.sample(0.0)
+            dx_b, dy_b, dyaw = 0.0, 0.0, 0.0
+            vx = float(v_true) + sv * float(rng.standard_normal())
+            wz = float(w_true) + sw * float(rng.standard_normal())
+            vy = 0.0
+        else:
+            dt = (stamp - odom_ns[k - 1]) * 1e-9
+            c, s = math.cos(prev[2]), math.sin(prev[2])
+            ddx, ddy = cur[0] - prev[0], cur[1] - prev[1]
+            n_v, n_w = rng.standard_normal(2)
+            fwd = c * ddx + s * ddy
+            dx_b = k_d * fwd + sv * dt * float(n_v)
+            dy_b = k_d * (-s * ddx + c * ddy)
+            dyaw = k_w * (cur[2] - prev[2]) + bias * fwd + sw * dt * float(n_w)
+            co, so = math.cos(oyaw), math.sin(oyaw)
+            F = np.array([[1, 0, -so * dx_b - co * dy_b], [0, 1, co * dx_b - so * dy_b], [0, 0, 1]])
+            G = np.array([[co, 0], [so, 0], [0, 1]])
+            Q = np.diag([(sv * dt) ** 2, (sw * dt) ** 2])
+            P = F @ P @ F.T + G @ Q @ G.T
+            ox += co * dx_b - so * dy_b
+            oy += so * dx_b + co * dy_b
+            oyaw += dyaw
+            vx, vy, wz = dx_b / dt, dy_b / dt, dyaw / dt
+        prev = cur
+        pose_cov = np.diag([0.0, 0.0, small, small, small, 0.0])
+        idx = [0, 1, 5]
+        pose_cov[np.ix_(idx, idx)] = P
+        twist_cov = np.diag([sv**2, small, small, small, small, sw**2])
+        if cfg.odom_cov_scale != 1.0:
+            pose_cov[np.ix_(idx, idx)] *= cfg.odom_cov_scale
+            if cfg.odom_cov_scale == 0.0:
+                pose_cov[:] = 0.0
+                twist_cov[:] = 0.0
+        out.append(
+            OdometryMsg(
+                header=Header(stamp, cfg.odom_frame),
+                child_frame_id=cfg.base_frame,
+                x=ox,
+                y=oy,
+                yaw=oyaw,
+                pose_covariance=tuple(float(v) for v in pose_cov.ravel()),
+                vx=vx,
+                vy=vy,
+                wz=wz,
+                twist_covariance=tuple(float(v) for v in twist_cov.ravel()),
+            )
+        )
+    return out
+
+
+def simulate_odometry(cfg: SimConfig) -> list[OdometryMsg]:
+    """The odometry messages :func:`simulate` makes for ``cfg`` (the same draws), without rendering anything."""
+    _validate(cfg)
+    traj = build_trajectory(cfg)
+    duration = traj.duration_s + 1.0 if cfg.duration_s is None else cfg.duration_s
+    rng_odom = np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(3)[0])
+    t0 = cfg.start_time_ns
+    odom_ns = _stamps(t0, 0.0, cfg.odom_rate_hz, duration)
+
+    def true_pose(stamp_ns: int) -> tuple[float, float, float]:
+        x, y, yaw, _, _ = traj.sample((stamp_ns - t0) * 1e-9)
+        return float(x), float(y), float(yaw)
+
+    return _odometry(cfg, true_pose, traj, odom_ns, rng_odom)
+
+
 def simulate(cfg: SimConfig) -> Recording:
     """Simulate a run: every message in time order, plus the ground truth, in memory."""
     _validate(cfg)
@@ -884,59 +1008,8 @@ def simulate(cfg: SimConfig) -> Recording:
         )
     add(0, TF_STATIC_TOPIC, t0, TFMsg(transforms=tuple(tfs)))
 
-    # Odometry: true body-frame increments plus white noise on forward motion and yaw.
-    sv, sw = cfg.odom_v_sigma_mps, cfg.odom_yaw_rate_sigma_radps
-    small = 1e-9  # variance of the unmodelled planar dofs (z, roll, pitch / vy, vz, wx, wy)
-    ox = oy = oyaw = 0.0
-    P = np.zeros((3, 3))
-    prev = true_pose(odom_ns[0])
-    for k, stamp in enumerate(odom_ns):
-        cur = true_pose(stamp)
-        if k == 0:
-            _, _, _, v_true, w_true = traj.sample(0.0)
-            dx_b, dy_b, dyaw = 0.0, 0.0, 0.0
-            vx = float(v_true) + sv * float(rng_odom.standard_normal())
-            wz = float(w_true) + sw * float(rng_odom.standard_normal())
-            vy = 0.0
-        else:
-            dt = (stamp - odom_ns[k - 1]) * 1e-9
-            c, s = math.cos(prev[2]), math.sin(prev[2])
-            ddx, ddy = cur[0] - prev[0], cur[1] - prev[1]
-            n_v, n_w = rng_odom.standard_normal(2)
-            dx_b = c * ddx + s * ddy + sv * dt * float(n_v)
-            dy_b = -s * ddx + c * ddy
-            dyaw = cur[2] - prev[2] + sw * dt * float(n_w)
-            co, so = math.cos(oyaw), math.sin(oyaw)
-            F = np.array([[1, 0, -so * dx_b - co * dy_b], [0, 1, co * dx_b - so * dy_b], [0, 0, 1]])
-            G = np.array([[co, 0], [so, 0], [0, 1]])
-            Q = np.diag([(sv * dt) ** 2, (sw * dt) ** 2])
-            P = F @ P @ F.T + G @ Q @ G.T
-            ox += co * dx_b - so * dy_b
-            oy += so * dx_b + co * dy_b
-            oyaw += dyaw
-            vx, vy, wz = dx_b / dt, dy_b / dt, dyaw / dt
-        prev = cur
-        pose_cov = np.diag([0.0, 0.0, small, small, small, 0.0])
-        idx = [0, 1, 5]
-        pose_cov[np.ix_(idx, idx)] = P
-        twist_cov = np.diag([sv**2, small, small, small, small, sw**2])
-        add(
-            3,
-            ODOM_TOPIC,
-            stamp,
-            OdometryMsg(
-                header=Header(stamp, cfg.odom_frame),
-                child_frame_id=cfg.base_frame,
-                x=ox,
-                y=oy,
-                yaw=oyaw,
-                pose_covariance=tuple(float(v) for v in pose_cov.ravel()),
-                vx=vx,
-                vy=vy,
-                wz=wz,
-                twist_covariance=tuple(float(v) for v in twist_cov.ravel()),
-            ),
-        )
+    for stamp, msg in zip(odom_ns, _odometry(cfg, true_pose, traj, odom_ns, rng_odom), strict=True):
+        add(3, ODOM_TOPIC, stamp, msg)
 
     # Laser: exact ray cast against the walls plus Gaussian range noise.
     n_beams = cfg.laser_beams
@@ -1028,8 +1101,8 @@ def simulate(cfg: SimConfig) -> Recording:
         "T_base_camera": _T_list(T_bc),
         "T_base_laser": _T_list(T_bl),
         "noise": {
-            "odom_v_sigma_mps": sv,
-            "odom_yaw_rate_sigma_radps": sw,
+            "odom_v_sigma_mps": cfg.odom_v_sigma_mps,
+            "odom_yaw_rate_sigma_radps": cfg.odom_yaw_rate_sigma_radps,
             "odom_model": "per odometry sample, white: forward increment += N(0, (odom_v_sigma_mps*dt)^2), "
             "yaw increment += N(0, (odom_yaw_rate_sigma_radps*dt)^2); lateral increment exact",
             "laser_range_sigma_m": cfg.laser_range_sigma_m,
@@ -1046,6 +1119,8 @@ def simulate(cfg: SimConfig) -> Recording:
         "conventions": CONVENTIONS,
         "frames": frames_gt,
     }
+    if errors := wheel_errors(cfg):
+        gt["odometry_errors"] = errors
     return Recording(config=cfg, messages=tuple(m[2] for m in messages), ground_truth=gt)
 
 
@@ -1063,10 +1138,44 @@ CONVENTIONS: Final = {
 }
 
 
+_NEW_FIELDS: Final = {
+    "odom_distance_scale_error": 0.0,
+    "odom_yaw_scale_error": 0.0,
+    "odom_yaw_bias_rad_per_m": 0.0,
+    "odom_cov_scale": 1.0,
+    "corridor_length_m": 10.0,
+}
+"""Fields added after the sample was made: left out of the ground truth's ``config`` at their defaults, so the
+ground truth of a run that does not use them stays byte-identical."""
+
+
+def wheel_errors(cfg: SimConfig) -> dict[str, Any]:
+    """The systematic odometry errors and covariance scale applied (empty when there are none)."""
+    if (
+        cfg.odom_distance_scale_error == 0.0
+        and cfg.odom_yaw_scale_error == 0.0
+        and cfg.odom_yaw_bias_rad_per_m == 0.0
+        and cfg.odom_cov_scale == 1.0
+    ):
+        return {}
+    return {
+        "distance_scale": 1.0 + cfg.odom_distance_scale_error,
+        "yaw_rate_scale": 1.0 + cfg.odom_yaw_scale_error,
+        "yaw_bias_rad_per_m": cfg.odom_yaw_bias_rad_per_m,
+        "covariance_scale": cfg.odom_cov_scale,
+        "model": "per odometry sample, with the true body-frame increments (dx, dy, dyaw): reported forward and "
+        "lateral increments = distance_scale * (dx, dy) + white noise on the forward one; reported yaw increment = "
+        "yaw_rate_scale * dyaw + yaw_bias_rad_per_m * dx + white noise; the pose covariance is covariance_scale "
+        "times the propagated white noise (0: all zero), without the systematic part",
+    }
+
+
 def _config_json(cfg: SimConfig) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for f in fields(cfg):
         v = getattr(cfg, f.name)
+        if f.name in _NEW_FIELDS and v == _NEW_FIELDS[f.name]:
+            continue
         out[f.name] = [list(x) if isinstance(x, tuple) else x for x in v] if isinstance(v, tuple) else v
     return out
 
@@ -1409,11 +1518,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compression", choices=("bz2", "lz4"), default=None, help="ROS 1 chunk compression")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--duration", type=float, default=None, help="seconds (default: the whole path)")
-    parser.add_argument("--path", choices=("office", "corridor"), default="office")
+    parser.add_argument("--path", choices=("office", "corridor", "corridor_return"), default="office")
     parser.add_argument("--image-format", choices=IMAGE_FORMATS, default="jpeg")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--camera-rate", type=float, default=5.0, help="Hz")
+    parser.add_argument("--corridor-length", type=float, default=10.0, help="corridor length behind the door, m")
+    wheel = parser.add_argument_group("systematic wheel odometry errors (default: none)")
+    wheel.add_argument(
+        "--odom-distance-scale-error", type=float, default=0.0, help="reported distance = (1 + this) x driven"
+    )
+    wheel.add_argument("--odom-yaw-scale-error", type=float, default=0.0, help="reported turn = (1 + this) x turned")
+    wheel.add_argument("--odom-yaw-bias", type=float, default=0.0, help="yaw added per metre driven forwards, rad/m")
+    wheel.add_argument(
+        "--odom-cov-scale",
+        type=float,
+        default=1.0,
+        help="reported pose covariance = this x the propagated white noise (< 1: too small; 0: all zero)",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite an existing bag")
     args = parser.parse_args(argv)
     cfg = SimConfig(
@@ -1424,6 +1546,11 @@ def main(argv: list[str] | None = None) -> int:
         image_width=args.width,
         image_height=args.height,
         camera_rate_hz=args.camera_rate,
+        corridor_length_m=args.corridor_length,
+        odom_distance_scale_error=args.odom_distance_scale_error,
+        odom_yaw_scale_error=args.odom_yaw_scale_error,
+        odom_yaw_bias_rad_per_m=args.odom_yaw_bias,
+        odom_cov_scale=args.odom_cov_scale,
     )
     suffix = {"ros1": ".bag", "mcap": ".mcap"}.get(args.fmt, "")
     out = args.out / f"{args.name}{suffix}"

@@ -52,6 +52,35 @@ class GraphConfig(SettingsModel):
     odometry_sigma_rad_per_m: float = Field(
         0.01, ge=0, description="Odometry heading noise growth per metre travelled, rad/m."
     )
+    # self-calibrating odometry (stages/graph/calibration.py)
+    odometry_calibration: bool = Field(
+        False,
+        description="Estimate the odometry's systematic errors with the map: a distance scale, a yaw-rate scale and "
+        "a yaw bias per metre (priors below); the odometry factors are corrected by the estimate.",
+    )
+    odometry_scale_sigma: float = Field(
+        0.05, ge=0, description="Prior sigma of the odometry distance scale (relative; 0: not estimated)."
+    )
+    odometry_yaw_scale_sigma: float = Field(
+        0.05, ge=0, description="Prior sigma of the odometry yaw-rate scale (relative; 0: not estimated)."
+    )
+    odometry_yaw_bias_sigma: float = Field(
+        0.05, ge=0, description="Prior sigma of the odometry yaw bias per metre driven, rad/m (0: not estimated)."
+    )
+    noise_estimate: Literal["off", "odometry", "odometry_and_tags"] = Field(
+        "off",
+        description="Scale the odometry (and tag) covariances until each group's whitened chi-square matches its "
+        "redundancy (variance component estimation), for messages whose covariances are wrong, zero or absent.",
+    )
+    calibration_max_iterations: int = Field(
+        10, ge=1, description="Most outer iterations (solve, then update the calibration and noise scales)."
+    )
+    calibration_tolerance: float = Field(
+        0.02,
+        gt=0,
+        description="Stop when the calibration moves less than this many sigmas and the noise scales by less than "
+        "this fraction.",
+    )
     # no odometry
     motion_prior: bool = Field(
         True, description="Without odometry, join consecutive keyframes with a weak zero-motion prior."

@@ -9,6 +9,8 @@ import rerun as rr
 
 from pipeline.artifacts import StageOutput
 from pipeline.errors import StageError
+from stages.graph.calibration import applies as calibration_applies
+from stages.graph.calibration import calibrate
 from stages.graph.config import GraphConfig
 from stages.graph.factors import build_graph
 from stages.graph.health import graph_health, strict_error
@@ -30,11 +32,19 @@ def solve_and_write(
     """
     t0 = time.perf_counter()
     check_problem(problem)
-    graph = build_graph(problem.rows)
-    t1 = time.perf_counter()
-    solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
-    t2 = time.perf_counter()
-    marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    calibration = None
+    if calibration_applies(problem, cfg):
+        t1 = time.perf_counter()
+        result = calibrate(problem, cfg)
+        problem, graph, solution, marginals = result.problem, result.graph, result.solution, result.marginals
+        calibration = result.summary
+        t2 = time.perf_counter()
+    else:
+        graph = build_graph(problem.rows)
+        t1 = time.perf_counter()
+        solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+        t2 = time.perf_counter()
+        marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
     health = graph_health(
         problem,
         graph,
@@ -53,6 +63,8 @@ def solve_and_write(
         log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride)
     summary.update(problem.info)
     summary["health"] = health
+    if calibration is not None:
+        summary["odometry_calibration"] = calibration
     summary["timing_s"] = {
         "check_and_build": round(t1 - t0, 4),
         "optimise": round(t2 - t1, 4),

@@ -1,0 +1,223 @@
+"""Self-calibrating odometry, before and after, on simulated worlds with systematic wheel errors.
+
+For each world (the office path there and back, and a long corridor out and back; several seeds) the simulator
+writes a bag whose wheel odometry has a distance scale error, a yaw-rate scale error and a yaw bias per metre,
+with message covariances that grow over the run but do not contain the systematic part. ingest and detect run
+once per world through the runner (the detections do not depend on the wheel errors: the images come from their
+own random stream). The graph is then built and solved in process for odometry variants made by
+``sample_data.simulate.simulate_odometry`` (the same draws): the world's own (``as recorded``), the same with the
+covariances 10x too small, all zero, or absent (no covariance column), and the same world without wheel errors
+(the control: calibration must not hurt it). Each is solved with the calibration off (``before``) and on
+(``after``: ``graph.odometry_calibration`` and ``graph.noise_estimate=odometry``).
+
+Figures per run: landmark RMSE after a rigid 2D alignment of the landmarks to the truth (Umeyama, no scale),
+landmark NEES / 2 in the map frame (the truth in the frame of the true first keyframe, where the marginals
+live), and for ``after`` the estimated calibration (± σ) and the odometry covariance scale. Nothing is asserted.
+
+    /work/venv/bin/python tests/benchmarks/bench_odometry.py --work /tmp/odom/bench --seeds 1 2 \\
+        --paths office corridor_return
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from stages.geometry import umeyama_alignment  # noqa: E402
+
+ERRORS = {"odom_distance_scale_error": 0.02, "odom_yaw_scale_error": -0.015, "odom_yaw_bias_rad_per_m": 0.01}
+"""Default wheel errors: 2 % long, 1.5 % short in turns, 0.01 rad per metre (0.57°/m)."""
+
+
+def world_config(path: str, seed: int, corridor_length: float, errors: dict[str, float]) -> Any:
+    from sample_data.simulate import SimConfig
+
+    extra = {"corridor_length_m": corridor_length} if path == "corridor_return" else {}
+    return SimConfig(seed=seed, path=path, **extra, **errors)  # type: ignore[arg-type]
+
+
+def make_world(work: Path, name: str, cfg: Any) -> Path:
+    """The world's bag (simulated once) and its ingest + detect run folder (made once)."""
+    from pipeline.config import load_settings
+    from pipeline.registry import Registry
+    from pipeline.run_folder import RunFolder
+    from pipeline.runner import run_stage
+    from sample_data.simulate import simulate, write_bag
+    from stages import detect, ingest
+
+    bag = work / f"{name}.bag"
+    if not bag.exists():
+        t = time.perf_counter()
+        write_bag(simulate(cfg), bag, "ros1", None, overwrite=True)
+        print(f"simulated {name} in {time.perf_counter() - t:.0f} s", flush=True)
+    run_dir = work / "runs" / name
+    if not (run_dir / "detect" / "detections.parquet").exists():
+        reg = Registry([ingest.STAGE, detect.STAGE])
+        run = RunFolder.create(run_dir, bag)
+        settings = load_settings(reg.models(), overrides=["detect.tag_size_m=0.16"])
+        for stage in ("ingest", "detect"):
+            t = time.perf_counter()
+            run_stage(run, reg, stage, settings)
+            print(f"{name}: {stage} in {time.perf_counter() - t:.0f} s", flush=True)
+    return run_dir
+
+
+def odometry_table(cfg: Any, covariance: str) -> Any:
+    """ingest's odometry table for the simulator's odometry of ``cfg`` (covariance: as recorded / small / zero /
+    absent)."""
+    import pyarrow as pa
+
+    from sample_data.simulate import simulate_odometry
+
+    if covariance == "small":
+        cfg = replace(cfg, odom_cov_scale=0.1)
+    elif covariance == "zero":
+        cfg = replace(cfg, odom_cov_scale=0.0)
+    msgs = simulate_odometry(cfg)
+    cols: dict[str, list[Any]] = {k: [] for k in ("stamp_ns", "x", "y", "z", "qx", "qy", "qz", "qw")}
+    for m in msgs:
+        for k, v in zip(
+            cols, (m.header.stamp_ns, m.x, m.y, 0.0, 0.0, 0.0, math.sin(m.yaw / 2), math.cos(m.yaw / 2)), strict=True
+        ):
+            cols[k].append(v)
+    if covariance != "absent":
+        cols["pose_cov"] = [list(m.pose_covariance) for m in msgs]
+    return pa.table(cols)
+
+
+def evaluate(problem: Any, values: Any, marginals: dict[int, np.ndarray], gt: dict[str, Any]) -> dict[str, float]:
+    """Landmark RMSE after a rigid alignment of the landmarks, and landmark NEES / 2 in the map frame."""
+    st = np.array([p["stamp_ns"] for p in gt["poses"]], dtype=float)
+    xy = np.array([[p["x"], p["y"]] for p in gt["poses"]])
+    yaw = np.unwrap([p["yaw"] for p in gt["poses"]])
+    s0 = float(problem.pose_stamps_ns[0])
+    x0, y0, yaw0 = (float(np.interp(s0, st, a)) for a in (xy[:, 0], xy[:, 1], yaw))
+    R0 = np.array([[math.cos(yaw0), -math.sin(yaw0)], [math.sin(yaw0), math.cos(yaw0)]])
+    tags = {t["id"]: np.array(t["position"][:2]) for t in gt["tags"]}
+    est, true_map, true_w, nees = [], [], [], []
+    for tag, key in problem.landmark_keys.items():
+        e = np.asarray(values.atPoint2(key))
+        t_map = (tags[tag] - [x0, y0]) @ R0
+        d = e - t_map
+        nees.append(float(d @ np.linalg.solve(marginals[key], d)) / 2)
+        est.append(e)
+        true_map.append(t_map)
+        true_w.append(tags[tag])
+    E, T = np.array(est), np.array(true_w)
+    R, t, _ = umeyama_alignment(E, T)
+    rmse = float(np.sqrt(np.mean(np.sum((E @ R.T + t - T) ** 2, axis=1))))
+    return {"rmse_cm": 100 * rmse, "nees": float(np.mean(nees)), "landmarks": len(est)}
+
+
+def solve(det: Any, odo: Any, extr: Any, overrides: dict[str, Any]) -> tuple[Any, Any, dict, dict, float]:
+    from stages.graph.build import build_problem
+    from stages.graph.calibration import applies, calibrate
+    from stages.graph.config import GraphConfig
+    from stages.graph.factors import build_graph
+    from stages.graph.solve import marginal_covariances, optimise
+
+    cfg = GraphConfig(**overrides)
+    t = time.perf_counter()
+    p = build_problem(det, odo, extr, cfg)
+    if applies(p, cfg):
+        r = calibrate(p, cfg)
+        return r.problem, r.solution.values, r.marginals, r.summary, time.perf_counter() - t
+    g = build_graph(p.rows)
+    sol = optimise(p, g, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+    marg = marginal_covariances(p, g, sol.values, list(p.var_types))
+    return p, sol.values, marg, {}, time.perf_counter() - t
+
+
+BEFORE: dict[str, Any] = {"odometry_calibration": False, "noise_estimate": "off"}
+AFTER: dict[str, Any] = {"odometry_calibration": True, "noise_estimate": "odometry"}
+AFTER_YAW: dict[str, Any] = {"odometry_calibration": True, "odometry_scale_sigma": 0.0, "noise_estimate": "odometry"}
+"""The yaw-rate scale and yaw bias only (the distance scale left to the tag scale)."""
+CONFIGS = {"before": BEFORE, "after": AFTER, "after_yaw": AFTER_YAW}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/focusmap_odometry"))
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--paths", nargs="+", default=["office", "corridor_return"])
+    ap.add_argument("--corridor-length", type=float, default=16.0)
+    ap.add_argument("--variants", nargs="+", default=["recorded", "small", "zero", "absent", "no_errors"])
+    ap.add_argument("--configs", nargs="+", default=["before", "after"], choices=sorted(CONFIGS))
+    ap.add_argument("--worlds-only", action="store_true", help="make the bags and run folders, then stop")
+    args = ap.parse_args()
+
+    import pyarrow.parquet as pq
+
+    from stages.detect.artifacts import DETECTIONS
+    from stages.ingest.artifacts import EXTRINSICS, Extrinsics
+
+    args.work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for path in args.paths:
+        for seed in args.seeds:
+            name = f"{path}_seed{seed}"
+            cfg = world_config(path, seed, args.corridor_length, ERRORS)
+            run_dir = make_world(args.work, name, cfg)
+            if args.worlds_only:
+                continue
+            gt = json.loads((args.work / f"{name}.ground_truth.json").read_text())
+            det = pq.read_table(run_dir / "detect" / DETECTIONS.file)
+            extr = Extrinsics.model_validate_json((run_dir / "ingest" / EXTRINSICS.file).read_text())
+            for variant in args.variants:
+                vcfg = world_config(path, seed, args.corridor_length, {}) if variant == "no_errors" else cfg
+                odo = odometry_table(vcfg, "recorded" if variant == "no_errors" else variant)
+                for label in args.configs:
+                    over = CONFIGS[label]
+                    p, values, marg, summ, secs = solve(det, odo, extr, over)
+                    res = {"world": name, "odometry": variant, "graph": label, **evaluate(p, values, marg, gt)}
+                    res["seconds"] = round(secs, 1)
+                    if summ:
+                        for k in ("distance_scale", "yaw_rate_scale", "yaw_bias_rad_per_m"):
+                            res[k] = f"{summ[k]['value']:.4f} ± {summ[k]['sigma']:.4f}"
+                        res["odo_cov_scale"] = round(summ["odometry_covariance_scale"], 3)
+                    rows.append(res)
+                    print(json.dumps(res), flush=True)
+    if rows:
+        table(rows)
+
+
+def table(rows: list[dict[str, Any]]) -> None:
+    cols = [
+        "world",
+        "odometry",
+        "graph",
+        "rmse_cm",
+        "nees",
+        "distance_scale",
+        "yaw_rate_scale",
+        "yaw_bias_rad_per_m",
+        "odo_cov_scale",
+    ]
+    print("| " + " | ".join(cols) + " |")
+    print("|" + " --- |" * len(cols))
+    for r in rows:
+        cells = [f"{r[c]:.2f}" if isinstance(r.get(c), float) else str(r.get(c, "–")) for c in cols]
+        print("| " + " | ".join(cells) + " |")
+    for label in CONFIGS:
+        for variant in sorted({r["odometry"] for r in rows}):
+            sel = [r for r in rows if r["graph"] == label and r["odometry"] == variant]
+            if sel:
+                print(
+                    f"mean {label:6s} {variant:9s}: RMSE {np.mean([r['rmse_cm'] for r in sel]):.1f} cm, "
+                    f"NEES/2 {np.mean([r['nees'] for r in sel]):.2f} over {len(sel)} worlds"
+                )
+
+
+if __name__ == "__main__":
+    main()

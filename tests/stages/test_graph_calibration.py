@@ -1,0 +1,99 @@
+"""Self-calibrating odometry (stages/graph/calibration.py) on image-free runs with systematic wheel errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stages.graph.build import build_problem
+from stages.graph.calibration import PARAMETERS, applies, calibrate, corrected_factor, corrected_increment
+from stages.graph.config import GraphConfig
+from stages.graph.factors import build_graph
+from stages.graph.solve import marginal_covariances, optimise
+from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
+
+WHEEL = (0.03, -0.02, 0.02)
+"""Distance 3 % long, turns 2 % short, 0.02 rad per metre."""
+TRUE = np.array([1 + WHEEL[0], 1 + WHEEL[1], WHEEL[2]])
+
+
+def _landmark_nees(run: SyntheticRun, problem, values, marginals) -> float:
+    x0, y0, yaw0 = run.true_pose_at(np.asarray(problem.pose_stamps_ns[:1]))[0]
+    R0 = np.array([[math.cos(yaw0), -math.sin(yaw0)], [math.sin(yaw0), math.cos(yaw0)]])
+    out = []
+    for tag, key in problem.landmark_keys.items():
+        e = np.asarray(values.atPoint2(key)) - (run.tags_world[tag][:2, 3] - [x0, y0]) @ R0
+        out.append(float(e @ np.linalg.solve(marginals[key], e)) / 2)
+    return float(np.mean(out))
+
+
+def test_correction_inverts_the_wheel_errors() -> None:
+    """An arc driven with known wheel errors is reported wrong; the correction at the true calibration gives it back."""
+    k_d, k_w, b = TRUE
+    # an arc of 0.4 m turning 0.3 rad: chord at half the angle
+    s_true, th_true = 0.4, 0.3
+    chord = 2 * s_true / th_true * math.sin(th_true / 2)
+    true = np.array([chord * math.cos(th_true / 2), chord * math.sin(th_true / 2), th_true])
+    th_rep = k_w * th_true + b * s_true
+    chord_rep = k_d * 2 * s_true / th_rep * math.sin(th_rep / 2)
+    reported = np.array([chord_rep * math.cos(th_rep / 2), chord_rep * math.sin(th_rep / 2), th_rep])
+    fixed = corrected_increment(reported, TRUE, "planar")
+    assert np.abs(fixed - true).max() < 2e-4  # the arc's length vs its chord's x: second order
+    assert np.abs(reported - true).max() > 5e-3
+    assert np.allclose(corrected_increment(reported, np.array([1.0, 1.0, 0.0]), "planar"), reported)
+    # the covariance goes with the increment: a 3 % shorter increment has 3 % smaller translation sigmas
+    _, cov = corrected_factor(reported, np.diag([1e-4, 1e-4, 1e-4]), np.array([1.03, 1.0, 0.0]), "planar")
+    assert np.sqrt(cov[0, 0]) == pytest.approx(0.01 / 1.03, rel=1e-3)
+
+
+@pytest.fixture(scope="module")
+def wheel_run() -> SyntheticRun:
+    return synthetic_run(seed=0, loops=2.0, wheel_errors=WHEEL)
+
+
+def _solve(run: SyntheticRun, cfg: GraphConfig):
+    problem = build_problem(run.detections, run.odometry, run.extrinsics, cfg)
+    if applies(problem, cfg):
+        r = calibrate(problem, cfg)
+        return r.problem, r.solution.values, r.marginals, r.summary
+    graph = build_graph(problem.rows)
+    sol = optimise(problem, graph)
+    return problem, sol.values, marginal_covariances(problem, graph, sol.values, list(problem.var_types)), {}
+
+
+# the synthetic tags are exactly the size the graph assumes: no tag scale, so the map's scale is the odometry's
+EXACT_TAG_SCALE = 0.0
+
+
+def test_calibration_recovers_wheel_errors_and_honest_landmarks(wheel_run: SyntheticRun) -> None:
+    before = _solve(
+        wheel_run, GraphConfig(odometry_calibration=False, noise_estimate="off", tag_scale_sigma=EXACT_TAG_SCALE)
+    )
+    assert _landmark_nees(wheel_run, *before[:3]) > 2.5  # overconfident without the calibration
+    problem, values, marginals, summary = _solve(
+        wheel_run, GraphConfig(odometry_calibration=True, noise_estimate="odometry", tag_scale_sigma=EXACT_TAG_SCALE)
+    )
+    for name, truth in zip(PARAMETERS, TRUE, strict=True):
+        est = summary[name]
+        assert abs(est["value"] - truth) < 3 * est["sigma"], (name, est, truth)
+        assert est["sigma"] < 0.3 * est["prior_sigma"]  # the data, not the prior, decide
+    assert 0.5 <= _landmark_nees(wheel_run, problem, values, marginals) <= 2.0
+    assert summary["converged"]
+    assert 0.5 < summary["odometry_covariance_scale"] < 2.0  # the messages' covariances are right here
+
+
+def test_noise_estimate_repairs_zero_covariances() -> None:
+    """Messages with all-zero covariances fall back to the settings' noise (5 % of the distance: pessimistic);
+    the odometry noise estimate scales it to the data."""
+    run = synthetic_run(seed=0, loops=2.0, wheel_errors=WHEEL, odom_cov_scale=0.0)
+    problem, values, marginals, summary = _solve(
+        run, GraphConfig(odometry_calibration=True, noise_estimate="odometry", tag_scale_sigma=EXACT_TAG_SCALE)
+    )
+    assert problem.info["odometry_noise"] == "settings"
+    assert summary["odometry_covariance_scale"] < 0.5
+    assert summary["odometry_chi2_per_redundancy"] == pytest.approx(1.0, abs=0.1)
+    for name, truth in zip(PARAMETERS, TRUE, strict=True):
+        assert abs(summary[name]["value"] - truth) < 3 * summary[name]["sigma"], name
+    assert 0.5 <= _landmark_nees(run, problem, values, marginals) <= 2.0
