@@ -39,7 +39,7 @@ from tests.fixtures import faults  # noqa: E402
 
 T = TypeVar("T")
 R = TypeVar("R")
-INGEST_OUTCOMES = ("error", "same", "reported", "silent", "traceback", "crash", "hang")
+INGEST_OUTCOMES = ("error", "long error", "same", "reported", "silent", "traceback", "crash", "hang")
 QUICK_SETTINGS = (
     "run --start inf",
     "run --stride 0",
@@ -130,7 +130,7 @@ def main() -> None:
         header = ["format", "fault", "--salvage", "tried", *INGEST_OUTCOMES, "rows kept (exit 0)"]
         sections.append("### Truncation and byte flips (`focusmap ingest`)\n\n" + md_table(header, rows))
         report["ingest"] = [{**asdict(r.case), "outcome": r.outcome, "kept": r.kept, "line": r.line} for r in results]
-        notable = [r for r in results if r.outcome in ("silent", "traceback", "crash", "hang")]
+        notable = [r for r in results if r.outcome in ("silent", "traceback", "long error", "crash", "hang")]
         lines = [
             f"- {r.case.fmt} {r.case.fault} at byte {r.case.offset}"
             + (f" (xor 0x{r.case.xor:02x})" if r.case.fault == "flip" else "")
@@ -241,6 +241,7 @@ def main() -> None:
     targets = [
         ["tracebacks (any `Traceback` / `internal error`)", "0", everything.count("traceback")],
         ["crashes (non-zero exit without an `error:` line)", "0", everything.count("crash")],
+        ["`error:` messages running over several lines", "0", everything.count("long error")],
         ["hangs (timeout)", "0", everything.count("hang")],
         ["processes alive 5 s after kill -9", "0", sum(len(k.orphans) for k in killed)],
         ["silent wrong reads, formats with chunk CRCs", "0", crc_silent],
