@@ -24,3 +24,13 @@ MIN_GRID_RESOLUTION_M: Final = 1e-3
 
 MAX_GRID_CELLS: Final = 100_000_000
 """Largest occupancy grid, cells (~1 GB of counts): a ~500 m square at the default 5 cm."""
+
+MAX_RATE_SIGMA: Final = 1e3
+"""Largest actuation noise of the simulated robot, m/s or rad/s (1e300 overflowed the noise draws)."""
+
+MAX_TRIALS: Final = 100_000
+"""Most Monte Carlo navigation trials per case (a billion asked for more than 23 GB and the kernel killed the
+process); 1e5 trials resolve a collision rate of 1e-5."""
+
+MAX_ROBOT_RADIUS_M: Final = 100.0
+"""Largest robot footprint radius, metres (1e300 overflowed the collision risk's Mahalanobis distance)."""

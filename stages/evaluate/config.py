@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import Field
 
 from pipeline.config import SettingsModel
-from stages.limits import MAX_SIGMA_M, MIN_GRID_RESOLUTION_M
+from stages.limits import MAX_RATE_SIGMA, MAX_ROBOT_RADIUS_M, MAX_SIGMA_M, MAX_TRIALS, MIN_GRID_RESOLUTION_M
 
 
 class EvaluateConfig(SettingsModel):
@@ -25,14 +25,19 @@ class EvaluateConfig(SettingsModel):
         "select_measurements strategy names); the six Table I cases always run.",
     )
     seed: int = Field(0, description="Seed of the random/leverage selections and of the Monte Carlo trials.")
-    trials: int = Field(100, ge=0, description="Monte Carlo navigation trials per case (0 skips navigation).")
+    trials: int = Field(
+        100, ge=0, le=MAX_TRIALS, description="Monte Carlo navigation trials per case (0 skips navigation)."
+    )
     walls: Literal["auto", "ground_truth", "laser"] = Field(
         "auto",
         description="Obstacles of the navigation: the ground truth's walls (when the run has one), a laser occupancy "
         "grid built at the optimised poses, or auto (ground truth when present, else laser).",
     )
     robot_radius_m: float | None = Field(
-        None, gt=0, description="Collision radius of the robot, m; null = select_landmarks.robot_radius_m."
+        None,
+        gt=0,
+        le=MAX_ROBOT_RADIUS_M,
+        description="Collision radius of the robot, m; null = select_landmarks.robot_radius_m.",
     )
     dt_s: float = Field(0.2, gt=0, description="Time step of the navigation simulation, s.")
     visibility_window_s: float = Field(
@@ -44,8 +49,12 @@ class EvaluateConfig(SettingsModel):
     range_sigma_m: float | None = Field(
         None, gt=0, le=MAX_SIGMA_M, description="Range noise of the simulated measurements, m; null = the risk model's."
     )
-    speed_sigma_mps: float = Field(0.05, ge=0, description="Actuation noise on the forward speed, m/s.")
-    yaw_rate_sigma_radps: float = Field(0.05, ge=0, description="Actuation noise on the yaw rate, rad/s.")
+    speed_sigma_mps: float = Field(
+        0.05, ge=0, le=MAX_RATE_SIGMA, description="Actuation noise on the forward speed, m/s."
+    )
+    yaw_rate_sigma_radps: float = Field(
+        0.05, ge=0, le=MAX_RATE_SIGMA, description="Actuation noise on the yaw rate, rad/s."
+    )
     initial_sigma_m: float = Field(
         0.02, ge=0, le=MAX_SIGMA_M, description="Standard deviation of the start position, m."
     )

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field
 
 from pipeline.config import SettingsModel
-from stages.limits import MAX_SIGMA_M
+from stages.limits import MAX_ROBOT_RADIUS_M, MAX_SIGMA_M
 
 if TYPE_CHECKING:  # stages.risk imports the estimation maths; settings must load without it
     from stages.risk import RiskParams
@@ -45,7 +45,10 @@ class SelectLandmarksConfig(SettingsModel):
         "trajectories (poses x pose dimension) than this.",
     )
     robot_radius_m: float = Field(
-        0.25, ge=0, description="Robot footprint radius: the collision margin is laser clearance minus this, m."
+        0.25,
+        ge=0,
+        le=MAX_ROBOT_RADIUS_M,
+        description="Robot footprint radius: the collision margin is laser clearance minus this, m.",
     )
     visibility_window_s: float = Field(
         1.0, ge=0, description="A landmark is visible from a keyframe if measured from a keyframe this close, s."
