@@ -231,7 +231,8 @@ def scan_problem(row: dict[str, Any]) -> str | None:
         return "non-finite angles or range limits"
     if row[RANGE_MIN] > row[RANGE_MAX]:
         return "range_min > range_max"
-    r = np.asarray(row[RANGES], dtype=float)
+    with np.errstate(invalid="ignore"):  # a damaged float32 may be a signalling NaN: still a NaN range
+        r = np.asarray(row[RANGES], dtype=float)
     if (np.isfinite(r) & (r < 0)).any():
         return "negative ranges"
     return None

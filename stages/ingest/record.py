@@ -72,7 +72,8 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
         ranges = scans.column(RANGES)
         cloud = []
         for i in range(0, scans.num_rows, rr_cfg.scan_stride):
-            r = ranges[i].values.to_numpy(zero_copy_only=False).astype(float)
+            with np.errstate(invalid="ignore"):  # signalling NaNs from damaged bytes are NaN ranges
+                r = ranges[i].values.to_numpy(zero_copy_only=False).astype(float)
             a = meta[ANGLE_MIN][i] + meta[ANGLE_INCREMENT][i] * np.arange(len(r))
             ok = np.isfinite(r) & (r >= meta[RANGE_MIN][i]) & (r <= meta[RANGE_MAX][i])
             pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
