@@ -136,6 +136,13 @@ class GraphConfig(SettingsModel):
         description="Make a failed health check (stages/graph/health.py: chi2 per factor kind, tag scale, iteration "
         "cap, moved tags, dead reckoning) an error: the stage stops and its results are not kept (--strict).",
     )
+    moved_tags: Literal["flag", "drop"] = Field(
+        "flag",
+        description="Tags whose measurements say they moved (the moved_tags health check): flag them with a warning, "
+        "or drop them: the worst one's measurements are removed and the graph solved again, until none is flagged "
+        "or max_dropped_tags are gone (each dropped tag is named in a warning and in the summary).",
+    )
+    max_dropped_tags: int = Field(5, ge=1, le=1000, description="moved_tags=drop: at most this many tags dropped.")
     # recording
     pose_ellipse_stride: int = Field(
         10, ge=1, description="Draw the covariance ellipse of every n-th pose in graph.rrd."

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Any
 
+import gtsam
+import numpy as np
 import rerun as rr
 
 from pipeline.artifacts import StageOutput
@@ -16,7 +19,7 @@ from stages.graph.factors import build_graph
 from stages.graph.health import graph_health, strict_error
 from stages.graph.outputs import log_recording, write_artifacts
 from stages.graph.problem import GraphProblem
-from stages.graph.solve import check_problem, marginal_covariances, optimise
+from stages.graph.solve import Solution, check_problem, marginal_covariances, optimise
 
 
 def solve_and_write(
@@ -32,43 +35,89 @@ def solve_and_write(
     """
     t0 = time.perf_counter()
     check_problem(problem)
-    calibration = None
-    if calibration_applies(problem, cfg):
-        t1 = time.perf_counter()
-        result = calibrate(problem, cfg)
-        problem, graph, solution, marginals = result.problem, result.graph, result.solution, result.marginals
-        calibration = result.summary
-        t2 = time.perf_counter()
-    else:
-        graph = build_graph(problem.rows)
-        t1 = time.perf_counter()
-        solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
-        t2 = time.perf_counter()
-        marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
-    health = graph_health(
-        problem,
-        graph,
-        solution.values,
-        marginals,
-        solution.iterations,
-        cfg.max_iterations,
-        "graph",
-        problem.info.get("tag_size_m"),
-    )
+    t1 = time.perf_counter()
+    solved = _solve(problem, cfg)
+    health = _health(solved, cfg)
+    dropped: list[int] = []
+    while (
+        cfg.moved_tags == "drop" and health["checks"]["moved_tags"].get("tags") and len(dropped) < cfg.max_dropped_tags
+    ):
+        worst = int(health["checks"]["moved_tags"]["tags"][0])
+        dropped.append(worst)
+        problem = _without_tag(solved.problem, worst)
+        check_problem(problem)
+        solved = _solve(problem, cfg)
+        health = _health(solved, cfg)
+    if dropped:
+        health["warnings"].insert(
+            0,
+            f"dropped the measurements of {len(dropped)} tag(s) that moved (graph.moved_tags=drop): "
+            + ", ".join(str(t) for t in dropped),
+        )
     if cfg.strict and not health["ok"]:
         raise StageError(strict_error("graph", health))
+    problem, solution, marginals = solved.problem, solved.solution, solved.marginals
     t3 = time.perf_counter()
     summary = write_artifacts(out, problem, solution, marginals)
     if rec is not None:
         log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride)
     summary.update(problem.info)
     summary["health"] = health
-    if calibration is not None:
-        summary["odometry_calibration"] = calibration
+    if cfg.moved_tags == "drop":
+        summary["dropped_moved_tags"] = dropped
+    if solved.calibration is not None:
+        summary["odometry_calibration"] = solved.calibration
     summary["timing_s"] = {
         "check_and_build": round(t1 - t0, 4),
-        "optimise": round(t2 - t1, 4),
-        "marginals": round(t3 - t2, 4),
+        "optimise": round(solved.seconds[0], 4),
+        "marginals": round(solved.seconds[1], 4),
+        "health_and_drops": round(t3 - t1 - sum(solved.seconds), 4),
         "write": round(time.perf_counter() - t3, 4),
     }
     return summary
+
+
+@dataclass
+class _Solved:
+    problem: GraphProblem
+    graph: gtsam.NonlinearFactorGraph
+    solution: Solution
+    marginals: dict[int, np.ndarray]
+    calibration: dict[str, Any] | None
+    seconds: tuple[float, float]
+    """Optimise and marginals (the calibration's joint solve counts as optimise)."""
+
+
+def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
+    """Optimise (with the odometry calibration when it applies) and take every marginal."""
+    t0 = time.perf_counter()
+    if calibration_applies(problem, cfg):
+        result = calibrate(problem, cfg)
+        seconds = (time.perf_counter() - t0, 0.0)
+        return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
+    graph = build_graph(problem.rows)
+    solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+    t1 = time.perf_counter()
+    marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    return _Solved(problem, graph, solution, marginals, None, (t1 - t0, time.perf_counter() - t1))
+
+
+def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:
+    return graph_health(
+        s.problem,
+        s.graph,
+        s.solution.values,
+        s.marginals,
+        s.solution.iterations,
+        cfg.max_iterations,
+        "graph",
+        s.problem.info.get("tag_size_m"),
+    )
+
+
+def _without_tag(problem: GraphProblem, tag_id: int) -> GraphProblem:
+    """The problem without the tag's measurements (and so without the tag), its notes kept."""
+    rows = [r for r in problem.rows if not (r.kind == "tag" and r.tag_id == tag_id)]
+    reduced = problem.restricted(rows, problem.initial)
+    reduced.info = dict(problem.info)
+    return reduced

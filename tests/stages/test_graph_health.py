@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
@@ -84,6 +85,34 @@ def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
     assert "moved_tags" in _failed(summary)
     assert moved["tags"][0] == 3 and len(moved["tags"]) <= 2
     assert any("tag(s) look like they moved" in w and ": 3 (" in w for w in summary["health"]["warnings"])
+
+
+def test_a_tag_that_moved_is_dropped_when_the_settings_say_so(tmp_path: Path) -> None:
+    """graph.moved_tags=drop: the moved tag's measurements go, the graph is solved again without it, the health is
+    clean after, and the map of the other tags is as on the same world where the tag never moved."""
+    sim = synthetic_run(seed=3, loops=2.0, moved_tag=(3, 0.5, (0.5, 0.0, 0.0)))
+    run, summary = _graph(tmp_path / "drop", sim, "graph.moved_tags=drop")
+    assert summary["dropped_moved_tags"] == [3]
+    assert summary["health"]["checks"]["moved_tags"]["tags"] == []
+    assert summary["health"]["warnings"][0].startswith("dropped the measurements of 1 tag(s) that moved")
+    assert "moved_tags" not in _failed(summary)
+    assert 3 not in pq.read_table(run.stage_dir("graph") / "landmarks.parquet").to_pydict()["tag_id"]
+    # the map of the other tags, rigidly aligned to the truth: no worse than with the moved tag kept (robust kernels
+    # already limit what a moved tag does; dropping it must not cost the rest of the map)
+    flagged, _ = _graph(tmp_path / "flag", sim)
+
+    def rms_to_truth(run: RunFolder) -> float:
+        t = pq.read_table(run.stage_dir("graph") / "landmarks.parquet").to_pydict()
+        ids = [int(i) for i in t["tag_id"] if int(i) != 3]
+        est = np.array([[x, y] for i, x, y in zip(t["tag_id"], t["x"], t["y"], strict=True) if int(i) != 3])
+        true = np.array([sim.tags_world[i][:2, 3] for i in ids])
+        a, b = est - est.mean(0), true - true.mean(0)
+        u, _, vt = np.linalg.svd(a.T @ b)
+        rot = (u @ np.diag([1.0, np.linalg.det(u @ vt)]) @ vt).T
+        return float(np.sqrt(np.mean(np.sum((a @ rot.T - b) ** 2, axis=1))))
+
+    dropped_rms, kept_rms = rms_to_truth(run), rms_to_truth(flagged)
+    assert dropped_rms < kept_rms + 0.005, (dropped_rms, kept_rms)
 
 
 def test_an_optimiser_at_its_iteration_cap_is_not_converged(tmp_path: Path) -> None:
