@@ -276,13 +276,14 @@ class _SelectedInverse:
 
 
 # ------------------------------------------------------------------ mutual information (Beinhofer et al.)
-def schur_contribution(J_x: FloatArray, J_l: FloatArray, landmark_prior_info: float = 0.0) -> FloatArray:
+def schur_contribution(J_x: FloatArray, J_l: FloatArray, landmark_prior_info: float | FloatArray = 0.0) -> FloatArray:
     """Information a landmark's measurements add to the trajectory, the landmark marginalised (Schur complement).
 
     ``J_x`` (rows × trajectory cols on the landmark's support) and ``J_l`` (rows × landmark dim) are
-    the stacked whitened Jacobians of all of that landmark's measurements.
+    the stacked whitened Jacobians of all of that landmark's measurements; ``landmark_prior_info`` is the weak
+    prior's information, one value or one per landmark dimension.
     """
-    Hll = J_l.T @ J_l + landmark_prior_info * np.eye(J_l.shape[1])
+    Hll = J_l.T @ J_l + np.diag(np.broadcast_to(np.asarray(landmark_prior_info, dtype=float), (J_l.shape[1],)))
     Hxl = J_x.T @ J_l
     out = J_x.T @ J_x - Hxl @ np.linalg.solve(Hll, Hxl.T)
     return np.asarray(0.5 * (out + out.T))

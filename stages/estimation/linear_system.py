@@ -26,6 +26,22 @@ SparseMatrix: TypeAlias = sp.csc_matrix | sp.csr_matrix | sp.coo_matrix
 """The scipy sparse matrices the estimation code passes around (information matrices, Jacobians, patterns)."""
 
 
+LANDMARK_ROTATION_PRIOR_SIGMA_RAD = 1.0
+"""Largest σ of the weak landmark prior on a 6-dof (Pose3) landmark's rotation: a prior of 100 "units" on a
+rotation vector means nothing (rotations wrap at π) and, with centimetre tag measurements, makes the information
+so ill-conditioned that the selection greedy's tracked covariance loses tens of nats (measured on TagSLAM's
+test_14 in 3D: 73 nats after 90 picks)."""
+
+
+def landmark_prior_sigmas(dim: int, sigma: float) -> FloatArray:
+    """σ per tangent dimension of a landmark's weak prior: ``sigma`` on positions; a Pose3 landmark (6 dims, GTSAM's
+    (rotation, translation) order) has at most :data:`LANDMARK_ROTATION_PRIOR_SIGMA_RAD` on its rotation."""
+    out = np.full(dim, float(sigma))
+    if dim == 6:
+        out[:3] = min(float(sigma), LANDMARK_ROTATION_PRIOR_SIGMA_RAD)
+    return out
+
+
 @dataclass(frozen=True)
 class Variable:
     """One block of the state vector."""
@@ -202,8 +218,9 @@ class LinearSystem:
         return [i for i, v in enumerate(self.variables) if v.kind == kind]
 
     def diagonal_prior(self, variable_ids: Iterable[int], sigma: float) -> sp.csc_matrix:
-        """Information ``σ⁻² I`` on the given variables' columns (a weak prior)."""
-        cols = self.columns(variable_ids)
+        """Information ``σ⁻² I`` on the given variables' columns (a weak prior; see :func:`landmark_prior_sigmas` for
+        the rotation of a 6-dof variable)."""
         d = np.zeros(self.dim)
-        d[cols] = 1.0 / sigma**2
+        for v in variable_ids:
+            d[self.offsets[v] : self.offsets[v + 1]] = 1.0 / landmark_prior_sigmas(self.variables[v].dim, sigma) ** 2
         return sp.diags(d, format="csc")

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from pipeline.errors import StageError
 from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
+from stages.estimation.linear_system import landmark_prior_sigmas
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.problem import GraphProblem
@@ -116,10 +117,14 @@ def solve_reduced(
     marginals, joint = _marginals(problem, graph, solution, focused_obs)
     t3 = time.perf_counter()
     h_obs = gaussian_entropy(joint)
-    missing_dim = sum(
+    missing_dims = [
         loaded.kind(loaded.landmark_keys[t]).dim for t in scored if t not in set(observed) and t in loaded.landmark_keys
+    ]
+    missing_dim = sum(missing_dims)
+    h_missing = sum(  # independent per dimension, as the selection's weak prior
+        entropy_from_logdet(float(np.sum(np.log(landmark_prior_sigmas(d, unobserved_sigma_m) ** 2))), d)
+        for d in missing_dims
     )
-    h_missing = missing_dim * entropy_from_logdet(np.log(unobserved_sigma_m**2), 1)  # independent per dimension
     return ReducedMap(
         problem=problem,
         solution=solution,

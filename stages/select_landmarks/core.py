@@ -104,7 +104,7 @@ class LandmarkInputs:
         """
         if self._trajectory is not None and self._trajectory_prior == landmark_prior_sigma:
             return self._trajectory
-        from stages.estimation.linear_system import LinearSystem
+        from stages.estimation.linear_system import LinearSystem, landmark_prior_sigmas
 
         loaded = self.loaded
         system = LinearSystem.from_gtsam(
@@ -114,10 +114,12 @@ class LandmarkInputs:
         pose_cols = system.columns(pose_vars)
         n = len(pose_cols)
         if n > max_dim:
+            instead = "collision" if self.has_laser else "uniform (this run has no laser for collision)"
             raise StageError(
-                f"mutual-information and leverage need the dense {n}x{n} trajectory information, above "
-                f"select_landmarks.max_trajectory_dim={max_dim}; use --set select_landmarks.strategy=collision "
-                "(or raise the limit if memory allows)"
+                f"mutual-information and leverage need the dense {n}x{n} trajectory information "
+                f"({n * n * 8 / 2**30:.1f} GiB), above select_landmarks.max_trajectory_dim={max_dim}; use --set "
+                f"select_landmarks.strategy={instead}, a budget at or above the {len(self.landmarks.tag_ids)} "
+                "landmarks, or raise the limit if memory allows"
             )
         col_in_traj = np.full(system.dim, -1, dtype=np.int64)
         col_in_traj[pose_cols] = np.arange(n)
@@ -144,7 +146,7 @@ class LandmarkInputs:
             support = support[col_in_traj[support] >= 0]
             J_x = J[:, support].toarray()
             J_l = J[:, lcols].toarray()
-            B = schur_contribution(J_x, J_l, 1.0 / landmark_prior_sigma**2)
+            B = schur_contribution(J_x, J_l, 1.0 / landmark_prior_sigmas(len(lcols), landmark_prior_sigma) ** 2)
             contributions.append((col_in_traj[support], B))
         self._trajectory = (info0, contributions)
         self._trajectory_prior = landmark_prior_sigma

@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Final
 
 from pipeline.lazy import lazy_exports
-from pipeline.stage import Option, Stage, lazy
+from pipeline.stage import Option, Stage, Summary, lazy, summary_notes
 from stages.select_measurements.config import STRATEGIES, SelectMeasurementsConfig
 
 if TYPE_CHECKING:
@@ -62,6 +62,12 @@ def blueprint() -> Any:
     )
 
 
+def remarks(summary: Summary) -> list[tuple[str, str]]:
+    """The notes and a ``warning`` when the greedy's running entropy drifted from the exact one."""
+    warnings = summary.get("warnings")
+    return summary_notes(summary) + [("warning", str(w)) for w in (warnings if isinstance(warnings, list) else [])]
+
+
 STAGE: Final = Stage(
     name="select_measurements",
     config_type=SelectMeasurementsConfig,
@@ -72,6 +78,7 @@ STAGE: Final = Stage(
     blueprint=blueprint,
     help="Stage two: keep the --budget (K) tag measurements that best localise the focused landmarks (information "
     "| leverage | uniform | random | all).",
+    remarks=remarks,
     options=(
         Option("--strategy", "strategy", "Selection strategy (see configs/default.yaml for the choices)."),
         Option("--budget", "budget", "How many to keep.", int, min=0),
