@@ -43,7 +43,7 @@ from cli.options import (
     SetOpt,
     StrictOpt,
 )
-from pipeline.errors import InputError, PipelineError, write_error
+from pipeline.errors import InputError, PipelineError, one_line, write_error
 
 if TYPE_CHECKING:
     from typer._click import Context as _VendoredContext
@@ -143,7 +143,10 @@ def handled(func: Callable[P, R]) -> Callable[P, R]:
         except PipelineError as err:
             if _state().debug:
                 raise
-            typer.echo(f"error: {err}", err=True)
+            problems = getattr(err, "problems", None)  # a batch file's problems: one error line each
+            lines = [str(p) for p in problems] if isinstance(problems, list) and problems else [str(err)]
+            for line in lines:
+                typer.echo(f"error: {one_line(line)}", err=True)
             raise typer.Exit(1) from None
         except KeyboardInterrupt:
             typer.echo("error: interrupted; finished stages are kept, the interrupted one left no output", err=True)
@@ -159,8 +162,8 @@ def handled(func: Callable[P, R]) -> Callable[P, R]:
                 typer.echo(f"error: {failed}", err=True)
                 raise typer.Exit(1) from None
             typer.echo(
-                f"error: internal error {type(err).__name__}: {err} (re-run with --debug for the traceback "
-                "and report it)",
+                f"error: internal error {type(err).__name__}: {one_line(str(err), 200)} (re-run with --debug for the "
+                "traceback and report it)",
                 err=True,
             )
             raise typer.Exit(2) from None

@@ -63,3 +63,13 @@ def _is_inside(path: str | os.PathLike[str], folder: str | os.PathLike[str]) -> 
         return os.path.commonpath([os.path.abspath(path), os.path.abspath(folder)]) == os.path.abspath(folder)
     except ValueError:
         return False
+
+
+ERROR_LINE_MAX = 1000
+"""Characters of an ``error:`` line; a longer message (a library's text quoting a whole message definition) is cut."""
+
+
+def one_line(message: str, limit: int = ERROR_LINE_MAX) -> str:
+    """``message`` on one line (runs of whitespace and line breaks made one space), cut to ``limit`` characters."""
+    text = " ".join(message.split())
+    return text if len(text) <= limit else text[: limit - 1].rstrip() + "…"
