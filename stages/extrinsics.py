@@ -43,6 +43,8 @@ class ExtrinsicsFile:
     """``tagslam camera_poses``, ``kalibr camchain`` or ``4x4 matrices``."""
     base_frame: str
     mounts: dict[str, FloatArray] = field(default_factory=dict)
+    via: str = ""
+    """How the file's transforms were changed before use (appended to each mount's source), e.g. by a tags file."""
 
     def find(self, *names: str | None) -> tuple[str, FloatArray] | None:
         """The first entry named by one of ``names`` (a camera name, frame id or topic), with its name."""

@@ -35,7 +35,7 @@ from stages.detect.artifacts import (
     T_CAMERA_TAG,
 )
 from stages.detect.backends import TagObservation
-from stages.detect.config import DetectConfig
+from stages.detect.config import DetectConfig, TagSize
 from stages.detect.core import (
     DROP_REASONS,
     BatchResult,
@@ -55,8 +55,10 @@ from stages.ingest.artifacts import (
     HEIGHT,
     STEP,
     TAG_DETECTIONS,
+    TAGS,
     WIDTH,
     CameraModel,
+    TagsInfo,
 )
 
 log = logging.getLogger(__name__)
@@ -135,6 +137,9 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
     camera = CAMERA_MODEL.read(ingest)
     cameras = CAMERAS.read(ingest).cameras if ingest.exists(CAMERAS.file) else None
     from_bag = ingest.exists(TAG_DETECTIONS.file)
+    tags = TAGS.read(ingest) if ingest.exists(TAGS.file) else None
+    if tags is not None:
+        cfg = sizes_from_tags(cfg, tags)
     _log_static(ctx.rec, camera)
     batches, total, workers = _batches(ingest, cfg, from_bag)
     found = _detect(ctx, cfg, (camera, cameras), from_bag, batches, total, workers)
@@ -154,12 +159,13 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
     DETECTIONS.write(ctx.output, table)
     _log_tags(ctx.rec, table, ctx.n_sigma)
     seconds = time.perf_counter() - start
-    tags = table.column(TAG_ID).to_numpy()
+    ids = table.column(TAG_ID).to_numpy()
     reproj = table.column(REPROJECTION_PX).to_numpy()
+    sizes = {"tag_size_m": cfg.tag_size_m, "tag_sizes": len(cfg.tag_sizes)} if tags is not None else {}
     return {
         "frames": found.frames,
         "detections": table.num_rows,
-        "distinct_tags": len(np.unique(tags)),
+        "distinct_tags": len(np.unique(ids)),
         "frames_with_tags": len(
             set(zip(table.column(CAMERA).to_pylist(), table.column(FRAME).to_pylist(), strict=True))
         ),
@@ -179,7 +185,23 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         "detect_seconds": round(seconds, 3),
         "frames_per_second": round(found.frames / seconds, 2) if seconds > 0 else None,
         "workers": workers,
+        **sizes,
     }
+
+
+def sizes_from_tags(cfg: DetectConfig, tags: TagsInfo) -> DetectConfig:
+    """The settings with the tag sizes of ingest's ``tags.json`` (``--tags``): its default size where
+    ``detect.tag_size_m`` is at its default, and the sizes of the tags it lists with a size other than its
+    default, for the ids ``detect.tag_sizes`` leaves out (a size set in the settings wins)."""
+    default = DetectConfig.model_fields["tag_size_m"].default
+    size = tags.default_tag_size_m if tags.default_tag_size_m and cfg.tag_size_m == default else cfg.tag_size_m
+    given = {entry.id for entry in cfg.tag_sizes}
+    extra = [
+        TagSize(id=i, size_m=s)
+        for i, s in sorted(tags.tag_sizes_m.items())
+        if i not in given and s not in (size, tags.default_tag_size_m)
+    ]
+    return cfg.model_copy(update={"tag_size_m": size, "tag_sizes": (*cfg.tag_sizes, *extra)})
 
 
 def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Iterable[list[FrameJob]], int, int]:

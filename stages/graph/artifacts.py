@@ -36,7 +36,8 @@ KIND = Column(
     "kind",
     pa.string(),
     "`prior`, `odometry`, `loop` (imported edge between non-consecutive poses), `motion_prior`, `tag`, "
-    "`scale_prior`; `tag` rows are the candidates of the selection stages",
+    "`scale_prior`, `tag_prior` (a surveyed tag's pose from --tags); `tag` rows are the candidates of the "
+    "selection stages",
 )
 TYPE = Column(
     "type",

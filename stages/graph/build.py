@@ -12,6 +12,10 @@ interpolated on SE(2)/SE(3) to the keyframe stamps. Factors:
   extrinsic does not change it). ``planar``: the tag centre in the base frame, its 3x3 covariance
   ``R_base_tag Σ_tt R_base_tag^T`` projected onto (x, y), expressed as a ``BearingRangeFactor2D``
   to a ``Point2`` landmark (the bearing-range form of the same 2D relative position, to first order).
+- ``tag_prior`` (``--tags`` with surveyed tags, 3d model): ``PriorFactorPose3(L(tag))`` at the tag's pose in
+  TagSLAM's world frame with its 6x6 covariance (ingest's ``tags.json``). When a surveyed tag is seen, these
+  priors define the map frame instead of the prior on the first keyframe, and the initial values are moved
+  into that frame (from the first sighting of a surveyed tag).
 - ``scale_prior`` (``graph.tag_scale_sigma > 0``): the shared tag scale ``s`` ~ N(1, sigma²); every tag
   factor then carries ``s`` as a third key and measures ``s`` times its range (planar) or translation (3d).
 """
@@ -31,7 +35,7 @@ from pipeline.errors import InputError, StageError
 from stages.columns import FRAME, POSITION, QUATERNION, STAMP_NS, TAG_ID
 from stages.detect.artifacts import AMBIGUOUS, CAMERA, DETECTIONS, REPROJECTION_PX, SIZE_M, T_CAMERA_TAG
 from stages.detect.artifacts import POSE_COV as DETECTION_POSE_COV
-from stages.geometry import pose3_from_matrix
+from stages.geometry import pose3_from_matrix, pose3_from_vector, pose3_to_vector
 from stages.graph.config import GraphConfig
 from stages.graph.factors import SCALE_KEY, FactorRow
 from stages.graph.model_choice import choose_model
@@ -39,7 +43,7 @@ from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
 from stages.graph.variables import SCALE
-from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount
+from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount, TagsInfo
 from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
 
 __all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic", "camera_mount"]
@@ -88,14 +92,18 @@ def build_problem(
     odometry: pa.Table | None,
     extrinsics: Extrinsics | None,
     cfg: GraphConfig,
+    tags: TagsInfo | None = None,
 ) -> GraphProblem:
-    """The full graph of a run: keyframes, factors and initial values (see the module docstring).
+    """The full graph of a run: keyframes, factors and initial values (see the module docstring); ``tags``:
+    ingest's ``tags.json`` (ignored tags are left out, surveyed tags get priors).
 
     Raises:
         StageError: when nothing is left to build a graph from.
         InputError: when the detection table lacks a needed column.
     """
-    det, usable, info = _usable_detections(detections, cfg, extrinsics)
+    det, usable, info = _usable_detections(detections, cfg, extrinsics, tags.ignore_tags if tags else ())
+    if tags is not None and tags.tag_id_remap:
+        _remap_ids(det, tags, extrinsics, info)
     stamps = np.asarray(det[STAMP_NS], dtype=np.int64)
     odom = Odometry.from_table(odometry)
     choice = choose_model(cfg.model, odom, det, usable, lambda cam: camera_extrinsic(extrinsics, cam)[0], det[TAG_ID])
@@ -110,9 +118,15 @@ def build_problem(
     scale_keys = (SCALE_KEY,) if cfg.tag_scale_sigma > 0 else ()
     sightings = _tag_rows(model, cfg, det, order, path, scale_keys, extrinsics, info)
     rows += sightings.rows
+    known = _known_tag_rows(model, tags, sightings, info) if tags is not None else []
+    surveyed = {int(r.tag_id): pose3_from_vector(r.measurement) for r in known if r.tag_id is not None}
     if odom is None:
-        path.poses = model.chain_from_tags(len(path.stamps_ns), sightings.relative)
-    initial, var_types = _initial_values(model, path, sightings, bool(scale_keys))
+        path.poses = model.chain_from_tags(len(path.stamps_ns), sightings.relative, surveyed)
+    if known:
+        rows = [r for r in rows if r.kind != "prior"] + known
+        if odom is not None:
+            _move_to_world(path, sightings, surveyed)
+    initial, var_types = _initial_values(model, path, sightings, bool(scale_keys), surveyed)
     if scale_keys:
         info["tag_scale_sigma"] = cfg.tag_scale_sigma
     info["keyframes"] = len(path.stamps_ns)
@@ -138,7 +152,7 @@ def _common_size(sizes: list[Any], usable: np.ndarray) -> float | None:
 
 
 def _usable_detections(
-    detections: pa.Table, cfg: GraphConfig, extrinsics: Extrinsics | None = None
+    detections: pa.Table, cfg: GraphConfig, extrinsics: Extrinsics | None = None, ignore_tags: Any = ()
 ) -> tuple[dict[str, list[Any]], np.ndarray, dict[str, Any]]:
     """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
     if missing := sorted(set(DETECTION_COLUMNS) - set(detections.column_names)):
@@ -157,6 +171,11 @@ def _usable_detections(
         bad = ~(rep <= cfg.max_reprojection_px)
         info["dropped_reprojection"] = int((bad & keep).sum())
         keep &= ~bad
+    if len(ignore_tags):
+        ignored = np.isin(np.asarray(det[TAG_ID], dtype=np.int64), np.asarray(ignore_tags, dtype=np.int64))
+        info["dropped_ignored_tags"] = int((ignored & keep).sum())
+        info["ignored_tags_seen"] = sorted({int(t) for t, i in zip(det[TAG_ID], ignored, strict=True) if i})
+        keep &= ~ignored
     if unmounted := _cameras_without_mount(det[CAMERA], extrinsics):
         off = np.isin(np.asarray(det[CAMERA], dtype=object), sorted(unmounted))
         info["dropped_camera_without_extrinsics"] = {
@@ -354,9 +373,14 @@ def _tag_rows(
 
 
 def _initial_values(
-    model: GraphModel, path: _KeyframePath, sightings: _TagSightings, use_scale: bool
+    model: GraphModel,
+    path: _KeyframePath,
+    sightings: _TagSightings,
+    use_scale: bool,
+    surveyed: dict[int, gtsam.Pose3] | None = None,
 ) -> tuple[gtsam.Values, dict[int, str]]:
-    """Keyframes at dead reckoning, each landmark where it was first seen, the tag scale at 1."""
+    """Keyframes at dead reckoning, each landmark at its surveyed pose or where it was first seen, the tag scale
+    at 1."""
     initial = gtsam.Values()
     var_types: dict[int, str] = {}
     for key, pose in zip(path.pose_keys, path.poses, strict=True):
@@ -364,9 +388,71 @@ def _initial_values(
         var_types[key] = model.pose.name
     for tag, (k, relative) in sightings.first_sight.items():
         key = sightings.landmark_keys[tag]
-        initial.insert(key, model.initial_landmark(path.poses[k], relative))
+        if surveyed and tag in surveyed:
+            initial.insert(key, surveyed[tag])
+        else:
+            initial.insert(key, model.initial_landmark(path.poses[k], relative))
         var_types[key] = model.tag_landmark.name
     if use_scale:
         initial.insert(SCALE_KEY, 1.0)
         var_types[SCALE_KEY] = SCALE.name
     return initial, var_types
+
+
+def _known_tag_rows(
+    model: GraphModel, tags: TagsInfo, sightings: _TagSightings, info: dict[str, Any]
+) -> list[FactorRow]:
+    """A ``tag_prior`` row on each surveyed tag the graph has a landmark for (3d model only)."""
+    seen = [k for k in tags.known_tags if k.id in sightings.landmark_keys]
+    info["known_tags"] = len(tags.known_tags)
+    info["known_tags_seen"] = [k.id for k in seen]
+    if not seen:
+        return []
+    if model.name != "3d":
+        info.setdefault("notes", []).append(
+            f"{len(seen)} surveyed tags of the tags file are not used as priors: the planar model has no tag "
+            "orientation to anchor; use graph.model=3d"
+        )
+        info["known_tags_seen"] = []
+        return []
+    return [
+        FactorRow(
+            "tag_prior",
+            "PriorFactorPose3",
+            (sightings.landmark_keys[k.id],),
+            pose3_to_vector(pose3_from_matrix(k.T_world_tag)),
+            np.asarray(k.covariance, dtype=float),
+            tag_id=k.id,
+        )
+        for k in seen
+    ]
+
+
+def _move_to_world(path: _KeyframePath, sightings: _TagSightings, surveyed: dict[int, gtsam.Pose3]) -> None:
+    """Move the initial keyframes (dead reckoning) into TagSLAM's world frame: the keyframe of the first sighting
+    of a surveyed tag is placed where that sighting and the tag's surveyed pose put it, the others rigidly with
+    it."""
+    k, tag, relative = next(s for s in sightings.relative if s[1] in surveyed)
+    T_world_kf = surveyed[tag].compose(relative.inverse())
+    align = T_world_kf.compose(path.poses[k].inverse())
+    path.poses = [align.compose(p) for p in path.poses]
+
+
+def _remap_ids(det: dict[str, list[Any]], tags: TagsInfo, extrinsics: Extrinsics | None, info: dict[str, Any]) -> None:
+    """Give detections of a duplicated id the id of the tag they are of (TagSLAM's tag_id_remap), in place."""
+    names: dict[str, set[str]] = {}
+    remapped: Counter[int] = Counter()
+    for i, (tag, stamp, cam) in enumerate(zip(det[TAG_ID], det[STAMP_NS], det[CAMERA], strict=True)):
+        for r in tags.tag_id_remap:
+            if int(tag) != r.id or not r.start_ns <= int(stamp) <= r.end_ns:
+                continue
+            if r.camera is not None:
+                if cam not in names:
+                    mount = camera_mount(extrinsics, str(cam))
+                    names[cam] = {str(cam), *([mount.frame_id] if mount is not None else [])}
+                if r.camera not in names[cam]:
+                    continue
+            det[TAG_ID][i] = r.remap_id
+            remapped[r.remap_id] += 1
+            break
+    info["remapped_tag_ids"] = {str(k): v for k, v in sorted(remapped.items())}

@@ -53,10 +53,10 @@ from stages.graph.artifacts import (
     TYPE,
 )
 
-KINDS = ("prior", "odometry", "loop", "motion_prior", "tag", "scale_prior")
+KINDS = ("prior", "odometry", "loop", "motion_prior", "tag", "scale_prior", "tag_prior")
 """Factor kinds: ``tag`` rows are the landmark measurements (the candidates of the selection stages);
 ``loop`` is a pose-to-pose edge between non-consecutive poses of an imported graph; ``scale_prior`` is
-the prior N(1, sigma²) of the shared tag scale."""
+the prior N(1, sigma²) of the shared tag scale; ``tag_prior`` the prior on a surveyed tag's pose (``--tags``)."""
 
 SCALE_KEY = int(gtsam.symbol("s", 0))
 """Key of the shared tag scale ``s`` (a ``Double``; type name ``Scale`` in ``values.npz``)."""

@@ -119,8 +119,11 @@ class GraphModel:
         """The initial value of a tag landmark seen at ``relative`` (:attr:`TagMeasurement.relative`) from ``pose``."""
         raise NotImplementedError
 
-    def chain_from_tags(self, n: int, tag_meas: list[tuple[int, int, Any]]) -> list[gtsam.Pose3]:
-        """Initial keyframe poses of a run without odometry, from its tag measurements ``(keyframe, tag, relative)``."""
+    def chain_from_tags(
+        self, n: int, tag_meas: list[tuple[int, int, Any]], placed: dict[int, gtsam.Pose3] | None = None
+    ) -> list[gtsam.Pose3]:
+        """Initial keyframe poses of a run without odometry, from its tag measurements ``(keyframe, tag, relative)``
+        and the tags already ``placed`` (surveyed ones)."""
         raise NotImplementedError
 
     def __repr__(self) -> str:
@@ -178,7 +181,9 @@ class _Planar(GraphModel):
     def initial_landmark(self, pose: gtsam.Pose3, relative: Any) -> FloatArray:
         return np.asarray(pose2_from_pose3(pose).transformFrom(np.asarray(relative)))
 
-    def chain_from_tags(self, n: int, tag_meas: list[tuple[int, int, Any]]) -> list[gtsam.Pose3]:
+    def chain_from_tags(
+        self, n: int, tag_meas: list[tuple[int, int, Any]], placed: dict[int, gtsam.Pose3] | None = None
+    ) -> list[gtsam.Pose3]:
         """Every keyframe at the origin: a bearing-range sighting does not locate the robot from one tag."""
         return [gtsam.Pose3()] * n
 
@@ -224,18 +229,34 @@ class _Spatial(GraphModel):
     def initial_landmark(self, pose: gtsam.Pose3, relative: Any) -> gtsam.Pose3:
         return pose.compose(relative)
 
-    def chain_from_tags(self, n: int, tag_meas: list[tuple[int, int, Any]]) -> list[gtsam.Pose3]:
-        """Each keyframe from the first tag it sees that is already placed, else at the previous keyframe."""
+    def chain_from_tags(
+        self, n: int, tag_meas: list[tuple[int, int, Any]], placed: dict[int, gtsam.Pose3] | None = None
+    ) -> list[gtsam.Pose3]:
+        """Each keyframe from the first tag it sees that is already placed (a surveyed tag first), else at the
+        previous keyframe. Without surveyed tags the first keyframe is the origin; with them it starts where the
+        chain's first sighting of a surveyed tag puts it, so the tags seen before are placed in the same frame."""
         by_kf: dict[int, list[tuple[int, Any]]] = {}
         for k, tag, meas in tag_meas:
             by_kf.setdefault(k, []).append((tag, meas))
-        placed: dict[int, gtsam.Pose3] = {}
+        surveyed = dict(placed or {})
+        start = gtsam.Pose3()
+        first = next(((k, tag, m) for k, tag, m in tag_meas if tag in surveyed), None)
+        if first is not None:
+            free = self._chain(n, by_kf, {}, start)
+            k, tag, m = first
+            start = surveyed[tag].compose(m.inverse()).compose(free[k].inverse())
+        return self._chain(n, by_kf, surveyed, start)
+
+    @staticmethod
+    def _chain(
+        n: int, by_kf: dict[int, list[tuple[int, Any]]], surveyed: dict[int, gtsam.Pose3], start: gtsam.Pose3
+    ) -> list[gtsam.Pose3]:
+        placed = dict(surveyed)
         poses: list[gtsam.Pose3] = []
-        pose = gtsam.Pose3()
+        pose = start
         for k in range(n):
-            obs = by_kf.get(k, [])
-            if k > 0:
-                pose = next((placed[tag].compose(m.inverse()) for tag, m in obs if tag in placed), pose)
+            obs = sorted(by_kf.get(k, []), key=lambda o: o[0] not in surveyed)  # stable: surveyed tags first
+            pose = next((placed[tag].compose(m.inverse()) for tag, m in obs if tag in placed), pose)
             for tag, meas in obs:
                 placed.setdefault(tag, pose.compose(meas))
             poses.append(pose)

@@ -11,7 +11,7 @@ from stages.graph.build import DETECTION_COLUMNS, DETECTION_FILTER_COLUMNS, ODOM
 from stages.graph.config import GRAPH_SOURCE, GraphConfig
 from stages.graph.problem import GraphProblem
 from stages.graph.solve_all import solve_and_write
-from stages.ingest.artifacts import EXTRINSICS, ODOMETRY
+from stages.ingest.artifacts import EXTRINSICS, ODOMETRY, TAGS
 
 
 def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:
@@ -23,8 +23,9 @@ def run(ctx: StageContext, cfg: GraphConfig) -> dict[str, Any]:
         ingest = ctx.input("ingest")
         odometry = ODOMETRY.read(ingest, columns=ODOMETRY_COLUMNS) if ingest.exists(ODOMETRY.file) else None
         extrinsics = EXTRINSICS.read(ingest) if ingest.exists(EXTRINSICS.file) else None
+        tags = TAGS.read(ingest) if ingest.exists(TAGS.file) else None
         detections = DETECTIONS.read(ctx.input("detect"), columns=(*DETECTION_COLUMNS, *DETECTION_FILTER_COLUMNS))
-        problem = build_problem(detections, odometry, extrinsics, cfg)
+        problem = build_problem(detections, odometry, extrinsics, cfg, tags)
     build_s = time.perf_counter() - t0
     summary = solve_and_write(problem, cfg, ctx.output, ctx.rec, ctx.n_sigma)
     summary["timing_s"]["read_and_build"] = round(build_s, 4)

@@ -53,6 +53,13 @@ def _extrinsics_file(path: Path) -> str:
     return json.dumps(str(path.resolve()))
 
 
+def _tags_file(path: Path) -> str:
+    """``--tags``: an existing file, as an absolute path."""
+    if not path.is_file():
+        raise InputError(f"tags file {str(path)!r} not found; pass an existing TagSLAM tagslam.yaml to --tags")
+    return json.dumps(str(path.resolve()))
+
+
 def summary_line(summary: Summary) -> str:
     """The figures of an ingest (without the topic names, camera model and read time)."""
     return summary_figures(
@@ -107,6 +114,14 @@ OPTIONS: Final = (
         "T_base_frame YAML); default: /tf_static.",
         Path,
         value=_extrinsics_file,
+    ),
+    Option(
+        "--tags",
+        "tags_file",
+        "TagSLAM tagslam.yaml: tag sizes, ignore_tags, surveyed tag poses (priors) and the odometry body's "
+        "T_body_odom.",
+        Path,
+        value=_tags_file,
     ),
     Option("--salvage", "salvage", "Read a damaged bag up to the damage and say how much was recovered.", bool),
 )

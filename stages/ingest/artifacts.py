@@ -166,6 +166,83 @@ EXTRINSICS: Final = JsonSpec(
 )
 
 
+# tags.json ---------------------------------------------------------------------------------------------
+class KnownTag(BaseModel):
+    """A surveyed tag of a TagSLAM static body: a prior on its landmark."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: int = Field(description="tag id")
+    body: str = Field(description="the TagSLAM body it belongs to")
+    T_world_tag: list[list[float]] = Field(
+        description="4x4, maps points in the tag frame into TagSLAM's world frame (`T_world_body T_body_tag`)"
+    )
+    covariance: list[list[float]] = Field(
+        description="6x6 covariance of the prior, gtsam's Pose3 tangent order (rx, ry, rz, tx, ty, tz) in the tag "
+        "frame, rad² and m²: the tag's sigmas squared plus the body's pose noise carried into the tag frame"
+    )
+    rotation_sigma_rad: list[float] = Field(description="the tag's rotation_noise (or its body's override), rad")
+    position_sigma_m: list[float] = Field(description="the tag's position_noise (or its body's override), m")
+
+
+class TagRemap(BaseModel):
+    """A tag id that stands for another tag in a time window (TagSLAM's tag_id_remap: duplicated ids)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: int = Field(description="the id the detections carry")
+    remap_id: int = Field(description="the tag they are of within the window")
+    start_ns: int = Field(description="window start, ns on the bag clock (header stamps)")
+    end_ns: int = Field(description="window end, ns")
+    camera: str | None = Field(None, description="only this camera's (cameras.yaml name, frame id or topic)")
+
+
+class TagsInfo(BaseModel):
+    """What ``--tags`` (TagSLAM's ``tagslam.yaml``) says about the tags and the odometry."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    file: str = Field(description="the tags file given (--tags), absolute")
+    default_tag_size_m: float | None = Field(
+        None, description="the default body's default_tag_size, m (detect's size where detect.tag_size_m is default)"
+    )
+    tag_sizes_m: dict[int, float] = Field(
+        default_factory=dict,
+        description="tag id to size, m, of every tag a body lists (its own size, else its body's default_tag_size); "
+        "detect.tag_sizes entries win",
+    )
+    ignore_tags: list[int] = Field(default_factory=list, description="the bodies' ignore_tags: left out of the graph")
+    known_tags: list[KnownTag] = Field(
+        default_factory=list, description="tags with a pose on a static body with a pose: priors on their landmarks"
+    )
+    tag_id_remap: list[TagRemap] = Field(
+        default_factory=list, description="detections of `id` within a window are of tag `remap_id` (graph)"
+    )
+    odometry_body: str | None = Field(None, description="the non-static body with odom_topic or T_body_odom")
+    odometry_topic: str | None = Field(None, description="that body's odom_topic")
+    T_body_odom: list[list[float]] | None = Field(
+        None,
+        description="4x4, that body's T_body_odom: maps points of the odometry's frame into the body (rig) frame; "
+        "null = not given (identity)",
+    )
+    T_body_odom_applied: bool = Field(
+        False,
+        description="whether the cameras' mounts from a TagSLAM camera_poses.yaml (in the rig) were moved into the "
+        "odometry's child frame by it (`T_base_cam = T_body_odom⁻¹ T_rig_cam`)",
+    )
+    notes: list[str] = Field(default_factory=list, description="what was read past or not applied, and why")
+
+
+TAGS: Final = JsonSpec(
+    "tags.json",
+    "what the TagSLAM tagslam.yaml given with --tags says: default and per-id tag sizes (detect), ignored tags and "
+    "surveyed tag poses with their noise (graph: left out / priors), the odometry body's T_body_odom (applied to "
+    "the camera mounts here); absent without --tags",
+    TagsInfo,
+    optional=True,
+)
+
+
 ARTIFACTS: Final = ArtifactSet(
     "ingest",
     "What the recording holds, in tables a stage can read in one go; later stages never open the bag again. "
@@ -176,5 +253,5 @@ ARTIFACTS: Final = ArtifactSet(
     "(a non-finite pose or twist, a non-finite or denormal covariance, a negative laser range, an image size that "
     "does not match its data) or for not decoding (without `--salvage` such a message stops the stage); "
     "`salvaged`, after a `--salvage` read, says what was read and what was lost, per topic and in time.",
-    [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, CAMERAS, EXTRINSICS],
+    [FRAMES, ODOMETRY, SCANS, TAG_DETECTIONS, CAMERA, CAMERAS, EXTRINSICS, TAGS],
 )

@@ -36,6 +36,12 @@ class IngestConfig(SettingsModel):
         "T_cn_cnm1) or a YAML of frame: 4x4 T_base_frame; its transforms replace /tf_static's for the cameras it "
         "names; empty = /tf_static only.",
     )
+    tags_file: str = Field(
+        "",
+        description="TagSLAM tagslam.yaml: default and per-tag sizes (detect), ignore_tags (left out of the "
+        "graph), surveyed tag poses with their noise (priors on those landmarks, 3d model) and the odometry "
+        "body's T_body_odom (applied to the camera mounts of a TagSLAM camera_poses.yaml); empty = none.",
+    )
     start_s: float = Field(
         0.0, ge=0, le=MAX_BAG_SECONDS, description="Skip messages before this time, seconds from the bag start."
     )

@@ -30,16 +30,19 @@ from stages.ingest.artifacts import (
     ODOMETRY,
     SCANS,
     TAG_DETECTIONS,
+    TAGS,
     CameraModel,
     Extrinsics,
     Rig,
     SensorMount,
+    TagsInfo,
 )
 from stages.ingest.bags import RawMessage, Recording
 from stages.ingest.config import IngestConfig
 from stages.ingest.record import log_ingest
 from stages.ingest.topics import ROLES, resolve_camera_topics, resolve_topic
 from stages.tag_families import bag_family
+from stages.tags_file import TagsFile
 
 
 def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[str, Any]]:
@@ -119,6 +122,23 @@ def _load_extrinsics_file(path: str) -> ExtrinsicsFile:
     return load_extrinsics_file(Path(path))
 
 
+def _load_tags_file(path: str) -> TagsFile:
+    from stages.tags_file import load_tags_file
+
+    return load_tags_file(Path(path))
+
+
+def _tags_summary(tags: TagsFile) -> dict[str, Any]:
+    """The figures of a tags file for the summary: sizes, ignored and known tags, whether T_body_odom was read."""
+    return {
+        "default_tag_size_m": tags.default_tag_size_m,
+        "tag_sizes": len(tags.tag_sizes_m),
+        "ignore_tags": len(tags.ignore_tags),
+        "known_tags": len(tags.known_tags),
+        "T_body_odom": tags.T_body_odom is not None,
+    }
+
+
 def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
     """Read the recording into the run folder."""
     started = time.perf_counter()
@@ -127,6 +147,8 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
             ctx.outside_file(cfg.camera_file)  # a changed calibration file re-runs ingest
         if cfg.extrinsics_file:
             ctx.outside_file(cfg.extrinsics_file)
+        if cfg.tags_file:
+            ctx.outside_file(cfg.tags_file)
         plan = _plan(rec, cfg)
         reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage)
         total = sum(rec.topics[t].count for t in plan.wanted)
@@ -155,6 +177,8 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         summary["camera_topics"] = plan.camera_topics
     if salvaged is not None:
         summary["salvaged"] = salvaged
+    if plan.tags is not None:
+        summary["tags"] = _tags_summary(plan.tags)
     log_ingest(ctx, camera, extrinsics)
     return summary
 
@@ -173,6 +197,8 @@ class _Plan:
     extrinsics: ExtrinsicsFile | None
     start_ns: int
     end_ns: int | None
+    tags: TagsFile | None = None
+    """The TagSLAM tagslam.yaml given with --tags."""
 
     @property
     def camera_topics(self) -> list[str]:
@@ -229,7 +255,8 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
             "cameras.yaml (Kalibr/TagSLAM, rostopic/tagtopic naming each topic)"
         )
     extrinsics = _load_extrinsics_file(cfg.extrinsics_file) if cfg.extrinsics_file else None
-    return _Plan(topics, images, detections, use_detections, cameras, extrinsics, start_ns, end_ns)
+    tags = _load_tags_file(cfg.tags_file) if cfg.tags_file else None
+    return _Plan(topics, images, detections, use_detections, cameras, extrinsics, start_ns, end_ns, tags)
 
 
 class _Reading:
@@ -366,11 +393,11 @@ def _write_calibration(
         t: m.model_copy(update={"frame_id": m.frame_id or reading.frame_ids.get(t, "")}) for t, m in models.items()
     }
     camera = next(iter(models.values()))
-    file = plan.extrinsics
+    file, tags_notes, applied = _odometry_mount(plan.extrinsics, plan.tags, reading.base_frame)
     base = reading.base_frame or (file.base_frame if file else camera.frame_id)
-    notes: list[str] = []
+    notes: list[str] = list(tags_notes)
     warnings: list[str] = []
-    if file and reading.base_frame and reading.base_frame != file.base_frame:
+    if file and reading.base_frame and reading.base_frame != file.base_frame and not applied:
         notes.append(
             f"the transforms of {Path(file.path).name} (from its {file.base_frame!r} frame) are taken as from the "
             f"odometry's child frame {reading.base_frame!r}"
@@ -401,6 +428,10 @@ def _write_calibration(
     if len(models) > 1:
         CAMERAS.write(out, Rig(cameras=models))
     EXTRINSICS.write(out, extrinsics)
+    if plan.tags is not None:
+        TAGS.write(out, _tags_info(plan.tags, applied, tags_notes))
+    else:
+        out.file(TAGS.file).unlink(missing_ok=True)
     if reading.dets is None:
         out.file(TAG_DETECTIONS.file).unlink(missing_ok=True)
     return camera, extrinsics, notes, warnings
@@ -415,10 +446,78 @@ def _mount(
     if file is not None and found is not None:
         entry, T = found
         return SensorMount(
-            frame_id=frame, T_base_sensor=T.tolist(), source=f"{Path(file.path).name} ({file.kind}) {entry}"
+            frame_id=frame, T_base_sensor=T.tolist(), source=f"{Path(file.path).name} ({file.kind}) {entry}{file.via}"
         )
     chained = convert.chain(reading.edges, base, frame)
     if chained is not None:
         source = "base frame" if frame == base else "/tf_static"
         return SensorMount(frame_id=frame, T_base_sensor=chained.tolist(), source=source)
     return SensorMount(frame_id=frame, T_base_sensor=np.eye(4).tolist(), assumed=True, source="identity (assumed)")
+
+
+def _odometry_mount(
+    file: ExtrinsicsFile | None, tags: TagsFile | None, base_frame: str
+) -> tuple[ExtrinsicsFile | None, list[str], bool]:
+    """The extrinsics file with its rig mounts moved into the odometry's child frame by the tags file's
+    ``T_body_odom`` (``T_base_cam = T_body_odom⁻¹ T_rig_cam``), the notes of the tags file, and whether it was
+    applied. Only a TagSLAM camera_poses.yaml places cameras in TagSLAM's rig body; mounts from /tf_static or
+    another file are already relative to their own base and are left alone (with a note)."""
+    if tags is None:
+        return file, [], False
+    notes = list(tags.notes)
+    if tags.T_body_odom is None:
+        return file, notes, False
+    name = Path(tags.path).name
+    if file is None or file.kind != "tagslam camera_poses":
+        what = f"the mounts of {Path(file.path).name} ({file.kind})" if file else "the mounts on /tf_static"
+        notes.append(
+            f"T_body_odom of {name} is not applied: {what} are not in TagSLAM's rig body; give the cameras with "
+            "--extrinsics camera_poses.yaml to place them in the rig"
+        )
+        return file, notes, False
+    from stages.extrinsics import invert
+
+    T_odom_rig = invert(tags.T_body_odom)
+    moved = ExtrinsicsFile(
+        file.path,
+        file.kind,
+        base_frame or file.base_frame,
+        {entry: T_odom_rig @ T for entry, T in file.mounts.items()},
+        via=f" moved into the odometry frame by T_body_odom of {name}",
+    )
+    notes.append(
+        f"the cameras of {Path(file.path).name} (in TagSLAM's rig body) are placed in the odometry's child frame "
+        f"{base_frame or file.base_frame!r} by T_body_odom of {name} (body {tags.odometry_body!r})"
+    )
+    return moved, notes, True
+
+
+def _tags_info(tags: TagsFile, applied: bool, notes: list[str]) -> TagsInfo:
+    from stages.ingest.artifacts import KnownTag, TagRemap
+
+    return TagsInfo(
+        file=str(Path(tags.path).resolve()),
+        default_tag_size_m=tags.default_tag_size_m,
+        tag_sizes_m=dict(sorted(tags.tag_sizes_m.items())),
+        ignore_tags=tags.ignore_tags,
+        tag_id_remap=[
+            TagRemap(id=r.tag_id, remap_id=r.remap_id, start_ns=r.start_ns, end_ns=r.end_ns, camera=r.camera)
+            for r in tags.remaps
+        ],
+        known_tags=[
+            KnownTag(
+                id=k.tag_id,
+                body=k.body,
+                T_world_tag=k.T_world_tag.tolist(),
+                covariance=k.covariance.tolist(),
+                rotation_sigma_rad=k.rotation_sigma_rad,
+                position_sigma_m=k.position_sigma_m,
+            )
+            for k in tags.known_tags
+        ],
+        odometry_body=tags.odometry_body,
+        odometry_topic=tags.odometry_topic,
+        T_body_odom=tags.T_body_odom.tolist() if tags.T_body_odom is not None else None,
+        T_body_odom_applied=applied,
+        notes=notes,
+    )

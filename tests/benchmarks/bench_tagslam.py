@@ -1,11 +1,14 @@
 """ATE of focusmap's trajectory against TagSLAM's own on every shared TagSLAM regression case.
 
     python tests/benchmarks/bench_tagslam.py [--cases test_1 test_2 ...] [--work DIR] [--timeout 1800]
-                                             [--until graph] [--keep]
+                                             [--until graph] [--without-tags]
 
 For each case in ``../shared/data/tagslam-test`` the recording (``tag_detections.bag.bz2``) and TagSLAM's
 result (``reference.bag.bz2``, topic ``/tagslam/odom/body_rig``) are decompressed into a temporary folder, and
-focusmap is run on the recording with the command a user types (``CASES`` below, printed in the table).
+focusmap is run on the recording with the command a user types (``CASES`` below, printed in the table):
+the case's ``cameras.yaml``, ``camera_poses.yaml`` and ``tagslam.yaml`` (``--tags``: tag sizes, ignored
+tags, surveyed tag poses, the odometry body's ``T_body_odom``). ``--without-tags`` runs the commands of
+before ``--tags`` existed instead: the tag sizes as ``--set detect.tag_size_m``/``detect.tag_sizes``.
 The graph stage's ``trajectory.tum`` is then compared with TagSLAM's trajectory as evo's ``evo_ape --align``
 does: poses matched by stamp (nearest within 10 ms), the positions aligned by Umeyama's method without scale
 (a rigid SE(3) alignment), and the RMSE of the position differences after it (absolute trajectory error).
@@ -47,19 +50,23 @@ class Case:
 
     name: str
     args: tuple[str, ...]
+    without_tags: tuple[str, ...] = ()
+    """The options without ``--tags``: the sizes its tagslam.yaml gives, as settings."""
     bag_of: str = ""
     """The case whose ``tag_detections.bag`` this one uses (test_3 replays test_2's recording)."""
     remark: str = ""
 
 
-# The options a user passes: the case's cameras.yaml (every camera it names is read) and camera_poses.yaml
-# (test_3: TagSLAM's calibrated stereo poses for test_2's recording), the tag sizes TagSLAM's tagslam.yaml
-# gives (default_tag_size and per-id sizes), and the 3D model (handheld rigs; graph.model=auto is not ours).
-def _case(name: str, size: float, *extra: str, poses_of: str = "", bag_of: str = "", remark: str = "") -> Case:
-    poses = f"{{shared}}/{poses_of or name}/camera_poses.yaml"
-    cameras = f"{{shared}}/{poses_of or name}/cameras.yaml"
-    args = ("--camera", cameras, "--extrinsics", poses, "--set", f"detect.tag_size_m={size:g}", *extra)
-    return Case(name, (*args, "--set", "graph.model=3d"), bag_of=bag_of, remark=remark)
+# The options a user passes: the case's cameras.yaml (every camera it names is read), camera_poses.yaml
+# (test_3: TagSLAM's calibrated stereo poses for test_2's recording) and tagslam.yaml (--tags), and the 3D
+# model (handheld rigs; graph.model=auto is not ours). Without --tags: the tag sizes its tagslam.yaml gives
+# (default_tag_size and per-id sizes) as settings.
+def _case(name: str, size: float, *extra: str, bag_of: str = "", remark: str = "") -> Case:
+    files = ("--camera", f"{{shared}}/{name}/cameras.yaml", "--extrinsics", f"{{shared}}/{name}/camera_poses.yaml")
+    model = ("--set", "graph.model=3d")
+    with_tags = (*files, "--tags", f"{{shared}}/{name}/tagslam.yaml", *model)
+    without = (*files, "--set", f"detect.tag_size_m={size:g}", *extra, *model)
+    return Case(name, with_tags, without, bag_of=bag_of, remark=remark)
 
 
 CASES = (
@@ -168,13 +175,13 @@ class Row:
         return None if self.path_m is None else max(0.05, 0.01 * self.path_m)
 
 
-def run_case(case: Case, work: Path, until: str, timeout: float) -> Row:
+def run_case(case: Case, work: Path, until: str, timeout: float, with_tags: bool = True) -> Row:
     folder = SHARED / case.name
     bag_folder = SHARED / (case.bag_of or case.name)
     bag_name = case.bag_of or case.name
     bag = decompress(bag_folder / "tag_detections.bag.bz2", work / "bags" / bag_name / "tag_detections.bag")
     ref_bag = decompress(folder / "reference.bag.bz2", work / "bags" / case.name / "reference.bag")
-    args = [a.replace("{shared}", str(SHARED)) for a in case.args]
+    args = [a.replace("{shared}", str(SHARED)) for a in (case.args if with_tags else case.without_tags)]
     out = work / "runs"
     cmd = ["focusmap", "run", str(bag), "--out", str(out), "--name", case.name, "--until", until, *args]
     shown = " ".join(
@@ -218,6 +225,9 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--until", default="graph")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per case")
+    parser.add_argument(
+        "--without-tags", action="store_true", help="the commands without --tags (tag sizes as settings)"
+    )
     args = parser.parse_args()
     if not SHARED.exists():
         raise SystemExit(f"the shared TagSLAM cases are not present: {SHARED}")
@@ -226,7 +236,7 @@ def main() -> None:
         work = args.work or Path(tmp)
         rows = []
         for case in cases:
-            row = run_case(case, work, args.until, args.timeout)
+            row = run_case(case, work, args.until, args.timeout, not args.without_tags)
             rows.append(row)
             print(f"{row.case}: {row.status} ATE {_m(row.ate_m)} m", file=sys.stderr, flush=True)
     print("| case | command | status | ATE m | evo APE m | path m | target m | within |")

@@ -1,0 +1,359 @@
+"""``--tags``: TagSLAM's tagslam.yaml read into ingest's ``tags.json`` and used by detect (sizes) and graph
+(ignored tags, priors on surveyed tags, the map in TagSLAM's world frame), and ``T_body_odom`` applied to the
+camera mounts.
+
+Conventions checked by hand-computed values: a surveyed tag's world pose is ``T_world_body T_body_tag``, its
+prior covariance the tag's sigmas squared (gtsam's (rotation, translation) order, tag frame) plus the body's
+pose noise carried into the tag frame; ``T_body_odom`` is TagSLAM's transform from the odometry frame into the
+body (its odometry processor turns odometry poses ``P`` into body motions ``T_body_odom P_i⁻¹ P_j
+T_body_odom⁻¹``), so a camera at ``T_rig_cam`` sits at ``T_body_odom⁻¹ T_rig_cam`` from the odometry's frame.
+"""
+
+from __future__ import annotations
+
+import bz2
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from stages.detect.config import DetectConfig, TagSize
+from stages.detect.stage import sizes_from_tags
+from stages.extrinsics import ExtrinsicsFile, invert, rotation_from_rotvec
+from stages.geometry import pose3_from_matrix
+from stages.graph import GraphConfig
+from stages.graph.build import build_problem
+from stages.graph.factors import build_graph
+from stages.graph.solve import check_problem, optimise
+from stages.ingest.artifacts import KnownTag, TagsInfo
+from stages.ingest.stage import _odometry_mount, _tags_info
+from stages.tags_file import adjoint, load_tags_file
+from tests.fixtures.shared_data import need_shared
+from tests.fixtures.synthetic_runs import synthetic_run
+
+ROOT = Path(__file__).resolve().parents[2]
+
+TAGSLAM_YAML = """
+tagslam_parameters:
+  optimizer_mode: fast
+body_defaults:
+  position_noise: 0.05
+  rotation_noise: 0.01
+default_body: house
+bodies:
+ - house:
+     is_static: true
+     default_tag_size: 0.16
+     ignore_tags: [7, 9]
+     pose:
+       position: {x: 1.0, y: 2.0, z: 0.0}
+       rotation: {x: 0.0, y: 0.0, z: 1.5707963267948966}
+       position_noise: {x: 0.01, y: 0.01, z: 0.01}
+       rotation_noise: {x: 0.001, y: 0.001, z: 0.001}
+     type: simple
+     tags:
+       - id: 2
+         size: 0.2
+         pose:
+           position: {x: 3.0, y: 0.0, z: 0.5}
+           rotation: {x: 0.0, y: 0.0, z: 0.0}
+           position_noise: {x: 0.002, y: 0.003, z: 0.004}
+           rotation_noise: {x: 0.0005, y: 0.0006, z: 0.0007}
+       - id: 5
+       - id: 100
+         size: 0.1
+ - board:
+     is_static: false
+     default_tag_size: 0.05
+     ignore_tags: [11]
+     tags:
+       - id: 40
+ - rig:
+     is_static: false
+     type: simple
+     odom_topic: /vio/odom
+     T_body_odom:
+       position: {x: 0.1, y: 0.0, z: 0.0}
+       rotation: {x: 0.0, y: 0.0, z: 3.141592653589793}
+plane_measurements:
+  - plane_1: {tags: [1, 2], distance: 0.7, noise: 0.01, direction: [0, 0, 1]}
+tag_id_remap:
+  - id: 20
+    remaps:
+      - {remap_id: 420, start_time: "1541686885.999522770", end_time: 1541686936.5, camera: cam0}
+"""
+
+
+def _write(tmp_path: Path, text: str = TAGSLAM_YAML) -> Path:
+    path = tmp_path / "tagslam.yaml"
+    path.write_text(text)
+    return path
+
+
+def _T(rotvec: list[float], t: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rotation_from_rotvec(rotvec)
+    T[:3, 3] = t
+    return T
+
+
+def test_sizes_and_ignored_tags_are_read(tmp_path: Path) -> None:
+    f = load_tags_file(_write(tmp_path))
+    assert f.default_tag_size_m == pytest.approx(0.16)  # the default body's
+    # listed tags: their own size, else their body's default (tag 40 on the board: 0.05)
+    assert f.tag_sizes_m == {2: 0.2, 5: 0.16, 100: 0.1, 40: 0.05}
+    assert f.ignore_tags == [7, 9, 11]  # every body's
+    assert f.odometry_body == "rig" and f.odometry_topic == "/vio/odom"
+    assert any("plane_measurements not used" in n for n in f.notes)
+    (remap,) = f.remaps
+    assert (remap.tag_id, remap.remap_id, remap.camera) == (20, 420, "cam0")
+    assert remap.start_ns == 1541686885999522770  # a quoted stamp keeps every digit
+    assert abs(remap.end_ns - 1541686936_500000000) < 1000
+
+
+def test_known_tag_pose_and_prior_noise(tmp_path: Path) -> None:
+    """Tag 2 sits 3 m along the house's x axis, 0.5 m up; the house is at (1, 2) turned 90 deg: the tag is at
+    (1, 5, 0.5) in the world, turned 90 deg. Its covariance: its own sigmas squared plus the house's noise seen
+    from the tag (the house's 1 mrad of rotation moves the tag 3 mm across its 3 m lever arm)."""
+    (known,) = load_tags_file(_write(tmp_path)).known_tags
+    assert known.tag_id == 2 and known.body == "house"
+    np.testing.assert_allclose(known.T_world_tag[:3, 3], [1.0, 5.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(known.T_world_tag[:3, :3], rotation_from_rotvec([0, 0, np.pi / 2]), atol=1e-12)
+    assert known.rotation_sigma_rad == [0.0005, 0.0006, 0.0007]
+    assert known.position_sigma_m == [0.002, 0.003, 0.004]
+    own = np.diag(np.array([0.0005, 0.0006, 0.0007, 0.002, 0.003, 0.004]) ** 2)
+    body = np.diag(np.array([0.001] * 3 + [0.01] * 3) ** 2)
+    A = adjoint(invert(_T([0, 0, 0], [3.0, 0.0, 0.5])))
+    np.testing.assert_allclose(known.covariance, own + A @ body @ A.T, atol=1e-15)
+    # by hand: a house rotation w (1 mrad sigma per axis) moves the tag, at p = (3, 0, 0.5) in the house, by
+    # w x p: along its y by 3 w_z - 0.5 w_x, along its x by 0.5 w_y; on top of the house's own 1 cm
+    assert known.covariance[4, 4] == pytest.approx(0.003**2 + 0.01**2 + (3 * 0.001) ** 2 + (0.5 * 0.001) ** 2)
+    assert known.covariance[3, 3] == pytest.approx(0.002**2 + 0.01**2 + (0.5 * 0.001) ** 2)
+    # the same as gtsam's own adjoint of T_tag_body
+    gt = np.asarray(pose3_from_matrix(invert(_T([0, 0, 0], [3.0, 0.0, 0.5]))).AdjointMap())
+    np.testing.assert_allclose(A, gt, atol=1e-12)
+
+
+def test_body_override_noise_and_unposed_static_body(tmp_path: Path) -> None:
+    text = """
+default_body: floor
+bodies:
+ - floor:
+     is_static: true
+     default_tag_size: 0.15
+     override_tag_position_noise: 0.5
+     override_tag_rotation_noise: 0.1
+     pose: {position: {x: 0, y: 0, z: 0}, rotvec: {x: 0, y: 0, z: 0}}
+     tags:
+       - id: 3
+         pose:
+           position: {x: 1, y: 2, z: 3}
+           rotation: {x: 0, y: 0, z: 0}
+           position_noise: {x: 0.0001, y: 0.0001, z: 0.0001}
+           rotation_noise: {x: 0.00001, y: 0.00001, z: 0.00001}
+ - loose:
+     is_static: true
+     tags:
+       - id: 4
+         pose:
+           position: {x: 1, y: 2, z: 3}
+           rotation: {x: 0, y: 0, z: 0}
+           position_noise: {x: 0.1, y: 0.1, z: 0.1}
+           rotation_noise: {x: 0.1, y: 0.1, z: 0.1}
+"""
+    f = load_tags_file(_write(tmp_path, text))
+    (known,) = f.known_tags  # tag 4's body has no pose: no world pose for it
+    assert known.tag_id == 3
+    np.testing.assert_allclose(np.sqrt(np.diag(known.covariance)), [0.1] * 3 + [0.5] * 3)  # the body's override
+    assert any("'loose' has no pose" in n for n in f.notes)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("bodies: []", "no bodies"),
+        ("just text", "not a TagSLAM tagslam.yaml"),
+        ("bodies:\n - b:\n     is_static: true\n     default_tag_size: -1\n", "positive number"),
+        (
+            "bodies:\n - b:\n     is_static: true\n"
+            "     pose: {position: {x: 0, y: 0, z: 0}, rotation: {x: 0, y: 0, z: 0}}\n"
+            "     tags:\n       - id: 1\n         pose: {position: {x: 0, y: 0}, rotation: {x: 0, y: 0, z: 0}}\n",
+            "needs x, y and z",
+        ),
+    ],
+)
+def test_bad_tags_files_give_one_line(tmp_path: Path, text: str, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        load_tags_file(_write(tmp_path, text))
+
+
+def test_T_body_odom_places_the_rig_cameras_in_the_odometry_frame(tmp_path: Path) -> None:
+    """A rig moves through the world; the odometry reports the pose of its odometry frame (an IMU turned 180 deg
+    and 10 cm off): ``P = T_world_body T_body_odom``. Composed with the mount ingest writes, the odometry gives the
+    camera's true pose ``T_world_body T_rig_cam``; without ``T_body_odom`` it would not."""
+    f = load_tags_file(_write(tmp_path))
+    assert f.T_body_odom is not None
+    np.testing.assert_allclose(f.T_body_odom, _T([0, 0, np.pi], [0.1, 0, 0]), atol=1e-12)
+    T_rig_cam = _T([0.2, -0.1, 0.3], [0.05, 0.02, -0.01])
+    poses = ExtrinsicsFile("camera_poses.yaml", "tagslam camera_poses", "rig", {"cam0": T_rig_cam})
+    moved, notes, applied = _odometry_mount(poses, f, "imu")
+    assert applied and moved is not None and moved.base_frame == "imu" and "T_body_odom" in moved.via
+    assert any("placed in the odometry's child frame 'imu'" in n for n in notes)
+    T_base_cam = moved.mounts["cam0"]
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        T_world_body = _T(list(rng.normal(size=3)), list(rng.normal(size=3)))
+        P = T_world_body @ f.T_body_odom  # what the odometry reports
+        np.testing.assert_allclose(P @ T_base_cam, T_world_body @ T_rig_cam, atol=1e-12)
+        assert not np.allclose(P @ T_rig_cam, T_world_body @ T_rig_cam, atol=1e-3)
+    # TagSLAM's body motion from two odometry poses is the rig's motion
+    A, B = _T([0.1, 0.2, 0.3], [1, 2, 3]), _T([0.3, -0.2, 0.1], [2, 1, 0])
+    Pa, Pb = A @ f.T_body_odom, B @ f.T_body_odom
+    np.testing.assert_allclose(f.T_body_odom @ invert(Pa) @ Pb @ invert(f.T_body_odom), invert(A) @ B, atol=1e-12)
+    # mounts that are not in TagSLAM's rig body are left alone, with a note saying so
+    kalibr = ExtrinsicsFile("camchain.yaml", "kalibr camchain", "imu", {"cam0": T_rig_cam})
+    same, notes, applied = _odometry_mount(kalibr, f, "imu")
+    assert not applied and same is kalibr and any("not applied" in n for n in notes)
+
+
+def test_detect_takes_the_file_sizes_unless_the_settings_give_them(tmp_path: Path) -> None:
+    info = _tags_info(load_tags_file(_write(tmp_path)), False, [])
+    cfg = sizes_from_tags(DetectConfig(), info)
+    assert cfg.tag_size_m == pytest.approx(0.16)
+    assert {e.id: e.size_m for e in cfg.tag_sizes} == {2: 0.2, 100: 0.1, 40: 0.05}
+    assert cfg.size_of(5) == pytest.approx(0.16) and cfg.size_of(100) == pytest.approx(0.1)
+    # settings win: a non-default default size, and a per-id size
+    mine = DetectConfig(tag_size_m=0.2, tag_sizes=(TagSize(id=100, size_m=0.12),))
+    cfg = sizes_from_tags(mine, info)
+    assert cfg.tag_size_m == pytest.approx(0.2) and cfg.size_of(5) == pytest.approx(0.2)
+    assert cfg.size_of(100) == pytest.approx(0.12) and cfg.size_of(2) == pytest.approx(0.2)
+    assert cfg.size_of(40) == pytest.approx(0.05)
+
+
+def _known(tag: int, T_world_tag: np.ndarray, sigma_m: float, sigma_rad: float) -> KnownTag:
+    cov = np.diag([sigma_rad**2] * 3 + [sigma_m**2] * 3)
+    return KnownTag(
+        id=tag,
+        body="walls",
+        T_world_tag=T_world_tag.tolist(),
+        covariance=cov.tolist(),
+        rotation_sigma_rad=[sigma_rad] * 3,
+        position_sigma_m=[sigma_m] * 3,
+    )
+
+
+def test_graph_priors_put_the_map_in_the_surveyed_frame_and_ignored_tags_out() -> None:
+    """Two surveyed tags of a simulated room: the graph has a tag_prior on each instead of the prior on the
+    first keyframe, and the solved map is in the room's frame (every other tag near its true room pose without
+    any alignment); the ignored tag's detections are left out and counted."""
+    sim = synthetic_run(seed=3, loops=1.0)
+    ids = sorted(set(sim.detections.column("tag_id").to_pylist()))
+    surveyed, ignored = ids[:2], ids[-1]
+    tags = TagsInfo(
+        file="tagslam.yaml",
+        known_tags=[_known(t, sim.tags_world[t], 0.001, 0.001) for t in surveyed] + [_known(9999, np.eye(4), 1, 1)],
+        ignore_tags=[ignored, 8888],
+    )
+    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"), tags)
+    kinds = [r.kind for r in p.rows]
+    assert "prior" not in kinds and kinds.count("tag_prior") == 2
+    assert p.info["known_tags"] == 3 and p.info["known_tags_seen"] == surveyed
+    n_ignored = sum(1 for t in sim.detections.column("tag_id").to_pylist() if t == ignored)
+    assert n_ignored > 0 and p.info["dropped_ignored_tags"] == n_ignored
+    assert p.info["ignored_tags_seen"] == [ignored] and ignored not in p.landmark_keys
+    check_problem(p)
+    sol = optimise(p, build_graph(p.rows))
+    for t in surveyed:
+        est = sol.values.atPose3(p.landmark_keys[t])
+        np.testing.assert_allclose(np.asarray(est.translation()), sim.tags_world[t][:3, 3], atol=0.005)
+    err = [
+        np.linalg.norm(np.asarray(sol.values.atPose3(k).translation()) - sim.tags_world[t][:3, 3])
+        for t, k in p.landmark_keys.items()
+    ]
+    assert max(err) < 0.15 and float(np.median(err)) < 0.05, err
+    # without the tags file the same map sits in the first keyframe's frame, far from the room's
+    plain = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"))
+    sol0 = optimise(plain, build_graph(plain.rows))
+    t = surveyed[0]
+    off = np.asarray(sol0.values.atPose3(plain.landmark_keys[t]).translation()) - sim.tags_world[t][:3, 3]
+    assert np.linalg.norm(off) > 0.5
+    # the initial values were already moved into the room's frame
+    first = p.initial.atPose3(p.landmark_keys[t])
+    assert np.linalg.norm(np.asarray(first.translation()) - sim.tags_world[t][:3, 3]) < 0.2
+
+
+def test_graph_remaps_a_duplicated_id_in_its_window() -> None:
+    from stages.ingest.artifacts import TagRemap
+
+    sim = synthetic_run(seed=3, loops=1.0)
+    ids = sim.detections.column("tag_id").to_pylist()
+    stamps = sim.detections.column("stamp_ns").to_pylist()
+    tag = sorted(set(ids))[2]
+    mid = int(np.median(stamps))
+    window = TagRemap(id=tag, remap_id=7777, start_ns=0, end_ns=mid)
+    p = build_problem(
+        sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"), TagsInfo(file="t", tag_id_remap=[window])
+    )
+    n_before = sum(1 for t, s in zip(ids, stamps, strict=True) if t == tag and s <= mid)
+    n_after = sum(1 for t, s in zip(ids, stamps, strict=True) if t == tag and s > mid)
+    assert n_before > 0 and n_after > 0
+    assert p.info["remapped_tag_ids"] == {"7777": n_before}
+    rows = [r for r in p.rows if r.kind == "tag"]
+    assert sum(r.tag_id == 7777 for r in rows) == n_before and sum(r.tag_id == tag for r in rows) == n_after
+    assert 7777 in p.landmark_keys and tag in p.landmark_keys
+
+
+def test_planar_graph_notes_that_it_does_not_use_the_priors() -> None:
+    sim = synthetic_run(seed=3, loops=1.0)
+    t = sorted(set(sim.detections.column("tag_id").to_pylist()))[0]
+    tags = TagsInfo(file="tagslam.yaml", known_tags=[_known(t, sim.tags_world[t], 0.001, 0.001)])
+    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="planar"), tags)
+    assert [r.kind for r in p.rows].count("prior") == 1 and "tag_prior" not in {r.kind for r in p.rows}
+    assert any("graph.model=3d" in n for n in p.info["notes"])
+
+
+def _tagslam_bag(tmp_path: Path, case: str) -> Path:
+    src = need_shared(f"tagslam-test/{case}") / "tag_detections.bag.bz2"
+    bag = tmp_path / "tag_detections.bag"
+    bag.write_bytes(bz2.decompress(src.read_bytes()))
+    return bag
+
+
+def test_tagslam_test_21_with_tags_reaches_the_target(tmp_path: Path) -> None:
+    """TagSLAM's test_21 (VIO odometry in the IMU frame, tags of two sizes, one surveyed tag) with --tags: the
+    trajectory is within max(5 cm, 1 % of its path) of TagSLAM's own after a rigid alignment (0.637 m before
+    --tags, when the odometry was taken as the camera's)."""
+    folder = need_shared("tagslam-test/test_21")
+    sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
+    from bench_tagslam import ate, match_stamps, path_length, read_reference, read_tum
+
+    bag = _tagslam_bag(tmp_path, "test_21")
+    ref_bag = tmp_path / "reference.bag"
+    ref_bag.write_bytes(bz2.decompress((folder / "reference.bag.bz2").read_bytes()))
+    cmd = [
+        *(sys.executable, "-m", "cli.app", "run", str(bag), "--out", str(tmp_path / "runs"), "--name", "t21"),
+        *("--until", "graph", "--camera", str(folder / "cameras.yaml")),
+        *("--extrinsics", str(folder / "camera_poses.yaml"), "--tags", str(folder / "tagslam.yaml")),
+        *("--set", "graph.model=3d"),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "by T_body_odom of tagslam.yaml" in proc.stderr + proc.stdout
+    run = tmp_path / "runs" / "t21"
+    tags: dict[str, Any] = json.loads((run / "ingest" / "tags.json").read_text())
+    assert tags["T_body_odom_applied"] and [k["id"] for k in tags["known_tags"]] == [2]
+    detect: dict[str, Any] = json.loads((run / "detect" / "summary.json").read_text())
+    assert detect["tag_size_m"] == pytest.approx(0.16) and detect["tag_sizes"] == 9  # tags 100-108: 0.1 m
+    graph: dict[str, Any] = json.loads((run / "graph" / "summary.json").read_text())
+    assert graph["known_tags_seen"] == [2]
+    t_ref, xyz_ref = read_reference(ref_bag)
+    t_est, xyz_est = read_tum(run / "graph" / "trajectory.tum")
+    i, j = match_stamps(t_est, t_ref)
+    assert len(i) > 300
+    target = max(0.05, 0.01 * path_length(xyz_ref[j]))
+    assert ate(xyz_est[i], xyz_ref[j]) <= target
