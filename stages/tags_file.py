@@ -260,7 +260,7 @@ def _known_tag(
             raise InputError(f"{where} tag {tag_id}.pose: needs position_noise and rotation_noise (sigmas)")
         rot, pos = sig
     # T_world_body Exp(ξ_b) T_body_tag = T_world_tag Exp(Ad(T_tag_body) ξ_b)
-    A = adjoint(np.linalg.inv(T_body_tag))
+    A = adjoint(np.asarray(np.linalg.inv(T_body_tag), dtype=np.float64))
     cov = np.diag(np.concatenate([rot, pos]) ** 2) + A @ body_cov @ A.T
     return KnownTagPose(tag_id, body, T_world_body @ T_body_tag, cov, rot.tolist(), pos.tolist())
 
