@@ -125,34 +125,40 @@ def occupancy_grid(
 
 def _cells_crossed(u0: FloatArray, u1: FloatArray) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """The cells each segment ``u0 -> u1`` (grid units: cell ``(i, j)`` spans ``[i, i+1) x [j, j+1)``) passes
-    through, each once: (segment index, (M, 2) cell) in order along every segment.
+    through, each once: (segment index, (M, 2) cell), in no particular order.
 
-    An exact grid traversal (Amanatides-Woo DDA) done for all segments at once: the parameters ``t`` where a
-    segment crosses a vertical or a horizontal cell border, sorted per segment; the cell between two crossings
-    is the one holding the midpoint.
+    An exact grid traversal (as Amanatides-Woo's DDA) for all segments at once, without a loop or a sort: a
+    segment's cells are its start cell and, for every vertical or horizontal cell border it crosses, the cell
+    it enters there (the border fixes one index, the segment's position at the crossing the other).
     """
     n = len(u0)
     d = u1 - u0
     f0 = np.floor(u0).astype(np.int64)
     steps = np.abs(np.floor(u1).astype(np.int64) - f0)
-    seg, t = [np.arange(n, dtype=np.int64)], [np.zeros(n)]
+    seg, cells = [np.arange(n, dtype=np.int64)], [f0]
     for axis in (0, 1):
+        other = 1 - axis
         k = steps[:, axis]
         s_ax = np.repeat(np.arange(n, dtype=np.int64), k)
         j = np.arange(len(s_ax), dtype=np.int64) - np.repeat(np.cumsum(k) - k, k)
-        border = f0[s_ax, axis] + np.where(d[s_ax, axis] > 0, j + 1, -j)
+        forward = d[s_ax, axis] > 0
+        border = f0[s_ax, axis] + np.where(forward, j + 1, -j)
+        t = (border - u0[s_ax, axis]) / d[s_ax, axis]
+        entered = np.empty((len(s_ax), 2), dtype=np.int64)
+        entered[:, axis] = np.where(forward, border, border - 1)
+        entered[:, other] = np.floor(u0[s_ax, other] + t * d[s_ax, other]).astype(np.int64)
         seg.append(s_ax)
-        t.append((border - u0[s_ax, axis]) / d[s_ax, axis])
-    seg_all, t_all = np.concatenate(seg), np.concatenate(t)
-    order = np.lexsort((t_all, seg_all))
-    seg_all, t_all = seg_all[order], t_all[order]
-    last = np.append(seg_all[1:] != seg_all[:-1], True)
-    t_next = np.where(last, 1.0, np.append(t_all[1:], 1.0))
-    mid = 0.5 * (t_all + t_next)
-    cells = np.floor(u0[seg_all] + mid[:, None] * d[seg_all]).astype(np.int64)
-    new = np.ones(len(seg_all), dtype=bool)
-    new[1:] = (seg_all[1:] != seg_all[:-1]) | (cells[1:] != cells[:-1]).any(axis=1)
-    return seg_all[new], cells[new]
+        cells.append(entered)
+    return np.concatenate(seg), np.concatenate(cells)
+
+
+def _add_counts(counter: npt.NDArray[np.int32], flat: npt.NDArray[np.int64]) -> None:
+    """Add one to ``counter`` at every index in ``flat`` (a histogram when the grid is small next to the list,
+    else scattered adds: no grid-sized temporary for a few beams on a large grid)."""
+    if len(counter) <= 4 * len(flat):
+        counter += np.bincount(flat, minlength=len(counter)).astype(np.int32)
+    else:
+        np.add.at(counter, flat, 1)
 
 
 def ray_cast_grid(
@@ -165,7 +171,7 @@ def ray_cast_grid(
     log_odds_hit: float = 0.85,
     log_odds_miss: float = -0.4,
     max_cells: int = MAX_GRID_CELLS,
-    chunk_cells: int = 2_000_000,
+    chunk_cells: int = 500_000,
 ) -> OccupancyGrid:
     """A log-odds occupancy grid from laser beams, free space carved along every beam.
 
@@ -192,8 +198,7 @@ def ray_cast_grid(
     if int(size[0]) * int(size[1]) > max_cells:
         raise ValueError(f"a laser grid of {size[0]} x {size[1]} cells is more than {max_cells:.0e}")
     cols = int(size[0])
-    hits = np.zeros(int(size[0]) * int(size[1]), dtype=np.int32)
-    log_odds = np.zeros(hits.shape, dtype=np.float32)
+    n_cells = int(size[0]) * int(size[1])
     u0 = (o - origin) / resolution
     ue = (e - origin) / resolution
     length = np.linalg.norm(ue - u0, axis=1)
@@ -201,15 +206,20 @@ def ray_cast_grid(
     keep = np.where(h, np.maximum(length - 1.0, 0.0), length)
     u1 = u0 + (ue - u0) * np.divide(keep, length, out=np.zeros_like(length), where=length > 0)[:, None]
     hit_cells = np.floor(ue[h]).astype(np.int64)
-    np.add.at(hits, hit_cells[:, 1] * cols + hit_cells[:, 0], 1)
-    np.add.at(log_odds, hit_cells[:, 1] * cols + hit_cells[:, 0], np.float32(log_odds_hit))
+    hits = np.zeros(n_cells, dtype=np.int32)
+    misses = np.zeros(n_cells, dtype=np.int32)
+    _add_counts(hits, hit_cells[:, 1] * cols + hit_cells[:, 0])
     cost = np.cumsum(np.abs(np.floor(u1) - np.floor(u0)).sum(axis=1) + 1)
     start = 0
     while start < len(u0):
         stop = max(int(np.searchsorted(cost, cost[start] - 1 + chunk_cells, side="right")), start + 1)
         _, cells = _cells_crossed(u0[start:stop], u1[start:stop])
-        np.add.at(log_odds, cells[:, 1] * cols + cells[:, 0], np.float32(log_odds_miss))
+        _add_counts(misses, cells[:, 1] * cols + cells[:, 0])
         start = stop
+    log_odds = hits.astype(np.float32)
+    log_odds *= np.float32(log_odds_hit)
+    log_odds += misses * np.float32(log_odds_miss)
+    del misses
     shape = (int(size[1]), cols)
     occupied = (hits >= min_hits) & (log_odds > 0)
     return OccupancyGrid(occupied.reshape(shape), origin, float(resolution), free=(log_odds < 0).reshape(shape))
