@@ -133,6 +133,10 @@ class SimConfig:
     laser_range_min_m: float = 0.05
     laser_range_max_m: float = 8.0
     laser_range_sigma_m: float = 0.01
+    laser_sweep: bool = False
+    """Sweep the beams over the scan period as a spinning scanner does: beam i is cast from the true pose at
+    stamp + i * time_increment (time_increment = 1 / (scan_rate_hz * laser_beams)); False: every beam from the
+    stamp's pose, time_increment 0."""
 
     odom_v_sigma_mps: float = 0.04
     """Noise on the forward speed, per odometry sample (white)."""
@@ -229,7 +233,7 @@ def ray_segment_hits(
     """Cast 2D rays ``origin + t * dirs`` against wall segments.
 
     Args:
-        origin: (2,) ray origin.
+        origin: (2,) ray origin shared by all rays, or (N, 2) one per ray.
         dirs: (N, 2) ray directions (need not be unit; t is in units of the direction).
         walls: (M, 4) segments x0, y0, x1, y1.
 
@@ -239,12 +243,12 @@ def ray_segment_hits(
     """
     a = walls[:, :2]
     e = walls[:, 2:] - a
-    ao = a - origin  # (M, 2)
+    ao = a - np.asarray(origin)[..., None, :]  # (M, 2), or (N, M, 2) with one origin per ray
     dx, dy = dirs[:, 0:1], dirs[:, 1:2]
     denom = dx * e[:, 1] - dy * e[:, 0]  # (N, M)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (ao[:, 0] * e[:, 1] - ao[:, 1] * e[:, 0]) / denom
-        s = (ao[:, 0] * dy - ao[:, 1] * dx) / denom
+        t = (ao[..., 0] * e[:, 1] - ao[..., 1] * e[:, 0]) / denom
+        s = (ao[..., 0] * dy - ao[..., 1] * dx) / denom
     ok = (np.abs(denom) > 1e-12) & (t > 1e-9) & (s >= 0.0) & (s <= 1.0)
     t = np.where(ok, t, np.inf)
     idx = np.argmin(t, axis=1)
@@ -970,6 +974,47 @@ def simulate_odometry(cfg: SimConfig) -> list[OdometryMsg]:
     return _odometry(cfg, true_pose, traj, odom_ns, rng_odom)
 
 
+def laser_scan(cfg: SimConfig, walls: FloatArray, traj: Trajectory, stamp: int, rng: np.random.Generator) -> ScanMsg:
+    """One scan at ``stamp``: the beams ray-cast against ``walls`` from the true pose, plus range noise.
+
+    With ``cfg.laser_sweep`` beam ``i`` is cast from the pose at ``stamp + i * time_increment`` (a spinning
+    scanner's sweep over one scan period; the header stamp is the first beam's time, as in ROS); else every
+    beam from the stamp's pose and ``time_increment`` is 0. Draws ``laser_beams`` standard normals from ``rng``.
+    """
+    _, T_bl = mount_transforms(cfg)
+    n_beams = cfg.laser_beams
+    inc = 2 * math.pi / n_beams
+    angles = -math.pi + inc * np.arange(n_beams)
+    beam_dt = 1.0 / (cfg.scan_rate_hz * n_beams) if cfg.laser_sweep else 0.0
+    t_s = (stamp - cfg.start_time_ns) * 1e-9
+    if cfg.laser_sweep:  # each beam from the pose at its own time
+        bx, by, byaw, _, _ = traj.sample(t_s + beam_dt * np.arange(n_beams, dtype=np.float64))
+        c, s = np.cos(byaw), np.sin(byaw)
+        origin: FloatArray = np.column_stack(
+            [bx + c * T_bl[0, 3] - s * T_bl[1, 3], by + s * T_bl[0, 3] + c * T_bl[1, 3]]
+        )
+        a = byaw + angles
+    else:
+        x, y, yaw, _, _ = traj.sample(t_s)
+        origin = (planar_T(float(x), float(y), float(yaw)) @ T_bl)[:2, 3]
+        a = float(yaw) + angles
+    dirs = np.stack([np.cos(a), np.sin(a)], axis=1)
+    rng_true, _, _ = ray_segment_hits(origin, dirs, walls)
+    ranges = rng_true + cfg.laser_range_sigma_m * rng.standard_normal(n_beams)
+    ranges = np.where(rng_true > cfg.laser_range_max_m, np.inf, ranges)
+    return ScanMsg(
+        header=Header(stamp, cfg.laser_frame),
+        angle_min=float(angles[0]),
+        angle_max=float(angles[-1]),
+        angle_increment=inc,
+        time_increment=beam_dt,
+        scan_time=1.0 / cfg.scan_rate_hz,
+        range_min=cfg.laser_range_min_m,
+        range_max=cfg.laser_range_max_m,
+        ranges=ranges.astype(np.float32),
+    )
+
+
 def simulate(cfg: SimConfig) -> Recording:
     """Simulate a run: every message in time order, plus the ground truth, in memory."""
     _validate(cfg)
@@ -1012,33 +1057,8 @@ def simulate(cfg: SimConfig) -> Recording:
         add(3, ODOM_TOPIC, stamp, msg)
 
     # Laser: exact ray cast against the walls plus Gaussian range noise.
-    n_beams = cfg.laser_beams
-    inc = 2 * math.pi / n_beams
-    angles = -math.pi + inc * np.arange(n_beams)
     for stamp in scan_ns:
-        x, y, yaw = true_pose(stamp)
-        T_wl = planar_T(x, y, yaw) @ T_bl
-        a = yaw + angles
-        dirs = np.stack([np.cos(a), np.sin(a)], axis=1)
-        rng_true, _, _ = ray_segment_hits(T_wl[:2, 3], dirs, world.walls)
-        ranges = rng_true + cfg.laser_range_sigma_m * rng_scan.standard_normal(n_beams)
-        ranges = np.where(rng_true > cfg.laser_range_max_m, np.inf, ranges)
-        add(
-            4,
-            SCAN_TOPIC,
-            stamp,
-            ScanMsg(
-                header=Header(stamp, cfg.laser_frame),
-                angle_min=float(angles[0]),
-                angle_max=float(angles[-1]),
-                angle_increment=inc,
-                time_increment=0.0,  # every beam is cast at the stamp's pose
-                scan_time=1.0 / cfg.scan_rate_hz,
-                range_min=cfg.laser_range_min_m,
-                range_max=cfg.laser_range_max_m,
-                ranges=ranges.astype(np.float32),
-            ),
-        )
+        add(4, SCAN_TOPIC, stamp, laser_scan(cfg, world.walls, traj, stamp, rng_scan))
 
     # Camera.
     K, D = cam.K, cam.D
@@ -1144,6 +1164,7 @@ _NEW_FIELDS: Final = {
     "odom_yaw_bias_rad_per_m": 0.0,
     "odom_cov_scale": 1.0,
     "corridor_length_m": 10.0,
+    "laser_sweep": False,
 }
 """Fields added after the sample was made: left out of the ground truth's ``config`` at their defaults, so the
 ground truth of a run that does not use them stays byte-identical."""
@@ -1536,6 +1557,11 @@ def main(argv: list[str] | None = None) -> int:
         default=1.0,
         help="reported pose covariance = this x the propagated white noise (< 1: too small; 0: all zero)",
     )
+    parser.add_argument(
+        "--laser-sweep",
+        action="store_true",
+        help="cast each laser beam at its own time over the scan period (time_increment > 0; default: all at once)",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite an existing bag")
     args = parser.parse_args(argv)
     cfg = SimConfig(
@@ -1551,6 +1577,7 @@ def main(argv: list[str] | None = None) -> int:
         odom_yaw_scale_error=args.odom_yaw_scale_error,
         odom_yaw_bias_rad_per_m=args.odom_yaw_bias,
         odom_cov_scale=args.odom_cov_scale,
+        laser_sweep=args.laser_sweep,
     )
     suffix = {"ros1": ".bag", "mcap": ".mcap"}.get(args.fmt, "")
     out = args.out / f"{args.name}{suffix}"

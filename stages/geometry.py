@@ -115,6 +115,46 @@ def interpolate_poses3(stamps: npt.ArrayLike, poses: list[gtsam.Pose3], query: n
     return out
 
 
+def _se2_v(theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``(sin θ / θ, (1 − cos θ) / θ)``: the entries of SE(2)'s left Jacobian ``V``, with their limits at θ = 0."""
+    small = np.abs(theta) < 1e-9
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(th) / th)
+    b = np.where(small, theta / 2.0, (1.0 - np.cos(th)) / th)
+    return a, b
+
+
+def interpolate_planar(stamps: npt.ArrayLike, poses: npt.ArrayLike, query: npt.ArrayLike) -> FloatArray:
+    """Geodesic SE(2) interpolation of an (N, 3) series of (x, y, yaw) at ``query`` stamps, vectorised.
+
+    The same curve as :func:`interpolate_pose2` between neighbouring poses (``a * Exp(alpha * Log(a^-1 b))``):
+    a constant-twist arc, not a straight chord, while the robot turns. Stamps outside the series are clamped to
+    its ends (no extrapolation). Returns (M, 3) with yaw continuous from the pose before each query.
+    """
+    t = np.asarray(stamps)
+    P = np.asarray(poses, dtype=float).reshape(-1, 3)
+    q = np.asarray(query).reshape(-1)
+    if len(t) == 0:
+        raise ValueError("cannot interpolate an empty pose series")
+    if len(t) == 1:
+        return np.repeat(P, len(q), axis=0)
+    i = np.clip(np.searchsorted(t, q, side="right"), 1, len(t) - 1)
+    t0, t1 = t[i - 1], t[i]
+    span = (t1 - t0).astype(float)
+    alpha = np.clip(np.where(span > 0, (q - t0).astype(float) / np.where(span > 0, span, 1.0), 0.0), 0.0, 1.0)
+    a, b = P[i - 1], P[i]
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    lx, ly = c * dx + s * dy, -s * dx + c * dy  # b's position in a's frame
+    th = np.asarray(wrap_angle(b[:, 2] - a[:, 2]))
+    va, vb = _se2_v(th)
+    det = va**2 + vb**2
+    ux, uy = (va * lx + vb * ly) / det, (-vb * lx + va * ly) / det  # V(θ)^-1 t: the twist's translation
+    wa, wb = _se2_v(alpha * th)
+    px, py = alpha * (wa * ux - wb * uy), alpha * (wb * ux + wa * uy)  # V(αθ) α u
+    return np.column_stack([a[:, 0] + c * px - s * py, a[:, 1] + s * px + c * py, a[:, 2] + alpha * th])
+
+
 def pose3_adjoint(p: gtsam.Pose3) -> FloatArray:
     """The 6x6 adjoint of ``p`` in gtsam's (rotation, translation) tangent order."""
     return np.asarray(p.AdjointMap(), dtype=float)

@@ -22,6 +22,10 @@ MAX_BAG_SECONDS: Final = 1e7
 MIN_GRID_RESOLUTION_M: Final = 1e-3
 """Smallest occupancy-grid cell, metres (1 µm asked for 883 TiB)."""
 
+MAX_SCAN_SWEEP_S: Final = 1.0
+"""Longest sweep of one laser scan, seconds (scanners sweep in 1/5-1/50 s): a ``time_increment`` that spans
+more, or is not finite, is damaged, and that scan's beams are all placed at its stamp."""
+
 MAX_GRID_CELLS: Final = 100_000_000
 """Largest occupancy grid, cells (~1 GB of counts): a ~500 m square at the default 5 cm."""
 

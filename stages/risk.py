@@ -3,8 +3,9 @@
 Per keyframe ``t`` of the full graph:
 
 * **clearance and obstacle normal**: the laser scan nearest in time (at most ``max_scan_gap_s`` away),
-  its valid returns (finite, ``range_min <= r < range_max``) put in the map frame with the optimised
-  keyframe pose and ``T_base_laser`` (``ingest/extrinsics.json``); the nearest return gives the
+  its valid returns (finite, ``range_min <= r < range_max``) put in the map frame with ``T_base_laser``
+  (``ingest/extrinsics.json``) and the optimised path interpolated to each beam's own time (deskewed,
+  :mod:`stages.laser`); the nearest return to the keyframe's position gives the
   clearance ``d_t`` (m, from the robot centre) and the unit normal ``n_t`` from the robot towards it.
   No scan near enough, or no valid return: ``d_t = inf`` (no obstacle known, zero risk).
 * **visible landmarks** ``L(x_t)``: the tags measured from any keyframe within ``visibility_window_s``
@@ -54,15 +55,8 @@ from stages.estimation.collision import (
     measurement_information,
     stabilised_covariances,
 )
-from stages.ingest.artifacts import (
-    ANGLE_INCREMENT,
-    ANGLE_MIN,
-    EXTRINSICS,
-    RANGE_MAX,
-    RANGE_MIN,
-    RANGES,
-    SCANS,
-)
+from stages.ingest.artifacts import EXTRINSICS, SCANS
+from stages.laser import scan_beams
 
 if TYPE_CHECKING:
     import gtsam
@@ -267,7 +261,9 @@ def scan_clearance(
     """Clearance (T,), unit normals (T, 2) and nearest returns (T, 2) from the scan nearest each keyframe.
 
     ``scans`` has ingest's ``scans.parquet`` columns; ``T_base_laser`` (4×4) maps laser points into the
-    base frame; ``poses`` are the keyframes' (x, y, yaw) in the map frame.
+    base frame; ``poses`` are the keyframes' (x, y, yaw) in the map frame. Each return is placed at the
+    path interpolated to its beam's own time (:func:`stages.laser.scan_beams`, deskewed), the same returns
+    the navigation's occupancy grid is built from, and measured from the keyframe's position.
     """
     T = len(poses)
     clearance = np.full(T, np.inf)
@@ -280,26 +276,22 @@ def scan_clearance(
     s_sorted = s_stamps[order]
     nearest = order[_nearest_index(s_sorted, np.asarray(stamps_ns, dtype=np.int64))]
     gap_ok = np.abs(s_stamps[nearest] - stamps_ns) <= max_gap_s * 1e9
-    cols = {c: scans.column(c) for c in (ANGLE_MIN, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX, RANGES)}
-    Tbl = np.asarray(T_base_laser, dtype=float).reshape(4, 4)
-    for t in np.flatnonzero(gap_ok):
-        j = int(nearest[t])
-        r = np.asarray(cols[RANGES][j].as_py(), dtype=float)
-        a = float(cols[ANGLE_MIN][j].as_py()) + float(cols[ANGLE_INCREMENT][j].as_py()) * np.arange(len(r))
-        ok = np.isfinite(r) & (r >= float(cols[RANGE_MIN][j].as_py())) & (r < float(cols[RANGE_MAX][j].as_py()))
-        if not ok.any():
+    rows, which = np.unique(nearest[gap_ok], return_inverse=True)
+    beams = scan_beams(scans, stamps_ns, poses, T_base_laser, rows)
+    returns = beams.hit
+    scan_of, ends = beams.scan[returns], beams.ends[returns]
+    first = np.searchsorted(scan_of, np.arange(len(rows) + 1))
+    for t, k in zip(np.flatnonzero(gap_ok), which.reshape(-1), strict=True):
+        p_map = ends[first[k] : first[k + 1]]
+        if len(p_map) == 0:
             continue
-        p_laser = np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
-        p_base = (Tbl @ p_laser)[:2]
-        x, y, yaw = poses[t]
-        c, s = np.cos(yaw), np.sin(yaw)
-        p_map = np.array([[c, -s], [s, c]]) @ p_base + np.array([[x], [y]])
-        d = np.hypot(p_map[0] - x, p_map[1] - y)
-        k = int(np.argmin(d))
-        clearance[t] = d[k]
-        points[t] = p_map[:, k]
-        if d[k] > 0:
-            normals[t] = (p_map[:, k] - [x, y]) / d[k]
+        x, y = poses[t, 0], poses[t, 1]
+        d = np.hypot(p_map[:, 0] - x, p_map[:, 1] - y)
+        j = int(np.argmin(d))
+        clearance[t] = d[j]
+        points[t] = p_map[j]
+        if d[j] > 0:
+            normals[t] = (p_map[j] - [x, y]) / d[j]
     return clearance, normals, points
 
 

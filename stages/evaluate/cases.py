@@ -40,7 +40,7 @@ from stages.evaluate.analysis import (
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
-from stages.ingest.artifacts import ANGLE_INCREMENT, ANGLE_MIN, RANGE_MAX, RANGE_MIN, RANGES
+from stages.laser import scan_beams
 from stages.limits import MAX_GRID_CELLS
 from stages.navigation import (
     NavigationMap,
@@ -52,9 +52,7 @@ from stages.navigation import (
     SegmentWalls,
     lqr_gains,
     nominal_path,
-    occupancy_grid,
-    scan_endpoints,
-    se2,
+    ray_cast_grid,
     simulate,
     visibility_schedule,
 )
@@ -226,7 +224,9 @@ class EvalInputs:
 
 
 def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
-    """Occupancy grid of the laser returns, each scan placed at the optimised path interpolated to its stamp."""
+    """Occupancy grid of the laser beams, each placed at the optimised path interpolated to its own time
+    (deskewed, :func:`stages.laser.scan_beams`), free space carved along every beam
+    (:func:`stages.navigation.ray_cast_grid`)."""
     scans = inputs.scans
     if scans is None or scans.num_rows == 0:
         raise StageError(
@@ -234,30 +234,14 @@ def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
             "set evaluate.trials=0 to skip navigation"
         )
     geo = inputs.landmarks.geometry
-    kt = geo.stamps_ns.astype(float)
-    yaw = np.unwrap(geo.poses[:, 2])
-    Tbl = np.eye(4) if inputs.T_base_laser is None else np.asarray(inputs.T_base_laser, dtype=float)
-    T_base_laser = se2(Tbl[0, 3], Tbl[1, 3], float(np.arctan2(Tbl[1, 0], Tbl[0, 0])))
-    cols = scans.to_pydict()
-    pts = []
-    for j in range(0, scans.num_rows, inputs.cfg.scan_stride):
-        s = float(cols[STAMP_NS][j])
-        if s < kt[0] or s > kt[-1]:
-            continue
-        pose = se2(np.interp(s, kt, geo.poses[:, 0]), np.interp(s, kt, geo.poses[:, 1]), np.interp(s, kt, yaw))
-        pts.append(
-            scan_endpoints(
-                pose @ T_base_laser,
-                np.asarray(cols[RANGES][j], dtype=float),
-                float(cols[ANGLE_MIN][j]),
-                float(cols[ANGLE_INCREMENT][j]),
-                float(cols[RANGE_MIN][j]),
-                float(cols[RANGE_MAX][j]),
-            )
-        )
-    endpoints = np.vstack(pts)
-    _check_grid_size(endpoints, inputs.cfg.grid_resolution_m)
-    return occupancy_grid(endpoints, inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
+    stamps = np.asarray(scans.column(STAMP_NS).to_numpy(), dtype=np.int64)
+    rows = np.arange(0, scans.num_rows, inputs.cfg.scan_stride)
+    rows = rows[(stamps[rows] >= geo.stamps_ns[0]) & (stamps[rows] <= geo.stamps_ns[-1])]
+    beams = scan_beams(scans, geo.stamps_ns, geo.poses, inputs.T_base_laser, rows)
+    if not beams.hit.any():
+        raise StageError("navigation needs walls: no laser scan within the path has a return")
+    _check_grid_size(np.vstack([beams.origins, beams.ends]), inputs.cfg.grid_resolution_m)
+    return ray_cast_grid(beams.origins, beams.ends, beams.hit, inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
 
 
 def _check_grid_size(endpoints: npt.NDArray[np.float64], resolution_m: float, margin_m: float = 1.0) -> None:

@@ -57,6 +57,10 @@ ODOMETRY: Final = TableSpec(
 ANGLE_MIN = _f64("angle_min", "angle of the first range, rad")
 ANGLE_MAX = _f64("angle_max", "angle of the last range, rad")
 ANGLE_INCREMENT = _f64("angle_increment", "angle between ranges, rad")
+TIME_INCREMENT = _f64(
+    "time_increment", "time between beams, s (beam i is measured at stamp_ns + i * time_increment; 0: all at once)"
+)
+SCAN_TIME = _f64("scan_time", "time between scans, s (0 when the driver does not say)")
 RANGE_MIN = _f64("range_min", "shortest valid range, m")
 RANGE_MAX = _f64("range_max", "longest valid range, m")
 RANGES = Column("ranges", pa.list_(pa.float32()), "ranges, m (inf/nan as recorded)")
@@ -64,7 +68,18 @@ SCAN_FRAME_ID = Column(FRAME_ID, FRAME_ID.type, "the laser's frame")
 SCANS: Final = TableSpec(
     "scans.parquet",
     "one row per laser scan",
-    [STAMP_NS, SCAN_FRAME_ID, ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX, RANGES],
+    [
+        STAMP_NS,
+        SCAN_FRAME_ID,
+        ANGLE_MIN,
+        ANGLE_MAX,
+        ANGLE_INCREMENT,
+        TIME_INCREMENT,
+        SCAN_TIME,
+        RANGE_MIN,
+        RANGE_MAX,
+        RANGES,
+    ],
 )
 
 # tag_detections.parquet --------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ Public API:
         Monte Carlo LQG trials (EKF with eq.-26 noise + LQR), collisions counted, Wilson interval.
     wilson_interval(successes, trials, confidence) -> (low, high).
     SegmentWalls, OccupancyGrid, occupancy_grid(endpoints, ...), scan_endpoints(...): obstacles.
+    ray_cast_grid(origins, ends, hit, ...): log-odds occupancy grid with free space carved along each beam.
     GroundTruth, ground_truth_file(source): the simulator's truth beside a recording, in the map frame.
 """
 
@@ -32,6 +33,7 @@ from stages.navigation.walls import (
     SegmentWalls,
     distance_to_segments,
     occupancy_grid,
+    ray_cast_grid,
     scan_endpoints,
 )
 
@@ -51,6 +53,7 @@ __all__ = [
     "lqr_gains",
     "nominal_path",
     "occupancy_grid",
+    "ray_cast_grid",
     "scan_endpoints",
     "se2",
     "simulate",
