@@ -17,7 +17,7 @@ from stages.camera import colmap_camera
 from stages.detect.backends import Detector, TagObservation, make_detector, shortest_side_px
 from stages.detect.config import DetectConfig
 from stages.detect.images import CorruptFrameError, decode_frame
-from stages.detect.pose import TagPose, estimate_tag_pose
+from stages.detect.pose import TagPose, estimate_tag_poses
 from stages.ingest.artifacts import CameraModel
 
 # Reasons a detection is dropped before its pose is kept (summary keys).
@@ -108,7 +108,14 @@ def observations_to_rows(
 
     ``apply_quality=False`` (detections a bag holds) keeps every family and skips the decoding checks.
     """
-    rows = []
+    return rows_with_poses([(job, camera, kept_observations(observations, cfg, dropped, apply_quality))], cfg, dropped)
+
+
+def kept_observations(
+    observations: list[TagObservation], cfg: DetectConfig, dropped: Counter[str], apply_quality: bool
+) -> list[tuple[TagObservation, float]]:
+    """The observations the settings keep, with their shortest side in px; the others counted in ``dropped``."""
+    kept = []
     for obs in observations:
         if apply_quality and obs.family not in cfg.families:  # a bag's detections: any family, no decoding
             dropped["family"] += 1
@@ -123,29 +130,53 @@ def observations_to_rows(
         if side < cfg.min_side_px:
             dropped["small"] += 1
             continue
-        size = cfg.size_of(obs.tag_id)
-        pose = estimate_tag_pose(obs.corners, size, camera)
-        if pose is None:
-            dropped["pose_failed"] += 1
-            continue
-        if pose.reprojection_px > cfg.max_reprojection_px:
-            dropped["reprojection"] += 1
-            continue
-        rows.append(
-            DetectionRow(
-                frame=job.frame,
-                stamp_ns=job.stamp_ns,
-                camera=job.camera,
-                tag_id=obs.tag_id,
-                family=obs.family,
-                corners=np.asarray(obs.corners, float).ravel().tolist(),
-                size_m=size,
-                side_px=side,
-                decision_margin=obs.decision_margin,
-                hamming=obs.hamming,
-                pose=pose,
+        kept.append((obs, side))
+    return kept
+
+
+def rows_with_poses(
+    frames: list[tuple[FrameJob, pycolmap.Camera, list[tuple[TagObservation, float]]]],
+    cfg: DetectConfig,
+    dropped: Counter[str],
+) -> list[DetectionRow]:
+    """Rows of the kept observations (:func:`kept_observations`) of several frames, in order; the poses of each
+    camera's tags are estimated in one batch. Those whose pose fails or fits badly are counted in ``dropped``."""
+    by_camera: dict[int, list[tuple[TagObservation, float]]] = {}
+    cameras: dict[int, pycolmap.Camera] = {}
+    for _, camera, kept in frames:
+        by_camera.setdefault(id(camera), []).extend(kept)
+        cameras[id(camera)] = camera
+    poses: dict[int, list[TagPose | None]] = {
+        key: estimate_tag_poses([o.corners for o, _ in kept], [cfg.size_of(o.tag_id) for o, _ in kept], cameras[key])
+        for key, kept in by_camera.items()
+    }
+    taken = dict.fromkeys(poses, 0)
+    rows = []
+    for job, camera, kept in frames:
+        for obs, side in kept:
+            pose = poses[id(camera)][taken[id(camera)]]
+            taken[id(camera)] += 1
+            if pose is None:
+                dropped["pose_failed"] += 1
+                continue
+            if pose.reprojection_px > cfg.max_reprojection_px:
+                dropped["reprojection"] += 1
+                continue
+            rows.append(
+                DetectionRow(
+                    frame=job.frame,
+                    stamp_ns=job.stamp_ns,
+                    camera=job.camera,
+                    tag_id=obs.tag_id,
+                    family=obs.family,
+                    corners=np.asarray(obs.corners, float).ravel().tolist(),
+                    size_m=cfg.size_of(obs.tag_id),
+                    side_px=side,
+                    decision_margin=obs.decision_margin,
+                    hamming=obs.hamming,
+                    pose=pose,
+                )
             )
-        )
     return rows
 
 
@@ -184,14 +215,15 @@ class FrameProcessor:
         return self.cameras.get(job.camera, self.camera)
 
     def process(self, jobs: list[FrameJob]) -> BatchResult:
-        """Process a batch of frames; corrupt frames are listed, not raised."""
+        """Process a batch of frames; corrupt frames are listed, not raised. The tags of the whole batch have
+        their poses estimated together (:func:`~stages.detect.pose.estimate_tag_poses`)."""
         result = BatchResult()
+        frames = []
         for job in jobs:
             result.frames += 1
             if job.observations is not None:
-                result.rows += observations_to_rows(
-                    job.observations, job, self.cfg, self.camera_of(job), result.dropped, apply_quality=False
-                )
+                kept = kept_observations(job.observations, self.cfg, result.dropped, apply_quality=False)
+                frames.append((job, self.camera_of(job), kept))
                 continue
             try:
                 gray = decode_frame(job.format, job.width, job.height, job.step, job.data or b"")
@@ -199,7 +231,14 @@ class FrameProcessor:
                 result.corrupt.append((job.frame, str(err)))
                 continue
             assert self.detector is not None
-            result.rows += detect_image(gray, self.detector, self.camera_of(job), self.cfg, job, result.dropped)
+            frames.append(
+                (
+                    job,
+                    self.camera_of(job),
+                    kept_observations(self.detector.detect(gray), self.cfg, result.dropped, True),
+                )
+            )
+        result.rows = rows_with_poses(frames, self.cfg, result.dropped)
         return result
 
 

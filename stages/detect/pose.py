@@ -1,4 +1,4 @@
-"""Tag pose from its four corners: both planar (IPPE) solutions refined by pycolmap, with a 6x6 covariance.
+"""Tag pose from its four corners: both planar (IPPE) solutions refined by least squares, with a 6x6 covariance.
 
 Conventions:
     * Corners in the OpenCV aruco order: top-left, top-right, bottom-right, bottom-left of the tag as
@@ -11,11 +11,14 @@ Conventions:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+from stages.detect.projection import Projection
 
 if TYPE_CHECKING:
     import pycolmap
@@ -76,65 +79,32 @@ class TagPose:
         return R @ self.cov_unit[3:, 3:] @ R.T
 
 
-def _refinement_options() -> pycolmap.AbsolutePoseRefinementOptions:
-    import pycolmap
-
-    opts = pycolmap.AbsolutePoseRefinementOptions()
-    opts.loss_function_scale = 1e6  # squared loss: four corners leave no room for robust down-weighting
-    opts.gradient_tolerance = 1e-12
-    opts.max_num_iterations = 50
-    return opts
-
-
-def colmap_to_gtsam_cov(cov_colmap: Array, R_camera_tag: Array) -> Array:
-    """Convert pycolmap's cam_from_world covariance into GTSAM's Pose3 tangent.
-
-    COLMAP perturbs ``R`` on the left through Ceres' quaternion manifold, whose tangent is half the
-    rotation angle, and ``t`` additively: ``R = Exp(2 d_r) R_hat``, ``t = t_hat + d_t``. GTSAM perturbs on
-    the right, ``T = T_hat Exp(xi)``, so ``omega = R^T 2 d_r`` and ``v = R^T d_t``.
-    """
-    M = np.zeros((6, 6))
-    M[:3, :3] = 2.0 * R_camera_tag.T
-    M[3:, 3:] = R_camera_tag.T
-    out = M @ np.asarray(cov_colmap, float) @ M.T
-    return 0.5 * (out + out.T)
-
-
-def _refine(
-    camera: pycolmap.Camera, corners: Array, obj: Array, R: Array, t: Array
-) -> tuple[Array, Array, float, Array] | None:
-    """The pose refined from ``R, t`` on the corners: 4x4 pose, GTSAM covariance, squared error, scale mode."""
-    import pycolmap
-
-    start = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(R), translation=t)
-    res = pycolmap.refine_absolute_pose(
-        start, corners, obj, np.ones(4, bool), camera, _refinement_options(), return_covariance=True
-    )
-    if res is None:
-        return None
-    pose = res["cam_from_world"]
-    T = np.eye(4)
-    T[:3, :4] = np.asarray(pose.matrix())
-    if T[2, 3] <= 0:
-        return None
-    proj = np.asarray(camera.img_from_cam(obj @ T[:3, :3].T + T[:3, 3], check_cheirality=False))
-    sse = float(np.sum((proj - corners) ** 2))
-    cov = colmap_to_gtsam_cov(np.asarray(res["covariance"]), T[:3, :3])
-    J = corner_jacobian(camera, T, obj)
-    return T, cov, sse, cov @ J.T @ scale_mode(proj)
-
-
 def _skew(w: Array) -> Array:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def _skew_batch(w: Array) -> Array:
+    """``[w]x`` of every 3-vector in ``w`` (..., 3) -> (..., 3, 3)."""
+    K = np.zeros((*w.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return K
+
+
+def _so3_exp_batch(w: Array) -> Array:
+    """Rotation matrices (M, 3, 3) of the rotation vectors ``w`` (M, 3) (Taylor terms for tiny angles)."""
+    t2 = np.einsum("mi,mi->m", w, w)
+    small = t2 < 1e-8
+    theta = np.sqrt(np.where(small, 1.0, t2))
+    a = np.where(small, 1.0 - t2 / 6.0, np.sin(theta) / theta)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(theta)) / (theta * theta))
+    K = _skew_batch(w)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
 def so3_exp(w: Array) -> Array:
     """Rotation matrix of the rotation vector ``w``."""
-    theta = float(np.linalg.norm(w))
-    K = _skew(w)
-    if theta < 1e-8:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+    return _so3_exp_batch(np.asarray(w, float).reshape(1, 3))[0]
 
 
 def se3_log(T: Array) -> Array:
@@ -151,72 +121,306 @@ def se3_log(T: Array) -> Array:
     return np.concatenate([w, np.linalg.solve(V, T[:3, 3])])
 
 
-_SKEW_BASIS = np.array(
-    [[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]], [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], float
-)
-
-
-def corner_jacobian(camera: pycolmap.Camera, T: Array, obj: Array, h: float = 1e-6) -> Array:
-    """8 x 6 derivative of the distorted corners (x0 y0 .. x3 y3) by the right perturbation ``T Exp(xi)``.
-
-    Central differences; ``R Exp(+-h w)`` is taken as ``R (I +- h [w]x)``, whose central difference is the
-    same to O(h^2).
-    """
-    R, t = T[:3, :3], T[:3, 3]
-    base = obj @ R.T + t
-    delta = np.empty((6, 4, 3))
-    delta[:3] = np.einsum("nj,kij->kni", obj, R @ _SKEW_BASIS)  # d/dw_k of R (I + [w]x) p = R [e_k]x p
-    delta[3:] = R.T[:, None, :]  # d/dv_k of t + R v = R e_k
-    pts = np.concatenate([base + h * delta, base - h * delta], axis=0).reshape(-1, 3)
-    proj = np.asarray(camera.img_from_cam(pts, check_cheirality=False)).reshape(2, 6, 8)
-    return ((proj[0] - proj[1]) / (2 * h)).T
+def _se3_log_batch(T: Array) -> Array:
+    """:func:`se3_log` of every pose in ``T`` (M, 4, 4) -> (M, 6). Rotations within 1e-3 rad of a half turn, where
+    the axis from ``R - R^T`` loses digits, go through :func:`se3_log` (OpenCV's Rodrigues)."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    s = np.linalg.norm(v, axis=1)
+    theta = np.arctan2(s, 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0))
+    t2 = theta * theta
+    small = theta < 1e-4
+    w = np.where(small, 1.0 + t2 / 6.0, theta / np.where(small, 1.0, s))[:, None] * v
+    K = _skew_batch(w)
+    a = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(theta)) / np.where(small, 1.0, t2))
+    b = np.where(small, 1.0 / 6.0 - t2 / 120.0, (theta - np.sin(theta)) / np.where(small, 1.0, t2 * theta))
+    V = np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    out = np.concatenate([w, np.linalg.solve(V, t[..., None])[..., 0]], axis=1)
+    for k in np.flatnonzero(theta > np.pi - 1e-3):
+        out[k] = se3_log(T[k])
+    return out
 
 
 def scale_mode(corners: Array) -> Array:
     """8-vector: every corner moved 1 px outwards along the line from the quad's centre (a scale change)."""
-    c = np.asarray(corners, float).reshape(4, 2)
-    d = c - c.mean(axis=0)
-    return (d / np.linalg.norm(d, axis=1, keepdims=True)).ravel()
+    return _scale_modes(np.asarray(corners, float).reshape(1, 4, 2))[0]
+
+
+def _scale_modes(corners: Array) -> Array:
+    """:func:`scale_mode` of every quad in ``corners`` (M, 4, 2) -> (M, 8)."""
+    d = corners - corners.mean(axis=1, keepdims=True)
+    return (d / np.linalg.norm(d, axis=2, keepdims=True)).reshape(len(corners), 8)
+
+
+def _projection(camera: pycolmap.Camera) -> Projection:
+    key = (str(camera.model_name), tuple(float(v) for v in camera.params))
+    proj = _PROJECTIONS.get(key)
+    if proj is None:
+        proj = _PROJECTIONS[key] = Projection.of(camera)
+    return proj
+
+
+_PROJECTIONS: dict[tuple[str, tuple[float, ...]], Projection] = {}
+
+
+@dataclass
+class _Evaluation:
+    """Residuals (M, 8), Jacobians (M, 8, 6) by the right perturbation, costs (M,) and pixels (M, 4, 2)."""
+
+    res: Array
+    J: Array
+    cost: Array
+    uv: Array
+
+
+def _evaluate(proj: Projection, R: Array, t: Array, obj: Array, corners: Array) -> _Evaluation:
+    """Reprojection residuals of poses ``R, t`` ((..., M, 3, 3), (..., M, 3)) of the tags ``obj`` (M, 4, 3) seen at
+    ``corners`` (M, 4, 2), and their Jacobian by ``xi`` of ``T Exp(xi)``.
+
+    ``d P / d omega = -R [p]x`` and ``d P / d v = R`` for the camera-frame corner ``P = R p + t``. A pose that puts
+    a corner at or behind the camera costs infinity.
+    """
+    # The tag is planar (z = 0 in its frame): P = x R e_x + y R e_y + t, and B [p]x = [-y B_z, x B_z, y B_x - x B_y].
+    x, y = obj[..., 0, None], obj[..., 1, None]  # (M, 4, 1)
+    P = x * R[..., None, :, 0] + y * R[..., None, :, 1] + t[..., None, :]
+    uv, Jp = proj.project(P, jacobian=True)
+    assert Jp is not None
+    B = Jp @ R[..., None, :, :]  # (..., M, 4, 2, 3): d pixel / d v
+    Bx, By, Bz = B[..., 0], B[..., 1], B[..., 2]
+    J = np.empty((*B.shape[:-1], 6))
+    J[..., 0], J[..., 1], J[..., 2] = y * Bz, -x * Bz, x * By - y * Bx  # x, y (M, 4, 1) against (..., M, 4, 2)
+    J[..., 3:] = B
+    J = J.reshape(*R.shape[:-2], 8, 6)
+    res = (uv - corners).reshape(*R.shape[:-2], 8)
+    cost = np.einsum("...i,...i->...", res, res)
+    cost[~(P[..., 2] > 0).all(axis=-1) | ~np.isfinite(cost)] = np.inf
+    return _Evaluation(res, J, cost, uv)
+
+
+def corner_jacobian(camera: pycolmap.Camera, T: Array, obj: Array) -> Array:
+    """8 x 6 derivative of the distorted corners (x0 y0 .. x3 y3) by the right perturbation ``T Exp(xi)``."""
+    R, t = np.asarray(T, float)[None, :3, :3], np.asarray(T, float)[None, :3, 3]
+    o = np.asarray(obj, float)[None]
+    return _evaluate(_projection(camera), R, t, o, np.zeros((1, 4, 2))).J[0]
+
+
+@dataclass
+class _Refined:
+    """Refined poses of a batch: 4x4 poses, 1 px covariances, squared errors, scale directions, usable flags."""
+
+    T: Array
+    cov: Array
+    sse: Array
+    scale_dir: Array
+    ok: Array
+
+
+def _evaluate_newton(proj: Projection, R: Array, t: Array, obj: Array, corners: Array) -> tuple[_Evaluation, Array]:
+    """:func:`_evaluate` and the exact Hessian of half the cost, ``d(J^T r)/d xi`` (M, 6, 6): forward differences
+    of the analytic gradient over steps of 1e-6 (rad, and of the distance). Its error is O(1e-6) of the Hessian
+    plus terms proportional to the gradient, so it steers Newton's steps without moving their fixed point."""
+    m = len(R)
+    dist = np.linalg.norm(t, axis=1)
+    Rs = np.empty((7, m, 3, 3))
+    ts = np.empty((7, m, 3))
+    Rs[0], Rs[1:4], Rs[4:] = R, R @ _FD_ROTATIONS[:, None], R
+    ts[0], ts[1:4] = t, t
+    ts[4:] = t + _FD_STEP * dist[:, None] * np.moveaxis(R, 2, 0)  # t + h R e_k
+    big = _evaluate(proj, Rs, ts, obj, corners)
+    G = np.einsum("knij,kni->knj", big.J, big.res)
+    h = np.empty((6, m))
+    h[:3], h[3:] = _FD_STEP, _FD_STEP * dist
+    H = ((G[1:] - G[0]) / h[:, :, None]).transpose(1, 2, 0)
+    ev = _Evaluation(big.res[0], big.J[0], big.cost[0], big.uv[0])
+    return ev, 0.5 * (H + H.transpose(0, 2, 1))
+
+
+_FD_STEP = 1e-6
+_FD_ROTATIONS = np.stack([so3_exp(_FD_STEP * e) for e in np.eye(3)])
+
+
+def _refine_batch(proj: Projection, corners: Array, obj: Array, R: Array, t: Array) -> _Refined:
+    """Least-squares poses of the corners (M, 4, 2) of tags ``obj`` (M, 4, 3) from the starts ``R, t``.
+
+    Damped Newton on the right perturbation, all problems at once; every problem takes its own steps and
+    damping. The Hessian is the exact one (:func:`_evaluate_newton`) where it is positive definite, else Gauss-
+    Newton's ``J^T J``: Gauss-Newton alone converges only linearly on these problems (the tags' flat, curved
+    valleys of the planar ambiguity), often taking 20-100 steps. A problem stops once its step is below 1e-10
+    (rad, and relative to the distance): at the optimum to near machine precision (pycolmap's Ceres stopped
+    at a relative cost change of 1e-6, short of it). The covariance is ``(J^T J)^-1`` at the optimum (what
+    ``pycolmap.refine_absolute_pose`` reports, in GTSAM's tangent).
+    """
+    m = len(R)
+    R, t = R.copy(), t.copy()
+    ev, Hn = _evaluate_newton(proj, R, t, obj, corners)
+    S = Hn - ev.J.transpose(0, 2, 1) @ ev.J  # the second-order term sum_i r_i d2 r_i
+    lam = np.full(m, _LAMBDA0)
+    active = np.flatnonzero(np.isfinite(ev.cost))
+    eye = np.eye(6)
+    for it in range(1, _MAX_ITERATIONS + 1):
+        if len(active) == 0:
+            break
+        a = active
+        Ra, ta, Ja, la = R[a], t[a], ev.J[a], lam[a]
+        Jt = Ja.transpose(0, 2, 1)
+        g = np.einsum("mij,mj->mi", Jt, ev.res[a])
+        JtJ = Jt @ Ja
+        H = JtJ + S[a]
+        newton = np.linalg.eigvalsh(H)[:, 0] > 0
+        H = np.where(newton[:, None, None], H, JtJ)
+        damped = H + la[:, None, None] * (H * eye)
+        try:
+            step = -np.linalg.solve(damped, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = -np.stack([np.linalg.lstsq(k, v, rcond=None)[0] for k, v in zip(damped, g, strict=True)])
+        R_new = Ra @ _so3_exp_batch(step[:, :3])
+        t_new = ta + np.einsum("mij,mj->mi", Ra, step[:, 3:])
+        if it % _NEWTON_EVERY == 0:
+            trial, H_new = _evaluate_newton(proj, R_new, t_new, obj[a], corners[a])
+        else:
+            trial, H_new = _evaluate(proj, R_new, t_new, obj[a], corners[a]), None
+        accept = trial.cost < ev.cost[a]
+        acc = a[accept]
+        R[acc], t[acc] = R_new[accept], t_new[accept]
+        if H_new is not None:
+            Jn = trial.J[accept]
+            S[acc] = H_new[accept] - Jn.transpose(0, 2, 1) @ Jn
+        ev.res[acc], ev.J[acc], ev.cost[acc], ev.uv[acc] = (
+            trial.res[accept],
+            trial.J[accept],
+            trial.cost[accept],
+            trial.uv[accept],
+        )
+        lam[a] = np.where(accept, np.maximum(la * 0.1, 1e-12), la * 10.0)
+        size = np.maximum(np.abs(step[:, :3]).max(axis=1), np.abs(step[:, 3:]).max(axis=1) / np.linalg.norm(ta, axis=1))
+        # Done: a step below 1e-10, or one below 1e-7 that rounding made no better (the cost is flat to double
+        # precision there; Newton's next step would be ~1e-14), or no step that lowers the cost at all.
+        done = (size < 1e-10) | (~accept & (size < 1e-7) & (la < 1.0)) | (lam[a] > 1e12)
+        active = a[~done]
+    T = np.zeros((m, 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
+    Jt = ev.J.transpose(0, 2, 1)
+    H = Jt @ ev.J
+    ok = np.isfinite(ev.cost) & (t[:, 2] > 0) & (np.linalg.cond(H) < 1e14)
+    H[~ok] = np.eye(6)
+    cov = np.linalg.inv(H)
+    cov = 0.5 * (cov + cov.transpose(0, 2, 1))
+    scale_dir = np.einsum("mij,mj->mi", cov @ Jt, _scale_modes(ev.uv))
+    return _Refined(T, cov, ev.cost, scale_dir, ok)
+
+
+_LAMBDA0 = 1e-6
+_MAX_ITERATIONS = 100
+_NEWTON_EVERY = 3  # iterations between updates of the second-order term (it changes slowly near the optimum)
+
+
+def _ippe_starts(normalized: Array, obj: Array) -> list[list[tuple[Array, Array]]]:
+    """Both planar (IPPE) solutions ``(R, t)`` of every tag from its undistorted corners (none if degenerate)."""
+    import cv2
+
+    out: list[list[tuple[Array, Array]]] = []
+    for xy, o in zip(normalized, obj, strict=True):
+        if not np.all(np.isfinite(xy)):
+            out.append([])
+            continue
+        try:
+            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+                o, xy.reshape(4, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
+        except cv2.error:
+            out.append([])
+            continue
+        out.append(
+            [
+                (np.asarray(cv2.Rodrigues(r)[0], float), np.asarray(tv, float).ravel())
+                for r, tv in zip(rvecs[:n], tvecs[:n], strict=True)
+            ]
+        )
+    return out
+
+
+def estimate_tag_poses(
+    corners_px: Array | Sequence[Array], sizes_m: Sequence[float], camera: pycolmap.Camera
+) -> list[TagPose | None]:
+    """:func:`estimate_tag_pose` of many tags seen by one camera, solved together (one batch of numpy operations).
+
+    Args:
+        corners_px: the distorted pixel corners of each tag (N x 4 x 2, OpenCV aruco order).
+        sizes_m: each tag's edge length.
+        camera: the pycolmap camera (PINHOLE, OPENCV, FULL_OPENCV or OPENCV_FISHEYE).
+    """
+    corners = np.asarray(corners_px, float).reshape(-1, 4, 2)
+    n = len(corners)
+    if n == 0:
+        return []
+    half = np.asarray(sizes_m, float).reshape(n) / 2.0
+    obj = _TAG_UNIT[None] * half[:, None, None]
+    normalized = np.asarray(camera.cam_from_img(corners.reshape(-1, 2))).reshape(n, 4, 2)
+    starts = _ippe_starts(normalized, obj)
+    owner = [i for i, s in enumerate(starts) for _ in s]
+    if not owner:
+        return [None] * n
+    R0 = np.stack([r for s in starts for r, _ in s])
+    t0 = np.stack([t for s in starts for _, t in s])
+    ref = _refine_batch(_projection(camera), corners[owner], obj[owner], R0, t0)
+    usable = np.logical_and(ref.ok, np.isfinite(ref.cov).all(axis=(1, 2)))
+    by_tag: list[list[int]] = [[] for _ in range(n)]
+    for k, i in enumerate(owner):
+        if usable[k]:
+            by_tag[i].append(k)
+    chosen: list[tuple[int, int | None] | None] = []
+    for ks in by_tag:
+        if not ks:
+            chosen.append(None)
+            continue
+        ks = sorted(ks, key=lambda k: ref.sse[k])  # stable: the first IPPE solution wins a tie, as before
+        best, alt = ks[0], (ks[1] if len(ks) > 1 else None)
+        # Two refinements may converge to the same minimum; then the view is not ambiguous.
+        if alt is not None and np.linalg.norm(ref.T[alt, :3, :3] - ref.T[best, :3, :3]) < 1e-6:
+            alt = None
+        chosen.append((best, alt))
+    pairs = [(b, a) for c in chosen if c is not None for b, a in [c] if a is not None]
+    logs = _se3_log_batch(_relative([b for b, _ in pairs], [a for _, a in pairs], ref.T)) if pairs else np.zeros((0, 6))
+    offsets = iter(logs)
+    out: list[TagPose | None] = []
+    for c in chosen:
+        if c is None:
+            out.append(None)
+            continue
+        best, alt = c
+        T, cov, sse, a = ref.T[best], ref.cov[best], float(ref.sse[best]), ref.scale_dir[best]
+        if alt is None:
+            out.append(TagPose(T, cov, sse, None, float("inf"), a))
+        else:
+            offset = next(offsets)
+            out.append(
+                TagPose(T, cov, sse, ref.T[alt], float(ref.sse[alt]), a, ref.cov[alt], ref.scale_dir[alt], offset)
+            )
+    return out
+
+
+def _relative(i: list[int], j: list[int], T: Array) -> Array:
+    """``T[i]^-1 T[j]`` for the index lists ``i``, ``j`` (rigid inverse)."""
+    Ri, ti = T[i, :3, :3], T[i, :3, 3]
+    RiT = Ri.transpose(0, 2, 1)
+    out = np.zeros((len(i), 4, 4))
+    out[:, :3, :3] = RiT @ T[j, :3, :3]
+    out[:, :3, 3] = np.einsum("mij,mj->mi", RiT, T[j, :3, 3] - ti)
+    out[:, 3, 3] = 1.0
+    return out
+
+
+_TAG_UNIT = tag_object_points(2.0)
 
 
 def estimate_tag_pose(corners_px: Array, size_m: float, camera: pycolmap.Camera) -> TagPose | None:
     """Pose of a tag from its distorted pixel corners (4 x 2, OpenCV aruco order), or None if degenerate.
 
-    Both IPPE solutions of the planar ambiguity are computed on the undistorted corners and refined
-    on the distorted ones through the pycolmap camera model; the one with the smaller reprojection
-    error is returned with the other kept for the ambiguity ratio.
+    Both IPPE solutions of the planar ambiguity are computed on the undistorted corners and refined by least
+    squares on the distorted ones through the camera model (:func:`estimate_tag_poses`, analytic Jacobian);
+    the one with the smaller reprojection error is returned with the other kept for the ambiguity ratio.
     """
-    import cv2
-
-    corners = np.asarray(corners_px, float).reshape(4, 2)
-    obj = tag_object_points(size_m)
-    normalized = np.asarray(camera.cam_from_img(corners))
-    if not np.all(np.isfinite(normalized)):
-        return None
-    try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            obj, normalized.reshape(4, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE_SQUARE
-        )
-    except cv2.error:
-        return None
-    candidates = []
-    for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
-        R, _ = cv2.Rodrigues(rvec)
-        refined = _refine(camera, corners, obj, np.asarray(R, float), np.asarray(tvec, float).ravel())
-        if refined is not None and np.all(np.isfinite(refined[1])):
-            candidates.append(refined)
-    if not candidates:
-        return None
-    candidates.sort(key=lambda c: c[2])
-    T, cov, sse, scale_dir = candidates[0]
-    alt = candidates[1] if len(candidates) > 1 else None
-    # Two refinements may converge to the same minimum; then the view is not ambiguous.
-    if alt is not None and np.linalg.norm(alt[0][:3, :3] - T[:3, :3]) < 1e-6:
-        alt = None
-    if alt is None:
-        return TagPose(T, cov, sse, None, float("inf"), scale_dir)
-    offset = se3_log(np.asarray(np.linalg.solve(T, alt[0]), dtype=float))
-    return TagPose(T, cov, sse, alt[0], alt[2], scale_dir, alt[1], alt[3], offset)
+    return estimate_tag_poses(np.asarray(corners_px, float).reshape(1, 4, 2), [size_m], camera)[0]
 
 
 def pose_covariance(

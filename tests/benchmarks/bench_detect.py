@@ -5,6 +5,7 @@ Plain script (not a test; wall times are never asserted):
     python tests/benchmarks/bench_detect.py                      # everything, on the committed sample
     python tests/benchmarks/bench_detect.py --skip speed --fit-seeds 1 2   # fit corner_bias_px on other seeds
     python tests/benchmarks/bench_detect.py --skip sim photos --speed-frames 40 --repeats 5
+    python tests/benchmarks/bench_detect.py --skip sim photos speed --repeats 5   # pose + covariance share only
 
 Data: the committed sample ``sample_data/office/office.bag`` with ``office.ground_truth.json`` (tags
 0.16 m), simulator runs of other seeds (``--fit-seeds``, in memory), ../shared/data/apriltag-photos (real
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -390,6 +392,82 @@ def bench_speed(sim_frames: list[np.ndarray], sim_camera: CameraModel, n: int, r
     )
 
 
+def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats: int, batch: int) -> None:
+    """Share of pose + covariance in the detect stage, one process: detection alone, detection + the former pose path
+    (pycolmap per IPPE solution, :mod:`tests.oracles.tag_pose_colmap`), and detection + the batched solver per
+    frame and per chunk of ``batch`` frames (the stage's ``batch_frames``), on the same frames, interleaved."""
+    import os
+
+    import stages.detect.core as core
+    from tests.oracles.tag_pose_colmap import estimate_tag_pose_colmap
+
+    def colmap_poses(corners: list[Any], sizes: list[float], cam: Any) -> list[Any]:
+        return [estimate_tag_pose_colmap(c, s, cam) for c, s in zip(corners, sizes, strict=True)]
+
+    step = max(1, len(frames) // n)
+    frames = frames[::step][:n]
+    cfg = DetectConfig(tag_size_m=TAG_SIZE_M)
+    proc = FrameProcessor(cfg, camera)
+    det = proc.detector
+    assert det is not None
+
+    def run(mode: str) -> int:
+        if mode == "detection alone":
+            return sum(len(det.detect(f)) for f in frames)
+        chunk = batch if mode.endswith("chunks") else 1
+        dropped: Any = Counter()
+        rows = 0
+        for lo in range(0, len(frames), chunk):
+            items = [
+                (FrameJob(lo + k, 0, "cam"), proc.camera, core.kept_observations(det.detect(f), cfg, dropped, True))
+                for k, f in enumerate(frames[lo : lo + chunk])
+            ]
+            rows += len(core.rows_with_poses(items, cfg, dropped))
+        return rows
+
+    modes = [
+        "detection alone",
+        "+ pose, former (pycolmap)",
+        "+ pose, batched per frame",
+        f"+ pose, batched in {batch}-frame chunks",
+    ]
+    times: dict[str, list[float]] = {m: [] for m in modes}
+    batched = core.estimate_tag_poses
+    load_before = os.getloadavg()
+    for r in range(repeats + 1):  # the first round warms up
+        for m in modes:
+            core.estimate_tag_poses = colmap_poses if "former" in m else batched  # type: ignore[assignment]
+            try:
+                t0 = time.perf_counter()
+                count = run(m)
+                dt = time.perf_counter() - t0
+            finally:
+                core.estimate_tag_poses = batched  # type: ignore[assignment]
+            if r:
+                times[m].append(dt)
+        if r == 0:
+            tags = count
+    load_after = os.getloadavg()
+    print(
+        f"\n## Pose + covariance share of detect: {len(frames)} sample frames ({tags} tags kept), one process, "
+        f"median of {repeats} interleaved repeats"
+    )
+    print(f"Load average before {load_before[0]:.2f}, after {load_after[0]:.2f} on {os.cpu_count()} cores.")
+    print("| path | fps | ms per frame | pose + covariance ms per frame | share of the stage | pose time vs former |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    med = {m: float(np.median(v)) for m, v in times.items()}
+    base = med[modes[0]]
+    former = med[modes[1]] - base
+    for m in modes:
+        pose = med[m] - base
+        cells = [f"{len(frames) / med[m]:.1f}", f"{1e3 * med[m] / len(frames):.2f}"]
+        if m == modes[0]:
+            cells += ["-", "-", "-"]
+        else:
+            cells += [f"{1e3 * pose / len(frames):.2f}", f"{pose / med[m]:.0%}", f"{pose / former:.2f}x"]
+        print(f"| {m} | " + " | ".join(cells) + " |")
+
+
 def _exact_tag_image(tag_id: int, H: np.ndarray, width: int = 320, height: int = 240, ss: int = 8) -> np.ndarray:
     """Grey image of a tag36h11 marker (one white cell of quiet border) through the homography ``H`` (bitmap
     cells 0..10 -> pixels, pixel centres at integers), by exact point sampling at ``ss`` x ``ss`` per pixel and
@@ -469,7 +547,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fit-seeds", type=int, nargs="*", default=[], help="also run simulator seeds (fitting)")
     parser.add_argument("--speed-frames", type=int, default=40, help="frames per speed set")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats per speed cell (median)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed", "posecov"])
+    parser.add_argument("--posecov-frames", type=int, default=200, help="sample frames for the pose + covariance share")
     parser.add_argument("--corner-scale", action="store_true", help="also the exact-render corner scale check")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
@@ -483,6 +562,8 @@ def main(argv: list[str] | None = None) -> int:
         bench_photos()
     if args.corner_scale:
         bench_corner_scale()
+    if "posecov" not in args.skip:
+        bench_posecov(frames, camera, args.posecov_frames, args.repeats, DetectConfig().batch_frames)
     if "speed" not in args.skip:
         bench_speed(frames, camera, args.speed_frames, args.repeats)
     print(f"\n(benchmark took {time.perf_counter() - t0:.0f} s)")
