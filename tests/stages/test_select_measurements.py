@@ -50,7 +50,9 @@ def test_stage_outputs_and_recording(office_run: Path, tmp_path: Path, loaded, s
     assert s["strategy"] == "information" and s["budget"] == K and s["status"] == "ok"
     assert s["candidates"] == sum(1 for r in loaded.rows if r.kind == "tag" and r.tag_id in focused)
     assert s["entropy_after"] < s["entropy_before"]
-    assert s["entropy_before"] - s["entropy_after"] == pytest.approx(sum(table["gain"]), rel=1e-6)
+    # the exact entropy after the picks, and the running one's drift from it: small on the sample (no warning)
+    assert abs(s["entropy_drift_nats"]) < 0.05 and "warnings" not in s
+    assert s["entropy_before"] - s["entropy_after"] - s["entropy_drift_nats"] == pytest.approx(sum(table["gain"]))
     base = [int(i) for i in loaded.fixed_factor_indices]
     fv = focused_variables(loaded, system, focused)
     assert focused_entropy(system, base + table["factor_index"], fv) == pytest.approx(s["entropy_after"], abs=1e-3)
