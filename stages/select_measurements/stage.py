@@ -160,9 +160,7 @@ def _log_replay(
     f_keys = [loaded.landmark_keys[t] for t in choice.focused_tag_ids]
     f_xyz = np.array([_xyz(loaded, k) for k in f_keys]).reshape(-1, 3)
     f_labels = [str(t) for t in choice.focused_tag_ids]
-    K = len(choice.factor_indices)
-    n_replay = min(K, cfg.max_replay_steps)
-    replay = sorted({0, K, *np.round(np.linspace(0, K, n_replay + 1)).astype(int).tolist()}) if n_replay else [0]
+    replay = _replay_steps(len(choice.factor_indices), cfg.max_replay_steps)
     focused_vars = focused_variables(loaded, system, choice.focused_tag_ids)
     base = [int(i) for i in loaded.fixed_factor_indices]
     for k in replay:
@@ -183,12 +181,18 @@ def _log_replay(
             rec.log(f"{ENTITY}/entropy", rr.Scalars(entropy))
 
 
+def _replay_steps(picks: int, max_steps: int) -> list[int]:
+    """The steps replayed on ``selection_step``: 0, the last pick and at most ``max_steps`` evenly spaced between."""
+    n = min(picks, max_steps)
+    return sorted({0, picks, *np.round(np.linspace(0, picks, n + 1)).astype(int).tolist()}) if n else [0]
+
+
 def _log_kept_steps(
     rec: rr.RecordingStream, loaded: LoadedGraph, choice: MeasurementChoice, cfg: SelectMeasurementsConfig
 ) -> None:
     """The kept edges at evenly spaced steps (no covariance replay)."""
     K = len(choice.factor_indices)
-    for k in sorted({K, *np.round(np.linspace(0, K, min(K, cfg.max_replay_steps) + 1)).astype(int).tolist()}):
+    for k in sorted({*_replay_steps(K, cfg.max_replay_steps), K}):
         if k:
             set_step(rec, k)
             rec.log(
