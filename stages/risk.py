@@ -11,20 +11,19 @@ Per keyframe ``t`` of the full graph:
 * **visible landmarks** ``L(x_t)``: the tags measured from any keyframe within ``visibility_window_s``
   of ``t`` (the graph's tag factors, plus detect's detections where present, so tags whose detection the
   graph dropped as ambiguous still count as seen).
-* **Σ*(x_t)**: the steady state of belief stabilisation (eq. 19) at ``x_t`` with the *given* landmark
-  map restricted to the focused tags that are visible (range-bearing model, measurement noise that
-  includes the landmark's own marginal, eq. 26), via
-  :func:`stages.estimation.collision.stabilised_covariances`. A pose that sees no focused
-  landmark gets dead reckoning from the nearest localised pose along the path,
-  ``Σ(t) = Σ*(s) + min(|t − s|, cap_steps) · Q``, and ``cap_steps · Q`` when no pose is localised.
-* **risk**: ``P_t = 1 − Φ(m_t / sqrt(n_tᵀ Σ_xy n_t))`` with the margin ``m_t = d_t − robot_radius_m``
+* **the robot's belief** ``Σ_t``: the robot model (:mod:`stages.estimation.robot`: unicycle, motion noise on
+  (v, ω), control period, range-bearing noise, start covariance; the recording's noise where the settings leave
+  it open, :func:`robot_model`) follows the path resampled every control period; its filter covariance is
+  propagated step by step (heading coupled to position, no cap) and updated with the focused landmarks visible at
+  the step, each with the covariance of the landmark *as seen from the step's keyframe*
+  (:func:`map_covariances`; the marginal where that is not known) in eq. 26's noise
+  (:func:`stages.estimation.collision.forward_covariances`). The simulated robot of evaluate is the same robot.
+* **risk**: ``P_t = 1 − Φ(z_t)``, ``z_t = m_t / sqrt(n_tᵀ Σ_xy n_t)`` with the margin ``m_t = d_t − robot_radius_m``
   (the half-plane through the nearest return, shifted by the robot's radius), and the paper's eq. 20
-  Mahalanobis measure ``(m_t n_t)ᵀ Σ_xy⁻¹ (m_t n_t)`` beside it.
+  Mahalanobis measure ``(m_t n_t)ᵀ Σ_xy⁻¹ (m_t n_t)`` beside it. ``z_t`` is kept: it does not underflow.
 
 Everything is planar: poses ``(x, y, yaw)`` and landmark ``(x, y)`` in the graph's map frame (a 3-D
-graph is projected onto the floor plane). ``Q`` is isotropic in ``(x, y)``: the median over the graph's
-odometry factors of half the trace of their translation covariance (rotation invariant, so no frame is
-needed), and the median heading variance.
+graph is projected onto the floor plane).
 
 API (call from any stage, no run folder needed beyond the inputs)::
 
@@ -45,16 +44,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
+from scipy.stats import norm
 
 from stages.columns import STAMP_NS, TAG_ID
 from stages.detect.artifacts import DETECTIONS
 from stages.estimation.collision import (
-    collision_risk,
-    dead_reckoning_covariances,
+    Contribution,
+    StepNoise,
+    forward_covariances,
     mahalanobis_to_obstacle,
-    measurement_information,
-    stabilised_covariances,
+    margin_sigmas,
+    pair_information,
+    step_information,
 )
+from stages.estimation.robot import PathSteps, RobotModel, resample_path
 from stages.ingest.artifacts import EXTRINSICS, SCANS
 from stages.laser import scan_beams
 
@@ -63,6 +66,7 @@ if TYPE_CHECKING:
 
     from pipeline.context import StageContext
     from stages.graph.load import LoadedGraph
+    from stages.graph.problem import GraphProblem
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -70,7 +74,10 @@ BoolArray = npt.NDArray[np.bool_]
 
 @dataclass(frozen=True)
 class RiskParams:
-    """Settings of the risk model (the select_landmarks settings carry the same names)."""
+    """Settings of the risk model: the robot model's settings (the select_landmarks settings carry the same names).
+
+    ``None`` noise levels are taken from the recording (:func:`robot_model`).
+    """
 
     robot_radius_m: float = 0.25
     """Radius of the robot's footprint: the margin to an obstacle is clearance − radius."""
@@ -78,16 +85,20 @@ class RiskParams:
     """A landmark is visible from a keyframe if it was measured from a keyframe this close in time."""
     max_scan_gap_s: float = 0.25
     """The laser scan used for a keyframe must be at most this far from it in time."""
-    cap_steps: int = 50
-    """Dead reckoning of poses that see no focused landmark is capped at this many odometry steps."""
+    control_period_s: float = 0.2
+    """The robot's control period: the path is followed, and its covariance propagated, in steps this long."""
+    speed_sigma_mps: float | None = None
+    """Forward-speed noise over one control period; None = from the graph's odometry factors (0.05 m/s if none)."""
+    yaw_rate_sigma_radps: float | None = None
+    """Yaw-rate noise over one control period; None = from the graph's odometry factors (0.05 rad/s if none)."""
     bearing_sigma_rad: float | None = None
     """Bearing noise of the range-bearing model; None = median of the graph's tag factors (0.02 rad if none)."""
     range_sigma_m: float | None = None
     """Range noise; None = median of the graph's tag factors (0.05 m if none)."""
-    odometry_sigma_m: float | None = None
-    """Translation noise per keyframe step; None = from the graph's odometry factors (0.02 m if none)."""
-    odometry_sigma_rad: float | None = None
-    """Heading noise per keyframe step; None = from the graph's odometry factors (0.01 rad if none)."""
+    initial_sigma_m: float = 0.02
+    """Standard deviation of the start position, m."""
+    initial_sigma_rad: float = 0.01
+    """Standard deviation of the start heading, rad."""
 
 
 @dataclass
@@ -101,6 +112,13 @@ class LandmarkMap:
     """(L, 2, 2) marginal covariance of the position."""
     heights: FloatArray
     """(L,) z in the map frame (for drawing only)."""
+    local: FloatArray | None = None
+    """(T, L, 2, 2) or None: covariance of landmark ``l``'s position given keyframe ``t``'s pose (the landmark as
+    seen from that pose, :func:`map_covariances`), NaN where not computed. This is the landmark uncertainty that
+    matters to a robot localising there (eq. 26); the marginal ``covariances`` also carry the drift common to the
+    pose and the landmark since the first pose."""
+    joint: FloatArray | None = None
+    """(2L, 2L) or None: joint covariance of every landmark's (x, y), rows in ``tag_ids`` order."""
 
     @classmethod
     def from_graph(
@@ -136,7 +154,25 @@ class LandmarkMap:
     def subset(self, tag_ids: Iterable[int]) -> LandmarkMap:
         """The landmarks with the given tag ids (in this map's order)."""
         keep = np.isin(self.tag_ids, np.fromiter((int(t) for t in tag_ids), dtype=np.int64))
-        return LandmarkMap(self.tag_ids[keep], self.positions[keep], self.covariances[keep], self.heights[keep])
+        local = None if self.local is None else self.local[:, keep]
+        joint = None
+        if self.joint is not None:
+            idx = np.flatnonzero(keep)
+            cols = np.stack([2 * idx, 2 * idx + 1], axis=1).ravel()
+            joint = self.joint[np.ix_(cols, cols)]
+        return LandmarkMap(
+            self.tag_ids[keep], self.positions[keep], self.covariances[keep], self.heights[keep], local, joint
+        )
+
+    def covariance_at(self, keyframes: npt.NDArray[np.int64], rows: npt.NDArray[np.int64]) -> FloatArray:
+        """(n, 2, 2) covariance of landmark ``rows[i]`` for a robot at keyframe ``keyframes[i]``: the local one where
+        known, else the marginal."""
+        out = self.covariances[rows].copy()
+        if self.local is not None:
+            loc = self.local[keyframes, rows]
+            ok = np.isfinite(loc).all(axis=(1, 2))
+            out[ok] = loc[ok]
+        return out
 
 
 @dataclass
@@ -157,12 +193,21 @@ class PathGeometry:
     """(L,) tag ids, the columns of ``visible``."""
     visible: BoolArray
     """(T, L) landmark ``l`` visible from keyframe ``t``."""
-    Q: FloatArray
-    """(3, 3) process noise per keyframe step (x, y, yaw)."""
-    sigmas: tuple[float, float]
-    """Bearing (rad) and range (m) noise of the range-bearing model."""
+    robot: RobotModel
+    """The robot model with every noise level resolved (the recording's where the settings leave it open)."""
     has_laser: bool
     """Whether clearances come from laser scans (False: risk cannot be computed)."""
+    steps: PathSteps
+    """The path resampled every control period (what the risk recursion and the navigation step through)."""
+    noise: StepNoise
+    """The robot's covariance propagation along ``steps``."""
+    keyframe_step: npt.NDArray[np.int64]
+    """(T,) the step nearest each keyframe."""
+
+    @property
+    def sigmas(self) -> tuple[float, float]:
+        """Bearing (rad) and range (m) noise of the range-bearing model."""
+        return self.robot.sigmas
 
     def margin(self, params: RiskParams) -> FloatArray:
         """Clearance minus the robot radius (inf where no obstacle is known)."""
@@ -171,16 +216,25 @@ class PathGeometry:
 
 @dataclass
 class PathRisk:
-    """Σ* and the collision risk of every keyframe with one landmark map and focused set."""
+    """The robot's belief and the collision risk of every keyframe with one landmark map and focused set."""
 
     sigma: FloatArray
-    """(T, 3, 3) covariance of (x, y, yaw): Σ* where a focused landmark is visible, dead reckoning elsewhere."""
+    """(T, 3, 3) covariance of (x, y, yaw) of the robot's filter at the keyframe (causal, along the path)."""
     localised: BoolArray
     """(T,) whether the keyframe sees a focused landmark."""
     p_collision: FloatArray
     """(T,) half-plane collision probability (NaN without laser)."""
     mahalanobis: FloatArray
     """(T,) eq. 20, squared standard deviations to the obstacle (NaN without laser, inf where no obstacle)."""
+    z: FloatArray | None = None
+    """(T,) margin to the obstacle in standard deviations, ``P = Φ(−z)`` (does not underflow; NaN without laser)."""
+
+    @property
+    def min_z(self) -> float:
+        """The smallest margin in σ along the path (NaN without laser, inf where no obstacle is known)."""
+        if self.z is None or not (~np.isnan(self.z)).any():
+            return float("nan")
+        return float(np.nanmin(self.z))
 
     @property
     def max(self) -> float:
@@ -202,26 +256,46 @@ def _planar_poses(loaded: LoadedGraph) -> FloatArray:
     return out
 
 
-def _noise_from_graph(loaded: LoadedGraph, params: RiskParams) -> tuple[FloatArray, tuple[float, float]]:
-    """``Q`` (isotropic in x, y) and the range-bearing sigmas, from the graph's factors unless set."""
-    q_xy, q_th, b_var, r_var = [], [], [], []
+def robot_model(loaded: LoadedGraph, params: RiskParams) -> RobotModel:
+    """The robot model of ``params``, with the noise levels they leave open taken from the recording.
+
+    Motion noise: each odometry factor's translation variance (half the trace, rotation invariant) and heading
+    variance divided by the time it spans give variance rates (per second); their medians, spread over one control
+    period ``dt`` as white noise on (v, ω), give ``σ_v = sqrt(rate / dt)`` (so the robot model drifts as fast as the
+    recording's odometry says it does). Range-bearing noise: the median of the graph's tag factors.
+    """
+    stamp_of = dict(zip(loaded.pose_keys, loaded.pose_stamps_ns, strict=True))
+    rate_xy, rate_th, b_var, r_var = [], [], [], []
     for r in loaded.rows:
         C = np.asarray(r.covariance, dtype=float)
-        if r.kind == "odometry":
-            if r.type == "BetweenFactorPose2":
-                q_xy.append(0.5 * (C[0, 0] + C[1, 1]))
-                q_th.append(C[2, 2])
-            elif r.type == "BetweenFactorPose3":
-                q_xy.append(0.5 * (C[3, 3] + C[4, 4]))
-                q_th.append(C[2, 2])
+        if r.kind == "odometry" and r.type in ("BetweenFactorPose2", "BetweenFactorPose3") and len(r.keys) == 2:
+            t0, t1 = stamp_of.get(r.keys[0]), stamp_of.get(r.keys[1])
+            if t0 is None or t1 is None or t1 == t0:
+                continue
+            span = abs(t1 - t0) * 1e-9
+            xy, th = (
+                ((C[0, 0] + C[1, 1]), C[2, 2]) if r.type == "BetweenFactorPose2" else ((C[3, 3] + C[4, 4]), C[2, 2])
+            )
+            rate_xy.append(0.5 * xy / span)
+            rate_th.append(th / span)
         elif r.kind == "tag" and r.type == "BearingRangeFactor2D":
             b_var.append(C[0, 0])
             r_var.append(C[1, 1])
-    s_xy = params.odometry_sigma_m or (float(np.sqrt(np.median(q_xy))) if q_xy else 0.02)
-    s_th = params.odometry_sigma_rad or (float(np.sqrt(np.median(q_th))) if q_th else 0.01)
+    dt = params.control_period_s
+    s_v = params.speed_sigma_mps or (float(np.sqrt(np.median(rate_xy) / dt)) if rate_xy else 0.05)
+    s_w = params.yaw_rate_sigma_radps or (float(np.sqrt(np.median(rate_th) / dt)) if rate_th else 0.05)
     s_b = params.bearing_sigma_rad or (float(np.sqrt(np.median(b_var))) if b_var else 0.02)
     s_r = params.range_sigma_m or (float(np.sqrt(np.median(r_var))) if r_var else 0.05)
-    return np.diag([s_xy**2, s_xy**2, s_th**2]), (s_b, s_r)
+    return RobotModel(
+        robot_radius_m=params.robot_radius_m,
+        control_period_s=dt,
+        speed_sigma_mps=s_v,
+        yaw_rate_sigma_radps=s_w,
+        bearing_sigma_rad=s_b,
+        range_sigma_m=s_r,
+        initial_sigma_m=params.initial_sigma_m,
+        initial_sigma_rad=params.initial_sigma_rad,
+    )
 
 
 def _visibility(
@@ -327,7 +401,7 @@ def path_geometry(
         near = np.abs(stamps[k] - d_st) <= params.visibility_window_s * 1e9
         obs += [(int(a), int(b)) for a, b in zip(k[near], d_tag[near], strict=True)]
     visible = _visibility(stamps, tag_ids, obs, params.visibility_window_s)
-    Q, sigmas = _noise_from_graph(loaded, params)
+    robot = robot_model(loaded, params)
     if scans is not None and scans.num_rows == 0:
         scans = None  # an empty scans.parquet: no laser
     if scans is not None:
@@ -337,16 +411,120 @@ def path_geometry(
         clearance = np.full(len(stamps), np.nan)
         normals = np.tile([1.0, 0.0], (len(stamps), 1))
         points = np.full((len(stamps), 2), np.nan)
-    return PathGeometry(stamps, poses, clearance, normals, points, tag_ids, visible, Q, sigmas, scans is not None)
+    steps = path_steps(stamps, poses, robot.control_period_s)
+    A, Q = steps.transition(robot)
+    noise = StepNoise(A, Q, robot.P0)
+    return PathGeometry(
+        stamps,
+        poses,
+        clearance,
+        normals,
+        points,
+        tag_ids,
+        visible,
+        robot,
+        scans is not None,
+        steps,
+        noise,
+        steps.nearest_step(stamps),
+    )
+
+
+def path_steps(stamps_ns: npt.NDArray[np.int64], poses: FloatArray, dt_s: float) -> PathSteps:
+    """The path resampled every ``dt_s`` (a single step when it has fewer than two distinct stamps)."""
+    if len(np.unique(stamps_ns)) >= 2:
+        return resample_path(stamps_ns, poses, dt_s)
+    first = np.asarray(poses, dtype=float).reshape(-1, 3)[:1]
+    if len(first) == 0:
+        first = np.zeros((1, 3))
+    stamp = np.asarray(stamps_ns, dtype=np.int64)[:1] if len(stamps_ns) else np.zeros(1, dtype=np.int64)
+    return PathSteps(stamp, first, np.zeros((0, 2)), float(dt_s), np.zeros(1, dtype=np.int64))
 
 
 # ---------------------------------------------------------------------------------------------- risk
-def _risk_of(geometry: PathGeometry, sigma: FloatArray, params: RiskParams) -> tuple[FloatArray, FloatArray]:
+def _run_lengths(steps: npt.NDArray[np.int64]) -> FloatArray:
+    """For each of the sorted ``steps``, the length of the run of consecutive steps it belongs to."""
+    if len(steps) == 0:
+        return np.zeros(0)
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(steps) > 1]))
+    lengths = np.diff(np.concatenate([starts, [len(steps)]]))
+    return np.repeat(lengths, lengths).astype(float)
+
+
+def landmark_contributions(
+    geometry: PathGeometry, landmarks: LandmarkMap, tag_ids: Iterable[int]
+) -> list[Contribution]:
+    """Per tag of ``tag_ids`` (in that order): the path steps that see it and the information of a range-bearing
+    measurement of it from each (eq. 26 noise with the landmark's covariance as seen from the step's keyframe,
+    :meth:`LandmarkMap.covariance_at`). A tag that is not in the map, or never visible, contributes nothing.
+
+    The landmark's error is the same at every step that sees it, not fresh noise, so over a run of ``n`` consecutive
+    steps its covariance enters ``n`` times inflated: the run's measurements together carry the landmark's error
+    once (the sensor noise ``R`` stays per step). Without this the belief shrinks below the landmark's own
+    uncertainty the longer a landmark stays in view."""
+    steps = geometry.steps
+    kf = steps.keyframe
+    col = {int(t): c for c, t in enumerate(geometry.tag_ids)}
+    row_of = {int(t): i for i, t in enumerate(landmarks.tag_ids)}
+    out: list[Contribution] = []
+    for tag in tag_ids:
+        c, r = col.get(int(tag)), row_of.get(int(tag))
+        ks = np.flatnonzero(geometry.visible[kf, c]) if c is not None and r is not None else np.zeros(0, np.int64)
+        if len(ks) == 0 or r is None:
+            out.append((np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3))))
+            continue
+        covs = landmarks.covariance_at(kf[ks], np.full(len(ks), r, dtype=np.int64))
+        covs = covs * _run_lengths(ks)[:, None, None]
+        pos = np.repeat(landmarks.positions[r][None], len(ks), axis=0)
+        out.append((ks.astype(np.int64), pair_information(steps.poses[ks], pos, covs, geometry.sigmas)))
+    return out
+
+
+def path_risk(
+    geometry: PathGeometry,
+    landmarks: LandmarkMap,
+    focused_tag_ids: Iterable[int],
+    params: RiskParams,
+    cache: dict[int, Contribution] | None = None,
+) -> PathRisk:
+    """The robot's belief and collision risk at every keyframe when only ``focused_tag_ids`` of ``landmarks`` are used.
+
+    The belief is the robot model's filter covariance propagated along the path every control period
+    (:func:`stages.estimation.collision.forward_covariances`), updated wherever a focused landmark is visible;
+    each keyframe takes the step nearest to it.
+
+    Args:
+        geometry: from :func:`path_geometry` (once per run).
+        landmarks: the landmark map to localise with (the full graph's, or a reduced graph's); tags
+            missing from it cannot localise.
+        focused_tag_ids: the tags the robot may use (all of ``landmarks.tag_ids`` for the "all" case,
+            none for pure dead reckoning).
+        params: the risk settings (``robot_radius_m``).
+        cache: optional dict reused across calls with the *same* geometry and landmark map: each tag's
+            contribution (:func:`landmark_contributions`), so replaying greedy picks costs only the recursion.
+
+    Returns:
+        :class:`PathRisk` with ``sigma`` (T, 3, 3), ``localised``, ``p_collision``, ``mahalanobis`` and ``z``.
+    """
+    tags = sorted({int(t) for t in focused_tag_ids})
+    if cache is None:
+        contribs = landmark_contributions(geometry, landmarks, tags)
+    else:
+        todo = [t for t in tags if t not in cache]
+        cache.update(zip(todo, landmark_contributions(geometry, landmarks, todo), strict=True))
+        contribs = [cache[t] for t in tags]
+    K = len(geometry.steps)
+    J = step_information(contribs, range(len(contribs)), K)
+    cov = forward_covariances(geometry.noise, J[None])[0]
+    at = geometry.keyframe_step
+    sigma = cov[at]
+    localised = np.abs(J[at]).reshape(len(at), 9).max(axis=1) > 0
     T = len(geometry.stamps_ns)
     if not geometry.has_laser:
-        return np.full(T, np.nan), np.full(T, np.nan)
+        nan = np.full(T, np.nan)
+        return PathRisk(sigma, localised, nan, nan.copy(), nan.copy())
     margin = geometry.margin(params)
-    p = collision_risk(sigma, margin, geometry.normals, [0, 1])
+    z = margin_sigmas(sigma, margin, geometry.normals)
     maha = np.array(
         [
             mahalanobis_to_obstacle(sigma[t, :2, :2], margin[t] * geometry.normals[t])
@@ -355,63 +533,13 @@ def _risk_of(geometry: PathGeometry, sigma: FloatArray, params: RiskParams) -> t
             for t in range(T)
         ]
     )
-    return np.asarray(p), maha
+    return PathRisk(sigma, localised, np.asarray(norm.sf(z)), maha, z)
 
 
-def _information(pose: FloatArray, landmarks: LandmarkMap, rows: list[int], sigmas: tuple[float, float]) -> FloatArray:
-    return measurement_information(pose, landmarks.positions[rows], landmarks.covariances[rows], sigmas)
-
-
-def path_risk(
-    geometry: PathGeometry,
-    landmarks: LandmarkMap,
-    focused_tag_ids: Iterable[int],
-    params: RiskParams,
-    cache: dict[tuple[int, frozenset[int]], FloatArray] | None = None,
-) -> PathRisk:
-    """Σ* and the collision risk of every keyframe when only ``focused_tag_ids`` of ``landmarks`` are used.
-
-    Args:
-        geometry: from :func:`path_geometry` (once per run).
-        landmarks: the landmark map to localise with (the full graph's, or a reduced graph's); tags
-            missing from it cannot localise.
-        focused_tag_ids: the tags the robot may use (all of ``landmarks.tag_ids`` for the "all" case,
-            none for pure dead reckoning).
-        params: the risk settings (``robot_radius_m``, ``cap_steps``).
-        cache: optional dict reused across calls with the *same* geometry, landmark map and params:
-            Σ* by (keyframe, set of visible focused tags), so replaying greedy picks costs only the
-            poses whose visible set changed.
-
-    Returns:
-        :class:`PathRisk` with ``sigma`` (T, 3, 3), ``localised``, ``p_collision`` and ``mahalanobis``.
-    """
-    T = len(geometry.stamps_ns)
-    focused = {int(t) for t in focused_tag_ids}
-    row_of = {int(t): i for i, t in enumerate(landmarks.tag_ids)}
-    cols = [(c, row_of[int(t)]) for c, t in enumerate(geometry.tag_ids) if int(t) in focused and int(t) in row_of]
-    sig = np.zeros((T, 3, 3))
-    localised = np.zeros(T, dtype=bool)
-    if cols:
-        vis = geometry.visible[:, [c for c, _ in cols]]
-        todo: list[tuple[int, tuple[int, frozenset[int]]]] = []
-        for t in np.flatnonzero(vis.any(axis=1)):
-            rows = frozenset(r for (_, r), v in zip(cols, vis[t], strict=True) if v)
-            key = (int(t), rows)
-            localised[t] = True
-            if cache is not None and key in cache:
-                sig[t] = cache[key]
-            else:
-                todo.append((int(t), key))
-        if todo:
-            J = np.array([_information(geometry.poses[t], landmarks, sorted(k[1]), geometry.sigmas) for t, k in todo])
-            S = stabilised_covariances(geometry.Q, J, params.cap_steps)
-            for (t_todo, key), s_t in zip(todo, S, strict=True):
-                sig[t_todo] = s_t
-                if cache is not None:
-                    cache[key] = s_t
-    sigma = dead_reckoning_covariances(sig, localised, geometry.Q, params.cap_steps)
-    p, maha = _risk_of(geometry, sigma, params)
-    return PathRisk(sigma, localised, p, maha)
+def step_margins(geometry: PathGeometry, params: RiskParams) -> tuple[FloatArray, FloatArray]:
+    """Margin (K,) and obstacle normal (K, 2) of every path step: those of its nearest keyframe."""
+    kf = geometry.steps.keyframe
+    return geometry.margin(params)[kf], geometry.normals[kf]
 
 
 @dataclass(frozen=True)
@@ -448,3 +576,68 @@ def read_path_inputs(ctx: StageContext) -> PathInputs:
     if ctx.has_input("detect") and ctx.input("detect").exists(DETECTIONS.file):
         detections = DETECTIONS.read(ctx.input("detect"), columns=[STAMP_NS, TAG_ID])
     return PathInputs(scans, T_base_laser, detections, note)
+
+
+def map_covariances(
+    problem: GraphProblem,
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    marginals: Mapping[int, FloatArray],
+    landmarks: LandmarkMap,
+    geometry: PathGeometry,
+) -> tuple[FloatArray, FloatArray]:
+    """The landmark covariances a robot navigating with the map needs, from the solved graph.
+
+    Returns:
+        ``local`` (T, L, 2, 2): each map landmark's position covariance given the pose of each keyframe that sees it,
+        ``Σ_l|t = Σ_ll − Σ_lt Σ_tt⁻¹ Σ_tl`` (NaN for pairs the path never sees). With a graph anchored only by its
+        first-pose prior this is the landmark's uncertainty in the frame of keyframe ``t``: what a robot standing
+        there still has to fear when the map's path and landmarks drifted together since the start (the marginal
+        also holds that common drift). ``joint`` (2L, 2L): the joint covariance of all map landmarks' (x, y), the
+        considered states of the navigation's Schmidt filter.
+
+    Cross blocks come from sparse solves on the graph's information matrix
+    (:func:`stages.estimation.sparse_cov.covariance_blocks`), ``Σ_tt`` from the pose's marginal.
+    """
+    from stages.estimation.linear_system import LinearSystem
+    from stages.estimation.sparse_cov import covariance_blocks
+
+    T, L = len(geometry.stamps_ns), len(landmarks.tag_ids)
+    local = np.full((T, L, 2, 2), np.nan)
+    joint = np.zeros((2 * L, 2 * L))
+    for r in range(L):
+        joint[2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = landmarks.covariances[r]
+    if T == 0 or L == 0 or len(problem.pose_keys) != T:
+        return local, joint
+    landmark_keys = set(problem.landmark_keys.values())
+    system = LinearSystem.from_gtsam(graph, values, is_landmark=landmark_keys.__contains__)
+    col = {int(t): c for c, t in enumerate(geometry.tag_ids)}
+    var = system.index_of_key
+    rows: list[tuple[int, int, list[int]]] = []  # map row, landmark variable, keyframes that see it
+    for r, tag in enumerate(landmarks.tag_ids.tolist()):
+        key = problem.landmark_keys.get(int(tag))
+        if key is None:
+            continue
+        ts = [int(t) for t in np.flatnonzero(geometry.visible[:, col[int(tag)]])] if int(tag) in col else []
+        rows.append((r, var(key), ts))
+    pairs = [(lv_i, lv_j) for _, lv_i, _ in rows for _, lv_j, _ in rows]
+    pairs += [(var(problem.pose_keys[t]), lv) for _, lv, ts in rows for t in ts]
+    blocks = covariance_blocks(system.information(), system.offsets, pairs)
+    jac: dict[int, FloatArray] = {}
+    for r, _, _ in rows:
+        key = problem.landmark_keys[int(landmarks.tag_ids[r])]
+        jac[r] = problem.kind(key).position_jacobian(problem.kind(key).read(values, key))[:2]
+    for r_i, lv_i, _ in rows:
+        for r_j, lv_j, _ in rows:
+            joint[2 * r_i : 2 * r_i + 2, 2 * r_j : 2 * r_j + 2] = jac[r_i] @ blocks[(lv_i, lv_j)] @ jac[r_j].T
+    joint = 0.5 * (joint + joint.T)
+    for r, lv, ts in rows:
+        if not ts:
+            continue
+        S_ll = blocks[(lv, lv)]
+        S_tl = np.stack([blocks[(var(problem.pose_keys[t]), lv)] for t in ts])
+        S_tt = np.stack([np.asarray(marginals[problem.pose_keys[t]], dtype=float) for t in ts])
+        cond = S_ll - np.swapaxes(S_tl, 1, 2) @ np.linalg.solve(S_tt, S_tl)
+        cond = 0.5 * (cond + np.swapaxes(cond, 1, 2))
+        local[ts, r] = jac[r] @ cond @ jac[r].T
+    return local, joint

@@ -1,23 +1,26 @@
-"""Belief stabilisation and collision risk along a path, and the landmark greedy built on them (Mu et al. 2015).
+"""The robot's belief and collision risk along a path, and the landmark greedy built on them (Mu et al. 2015).
 
 The one home of:
 
 * the planar range-bearing model with the landmark's own uncertainty in the noise (eq. 26),
-  :func:`planar_range_bearing` and its information :func:`measurement_information`;
-* Σ*, the steady state of belief stabilisation (eq. 19), :func:`stabilised_covariances`;
-* the dead-reckoning rule for poses that see no selected landmark, :func:`dead_reckoning_covariances`;
-* the half-plane collision probability and the eq.-20 Mahalanobis measure, :func:`collision_risk`,
-  :func:`mahalanobis_to_obstacle`;
+  :func:`planar_range_bearing`, its information :func:`measurement_information` and, per (pose, landmark) pair,
+  :func:`pair_information`;
+* the belief along the path: the EKF's covariance recursion with the robot model's unicycle
+  (:mod:`stages.estimation.robot`), causal, :func:`forward_covariances` (in place of eq. 19's Σ* of a pose held
+  still and a capped dead-reckoning rule);
+* the half-plane collision probability, its margin in σ and the eq.-20 Mahalanobis measure,
+  :func:`collision_risk`, :func:`margin_sigmas`, :func:`mahalanobis_to_obstacle`;
 * Alg. 2 (collision-driven landmark selection), :func:`select_collision`.
 
 Planar throughout: poses ``(x, y, θ)``, landmarks ``(x, y)``; the position block of a pose covariance is
-``[0, 1]``. ``stages.risk`` applies these to a run's keyframes; select_landmarks' ``collision`` strategy
+``[0, 1]``. ``stages.risk`` applies these to a run's path; select_landmarks' ``collision`` strategy
 runs :func:`select_collision`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -59,65 +62,81 @@ def measurement_information(
     return 0.5 * (J + J.T)
 
 
-# ------------------------------------------------------------------ belief stabilisation (eq. 19)
-def stabilised_covariances(Q: FloatArray, J: FloatArray, cap_steps: int, max_iter: int = 100) -> FloatArray:
-    """Σ* of eq. 19 at poses held still, for a batch of measurement informations ``J`` (B, 3, 3).
+# ------------------------------------------------------------------ the belief along the path (eqs. 19, 26)
+def pair_information(
+    poses: FloatArray, positions: FloatArray, covariances: FloatArray, sigmas: tuple[float, float]
+) -> FloatArray:
+    """``Hᵀ R̄⁻¹ H`` (n, 3, 3) of one range-bearing measurement per (pose, landmark) pair, eq. 26 noise.
 
-    Σ* is the fixed point of ``Σ = Q + A(Σ⁻¹ + J)⁻¹Aᵀ`` with ``A = I``. When ``J`` is rank deficient (e.g. one
-    range-bearing landmark and a planar pose), ``A = I`` has no finite fixed point; then ``A = ρI`` with
-    ``ρ = 1 − 1/(2·cap_steps)`` is used, so that unobservable directions saturate at about ``cap_steps · Q``,
-    the same cap as :func:`dead_reckoning_covariances`.
-
-    Solved for every pose at once by the structured doubling algorithm, with 3×3 batched numpy:
-    ``A ← A W⁻¹ A``, ``G ← G + A W⁻¹ G Aᵀ``, ``X ← X + Aᵀ X W⁻¹ A`` with ``W = I + G X``, from ``(A, J, Q)``;
-    ``X → Σ*`` quadratically (agrees with ``scipy.linalg.solve_discrete_are`` to ~1e-13; tested).
+    ``poses`` (n, 3), ``positions`` (n, 2) and ``covariances`` (n, 2, 2) are paired row by row; the same as
+    :func:`measurement_information` of each pair, vectorised.
     """
-    J = np.asarray(J, dtype=float).reshape(-1, 3, 3)
-    B = len(J)
-    if B == 0:
-        return np.zeros((0, 3, 3))
-    w = np.linalg.eigvalsh(J)
-    observable = (w > 1e-10 * np.maximum(w[:, -1:], 1e-300)).sum(axis=1) == 3
-    rho = np.where(observable, 1.0, 1.0 - 0.5 / cap_steps)
+    d = np.asarray(positions, dtype=float) - np.asarray(poses, dtype=float)[:, :2]
+    q = np.maximum((d * d).sum(axis=1), 1e-12)
+    r = np.sqrt(q)
+    n = len(d)
+    H = np.zeros((n, 2, 3))
+    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = d[:, 1] / q, -d[:, 0] / q, -1.0
+    H[:, 1, 0], H[:, 1, 1] = -d[:, 0] / r, -d[:, 1] / r
+    M = np.zeros((n, 2, 2))
+    M[:, 0, 0], M[:, 0, 1] = -d[:, 1] / q, d[:, 0] / q
+    M[:, 1, 0], M[:, 1, 1] = d[:, 0] / r, d[:, 1] / r
+    Rbar = np.diag(np.square(sigmas)) + M @ np.asarray(covariances, dtype=float) @ np.swapaxes(M, 1, 2)
+    J = np.swapaxes(H, 1, 2) @ np.linalg.solve(Rbar, H)
+    return np.asarray(0.5 * (J + np.swapaxes(J, 1, 2)))
+
+
+@dataclass(frozen=True)
+class StepNoise:
+    """The robot's covariance propagation along a path: ``P_{k+1} = A_k P_k A_kᵀ + Q_k`` from ``P0``."""
+
+    A: FloatArray
+    """(K-1, 3, 3) state transition along the nominal path (:meth:`stages.estimation.robot.PathSteps.transition`)."""
+    Q: FloatArray
+    """(K-1, 3, 3) process noise per step."""
+    P0: FloatArray
+    """(3, 3) covariance of the start pose."""
+
+    @property
+    def steps(self) -> int:
+        """K, the number of steps."""
+        return len(self.A) + 1
+
+
+def forward_covariances(noise: StepNoise, J: FloatArray) -> FloatArray:
+    """The EKF's covariance along the path for a batch of per-step measurement informations ``J`` (B, K, 3, 3).
+
+    Causal: step ``k`` is predicted from step ``k − 1`` with the unicycle's ``A`` and ``Q`` (heading coupled to
+    position, no cap), then updated with ``J_k``: ``P⁺ = (P⁻¹ + J_k)⁻¹ = P (I + J_k P)⁻¹``. A pose between two
+    localised ones so inherits its past neighbours' information, and dead reckoning grows for as long as it lasts.
+    This replaces eq. 19's Σ* of a pose held still (which ignores its neighbours) and the nearest-pose dead-reckoning
+    rule; it is what the simulated robot's filter computes along the nominal path. Returns (B, K, 3, 3).
+    """
+    J = np.asarray(J, dtype=float)
+    B, K = J.shape[:2]
+    out = np.empty((B, K, 3, 3))
+    P = np.broadcast_to(noise.P0, (B, 3, 3)).copy()
+    measured = np.abs(J).reshape(B, K, 9).max(axis=2).max(axis=0) > 0
+    At = np.swapaxes(noise.A, 1, 2)
     eye = np.eye(3)
-    A = rho[:, None, None] * eye
-    G = J.copy()
-    X = np.broadcast_to(Q, (B, 3, 3)).copy()
-    for _ in range(max_iter):
-        Winv = np.linalg.inv(eye + G @ X)
-        AW = A @ Winv
-        X_new = X + np.swapaxes(A, 1, 2) @ X @ Winv @ A
-        G = G + AW @ G @ np.swapaxes(A, 1, 2)
-        A = AW @ A
-        done = np.abs(X_new - X).max() <= 1e-15 * np.abs(X_new).max()
-        X = X_new
-        if done:
-            break
-    return np.asarray(0.5 * (X + np.swapaxes(X, 1, 2)))
-
-
-def dead_reckoning_covariances(sigmas: FloatArray, localised: BoolArray, Q: FloatArray, cap_steps: int) -> FloatArray:
-    """Covariance of every pose: ``sigmas`` where ``localised``, dead reckoning elsewhere.
-
-    Rule: ``Σ(t) = Σ*(s) + min(|t − s|, cap_steps) · Q`` with ``s`` the nearest pose along the path
-    that does see a landmark (dead reckoning from there, one odometry step of noise ``Q`` per pose);
-    if no pose is localised, ``cap_steps · Q``.
-    """
-    T = len(localised)
-    out = sigmas.copy()
-    idx = np.flatnonzero(localised)
-    if len(idx) == 0:
-        out[:] = cap_steps * Q
-        return out
-    t = np.arange(T)
-    pos = np.searchsorted(idx, t)
-    left = idx[np.clip(pos - 1, 0, len(idx) - 1)]
-    right = idx[np.clip(pos, 0, len(idx) - 1)]
-    nearest = np.where(np.abs(t - left) <= np.abs(right - t), left, right)
-    steps = np.minimum(np.abs(t - nearest), cap_steps)
-    un = ~localised
-    out[un] = sigmas[nearest[un]] + steps[un, None, None] * Q
+    for k in range(K):
+        if k:
+            P = noise.A[k - 1] @ P @ At[k - 1] + noise.Q[k - 1]
+        if measured[k]:
+            P = P @ np.linalg.inv(eye + J[:, k] @ P)
+            P = 0.5 * (P + np.swapaxes(P, 1, 2))
+        out[:, k] = P
     return out
+
+
+def margin_sigmas(cov: FloatArray, margin: FloatArray, normals: FloatArray) -> FloatArray:
+    """``z = m / sqrt(nᵀ Σ_xy n)``: the margin to the obstacle half-plane in standard deviations (eq. 20's measure
+    along the normal; ``P = Φ(−z)``). ``cov`` (…, K, 3, 3); ``margin`` (K,) (inf: no obstacle known, z = inf);
+    ``normals`` (K, 2). Unlike ``P`` it does not underflow, so greedy comparisons stay meaningful far from walls."""
+    var = np.einsum("ki,...kij,kj->...k", normals, cov[..., :2, :2], normals)
+    with np.errstate(invalid="ignore"):
+        z = margin / np.sqrt(np.maximum(var, 1e-300))
+    return np.asarray(np.where(np.isinf(margin), np.inf, z))
 
 
 # ------------------------------------------------------------------ collision risk (half-plane, eq. 20)
@@ -140,83 +159,94 @@ def mahalanobis_to_obstacle(cov_pos: FloatArray, offset: FloatArray) -> float:
 
 
 # ------------------------------------------------------------------ Alg. 2
+Contribution = tuple[npt.NDArray[np.int64], FloatArray]
+"""One landmark's measurement information: the steps that see it (n,) and ``Hᵀ R̄⁻¹ H`` at each (n, 3, 3)."""
+
+
+def step_information(contributions: Sequence[Contribution], chosen: Sequence[int], K: int) -> FloatArray:
+    """Per-step information ``J`` (K, 3, 3) of the ``chosen`` landmarks."""
+    J = np.zeros((K, 3, 3))
+    for c in chosen:
+        steps, info = contributions[c]
+        np.add.at(J, steps, info)
+    return J
+
+
 def select_collision(
-    poses: FloatArray,
-    positions: FloatArray,
-    covariances: FloatArray,
-    visible: BoolArray,
+    noise: StepNoise,
+    contributions: Sequence[Contribution],
     margin: FloatArray,
     normals: FloatArray,
-    Q: FloatArray,
     budget: int,
-    sigmas: tuple[float, float],
-    cap_steps: int,
 ) -> LandmarkSelection:
-    """Mu et al. Alg. 2: pick the landmark seen from the riskiest pose that lowers that pose's risk most, repeat.
+    """Mu et al. Alg. 2 on the robot's causal belief along the path: pick the landmark that most raises the margin
+    (in σ) of the riskiest step, repeat.
 
-    Each step: the riskiest pose that sees an unselected landmark; among the unselected landmarks it sees, the
-    one whose Σ* (with the selected ones it sees) gives it the lowest collision probability (first on ties);
-    then Σ* of every pose that sees the pick is re-solved and the rest dead-reckon
-    (:func:`dead_reckoning_covariances`). When no pose sees an unselected landmark, the rest are appended by index.
+    Each pick: the step with the smallest margin ``z`` (:func:`margin_sigmas`) among those that could still be
+    helped, i.e. that see an unselected landmark between the last step localised by the selection and themselves;
+    among those landmarks, the one whose addition gives that step the largest ``z`` after the whole path's
+    covariances are propagated again (:func:`forward_covariances`), ties broken by the path's smallest ``z``, then
+    by the sum of ``log P`` (first on remaining ties). Comparing ``z`` instead of ``P = Φ(−z)`` keeps the greedy's
+    choices meaningful where ``P`` underflows; a pick changes every later step's covariance, so a step's risk
+    accounts for its path neighbours. When no step can be helped, the rest are appended by index.
 
     Args:
-        poses: (T, 3) x, y, θ of the keyframes, in time order.
-        positions: (L, 2) landmark positions; ``covariances`` (L, 2, 2) their marginals.
-        visible: (T, L) whether landmark l is visible from pose t.
-        margin: (T,) distance to the obstacle half-plane (clearance minus the robot radius; inf: none);
-            ``normals`` (T, 2) unit vectors from the pose towards it (world frame).
-        Q: (3, 3) odometry noise per step.
+        noise: the robot's propagation along the path.
+        contributions: per landmark, the steps that see it and the information of each measurement.
+        margin: (K,) distance to the obstacle half-plane (clearance minus the robot radius; inf: none).
+        normals: (K, 2) unit vectors towards it.
         budget: number of landmarks to pick.
-        sigmas: bearing (rad) and range (m) noise.
-        cap_steps: cap of the dead-reckoning rule.
 
     Returns:
-        Picks with, as scores, the maximum collision probability along the path after each pick; ``extra``
-        holds ``risk_before``/``risk_after`` (T,) and ``sigma_after`` (T, 3, 3).
+        Picks with, as scores, the maximum collision probability along the path after each pick; ``extra`` holds
+        ``risk_before``/``risk_after`` (K,), ``z_after`` (K,) and ``sigma_after`` (K, 3, 3).
     """
-    T, L = visible.shape
-    sig = np.zeros((T, 3, 3))
-    localised = np.zeros(T, dtype=bool)
+    K, L = noise.steps, len(contributions)
+    visible = np.zeros((K, L), dtype=bool)
+    for c, (steps, _) in enumerate(contributions):
+        visible[steps, c] = True
+    J = np.zeros((K, 3, 3))
+    cov = forward_covariances(noise, J[None])[0]
+    z = margin_sigmas(cov, margin, normals)
+    risk0 = norm.sf(z)
+    if L == 0:
+        return LandmarkSelection([], [], "no_landmarks", {"risk_before": risk0, "risk_after": risk0})
+    if budget <= 0:
+        return LandmarkSelection([], [], "budget_zero", {"risk_before": risk0, "risk_after": risk0})
     chosen: list[int] = []
     is_chosen = np.zeros(L, dtype=bool)
-
-    def info(t: int, rows: list[int]) -> FloatArray:
-        return measurement_information(poses[t], positions[rows], covariances[rows], sigmas)
-
-    def risk_now() -> tuple[FloatArray, FloatArray]:
-        cov = dead_reckoning_covariances(sig, localised, Q, cap_steps)
-        return cov, np.asarray(collision_risk(cov, margin, normals, [0, 1]))
-
-    cov, risk = risk_now()
-    if L == 0:
-        return LandmarkSelection([], [], "no_landmarks", {"risk_before": risk, "risk_after": risk})
-    if budget <= 0:
-        return LandmarkSelection([], [], "budget_zero", {"risk_before": risk, "risk_after": risk})
-    risk0 = risk
     scores: list[float] = []
+    steps_idx = np.arange(K)
     for _ in range(min(budget, L)):
-        available = visible & ~is_chosen[None, :]
-        cand_poses = np.flatnonzero(available.any(axis=1))
-        if len(cand_poses) == 0:  # the rest are seen from nowhere: by index
+        localised = np.abs(J).reshape(K, 9).max(axis=1) > 0
+        last = np.maximum.accumulate(np.where(localised, steps_idx, 0))
+        avail = visible & ~is_chosen[None, :]
+        csum = np.vstack([np.zeros((1, L), dtype=np.int64), np.cumsum(avail, axis=0)])
+        helpable = (csum[steps_idx + 1] - csum[last]) > 0
+        can = helpable.any(axis=1) & np.isfinite(z)
+        if not can.any():
             nxt = int(np.flatnonzero(~is_chosen)[0])
-            chosen.append(nxt)
-            is_chosen[nxt] = True
-            scores.append(float(risk.max()))
-            continue
-        t = int(cand_poses[np.argmax(risk[cand_poses])])
-        base = [x for x in chosen if visible[t, x]]
-        cands = np.flatnonzero(available[t])
-        S = stabilised_covariances(Q, np.array([info(t, [*base, int(c)]) for c in cands]), cap_steps)
-        var = np.einsum("i,bij,j->b", normals[t], S[:, :2, :2], normals[t])
-        p = norm.sf(margin[t] / np.sqrt(np.maximum(var, 1e-300)))
-        best = int(cands[int(np.argmin(p))])
-        chosen.append(best)
-        is_chosen[best] = True
-        ts = np.flatnonzero(visible[:, best])
-        J = np.array([info(int(u), [x for x in chosen if visible[u, x]]) for u in ts])
-        sig[ts] = stabilised_covariances(Q, J, cap_steps)
-        localised[ts] = True
-        cov, risk = risk_now()
-        scores.append(float(risk.max()))
+        else:
+            cand_steps = np.flatnonzero(can)
+            k = int(cand_steps[np.argmin(z[cand_steps])])
+            cands = np.flatnonzero(helpable[k])
+            Js = np.repeat(J[None], len(cands), axis=0)
+            for b, cand in enumerate(cands.tolist()):
+                steps, info = contributions[cand]
+                np.add.at(Js[b], steps, info)
+            zc = margin_sigmas(forward_covariances(noise, Js), margin, normals)
+            finite = np.where(np.isfinite(zc), zc, np.inf)
+            with np.errstate(divide="ignore"):
+                logp = np.where(np.isfinite(zc), norm.logsf(np.where(np.isfinite(zc), zc, 0.0)), 0.0).sum(axis=1)
+            order = np.lexsort((logp, -finite.min(axis=1), -np.round(zc[:, k], 9)))
+            nxt = int(cands[int(order[0])])
+        chosen.append(nxt)
+        is_chosen[nxt] = True
+        steps, info = contributions[nxt]
+        np.add.at(J, steps, info)
+        cov = forward_covariances(noise, J[None])[0]
+        z = margin_sigmas(cov, margin, normals)
+        scores.append(float(norm.sf(z.min())) if np.isfinite(z).any() else 0.0)
     status: SelectionStatus = "budget_exceeds_landmarks" if budget > L else "ok"
-    return LandmarkSelection(chosen, scores, status, {"risk_before": risk0, "risk_after": risk, "sigma_after": cov})
+    extra = {"risk_before": risk0, "risk_after": norm.sf(z), "z_after": z, "sigma_after": cov}
+    return LandmarkSelection(chosen, scores, status, extra)

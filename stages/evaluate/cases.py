@@ -36,14 +36,12 @@ from stages.evaluate.analysis import (
     measurement_consistency,
     oracle_rows,
     residuals_by_range,
-    rigid_alignment,
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.graph.load import LoadedGraph
 from stages.laser import scan_beams
 from stages.limits import MAX_GRID_CELLS
 from stages.navigation import (
-    NavigationMap,
     NavigationParams,
     NavigationResult,
     NominalPath,
@@ -54,10 +52,9 @@ from stages.navigation import (
     nominal_path,
     ray_cast_grid,
     simulate,
-    visibility_schedule,
 )
 from stages.navigation.truth import MapTruth
-from stages.optimize import ReducedMap, landmark_errors, map_size, mean_or_nan, solve_reduced
+from stages.optimize import ReducedMap, landmark_errors, local_map, map_size, mean_or_nan, solve_reduced
 from stages.risk import LandmarkMap, PathRisk, RiskParams, path_risk
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
 from stages.select_landmarks import choose as choose_landmarks
@@ -115,17 +112,24 @@ def cases(cfg: EvaluateConfig) -> list[Case]:
 
 @dataclass
 class NavigationSetup:
-    """What every case's navigation shares: the path to follow, its gains, what is visible, the walls, the truth."""
+    """What every case's navigation shares: the world (true path, true landmarks, walls), visibility, the robot."""
 
-    path: NominalPath
-    gains: FloatArray
+    world_path: NominalPath
+    """The true path resampled every control period (the full graph's path without ground truth)."""
     visibility: list[npt.NDArray[np.int64]]
     obstacles: Obstacles
     true_landmarks: dict[int, FloatArray]
     params: NavigationParams
     min_clearance_m: float
+    world: str
+    """``ground_truth`` or ``full_map`` (the full graph's landmarks and laser grid stand in for the world)."""
     margin_m: FloatArray | None = None
-    """(K,) clearance of the nominal path minus the robot radius, per step."""
+    """(K,) clearance of the true path minus the robot radius, per step."""
+
+    @property
+    def path(self) -> NominalPath:
+        """The true path (the steps every case's nominal path shares)."""
+        return self.world_path
 
 
 SEEDED = ("random", "leverage")
@@ -188,6 +192,8 @@ class EvalInputs:
         """select_landmarks' pick when it is what ``strategy`` at α with evaluate's seed would pick, else None."""
         up = self.upstream.landmarks
         if up is None or up.strategy != strategy or up.budget != self.alpha:
+            return None
+        if up.settings.robot_radius_m != self.sl_cfg.robot_radius_m:  # picked for another robot
             return None
         if strategy in SEEDED and up.settings.seed != self.cfg.seed:
             return None
@@ -260,23 +266,18 @@ def _check_grid_size(endpoints: npt.NDArray[np.float64], resolution_m: float, ma
 
 
 def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup:
-    """The nominal path (true path if known, else the full graph's), LQR gains, visibility, walls and truth."""
+    """The world every case navigates in: the true path, landmarks and walls (the ground truth, else the full map:
+    its path, its landmarks and the laser grid at its poses), which landmarks are visible at each step, the robot."""
     cfg = inputs.cfg
     geo = inputs.landmarks.geometry
-    loaded = inputs.loaded
-    stamps = np.asarray(loaded.pose_stamps_ns, dtype=np.int64)
+    stamps = np.asarray(geo.stamps_ns, dtype=np.int64)
     poses = inputs.truth.pose_at(stamps) if inputs.truth is not None else geo.poses
-    path = nominal_path(stamps, poses, cfg.dt_s)
-    radius = cfg.robot_radius_m if cfg.robot_radius_m is not None else inputs.landmarks.params.robot_radius_m
-    params = NavigationParams(
+    world_path = nominal_path(stamps, poses, geo.robot.control_period_s)
+    radius = inputs.risk_params.robot_radius_m
+    robot = dataclasses.replace(geo.robot, robot_radius_m=radius)
+    params = NavigationParams.of(
+        robot,
         trials=cfg.trials,
-        robot_radius_m=radius,
-        bearing_sigma_rad=cfg.bearing_sigma_rad or geo.sigmas[0],
-        range_sigma_m=cfg.range_sigma_m or geo.sigmas[1],
-        speed_sigma_mps=cfg.speed_sigma_mps,
-        yaw_rate_sigma_radps=cfg.yaw_rate_sigma_radps,
-        initial_sigma_m=cfg.initial_sigma_m,
-        initial_sigma_rad=cfg.initial_sigma_rad,
         lqr_position_weight=cfg.lqr_position_weight,
         lqr_heading_weight=cfg.lqr_heading_weight,
         lqr_speed_weight=cfg.lqr_control_weight,
@@ -292,22 +293,28 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
         obstacles: Obstacles = SegmentWalls(inputs.truth.walls)
     else:
         obstacles = _scan_pose_grid(inputs)
-    clearances = obstacles.distance(path.poses[:, :2])
+    clearances = obstacles.distance(world_path.poses[:, :2])
     clearance = float(clearances.min())
     if cfg.trials > 0 and clearance <= radius:
         raise StageError(
-            f"the nominal path passes {clearance:.3f} m from an obstacle ({obstacles.kind}), inside the robot radius "
+            f"the true path passes {clearance:.3f} m from an obstacle ({obstacles.kind}), inside the robot radius "
             f"{radius} m, so every trial would collide; lower evaluate.robot_radius_m below {clearance:.2f}"
         )
-    obs = [
-        (r.stamp_ns, r.tag_id)
-        for r in loaded.rows
-        if r.kind == "tag" and r.stamp_ns is not None and r.tag_id is not None
-    ]
-    vis = visibility_schedule(path.stamps_ns, [o[0] for o in obs], [o[1] for o in obs], cfg.visibility_window_s)
+    step_visible = geo.visible[world_path.keyframe]
+    vis = [geo.tag_ids[row] for row in step_visible]
     truth_lm, _ = inputs.reference_positions(optimal)
-    gains = lqr_gains(path, params.Wx, params.Wu)
-    return NavigationSetup(path, gains, vis, obstacles, truth_lm, params, clearance, clearances - radius)
+    world = "ground_truth" if inputs.truth is not None else "full_map"
+    return NavigationSetup(world_path, vis, obstacles, truth_lm, params, clearance, world, clearances - radius)
+
+
+def case_path(inputs: EvalInputs, reduced: ReducedMap) -> NominalPath:
+    """The case's own trajectory estimate (its reduced graph's keyframes, planar), resampled every control period:
+    the path its robot plans to follow, in its own map frame."""
+    problem, values = reduced.problem, reduced.solution.values
+    kind = problem.graph_model.pose
+    poses = np.array([kind.planar_pose(kind.read(values, k)) for k in problem.pose_keys]).reshape(-1, 3)
+    geo = inputs.landmarks.geometry
+    return nominal_path(np.asarray(problem.pose_stamps_ns, dtype=np.int64), poses, geo.robot.control_period_s)
 
 
 @dataclass
@@ -324,6 +331,8 @@ class CaseResult:
     margin: NavigationMargin | None = None
     reused: list[str] = field(default_factory=list)
     """What was taken from the upstream stages' artifacts instead of recomputed (landmarks, measurements, map)."""
+    local_map: LandmarkMap | None = None
+    """The case's map with each landmark's covariance as seen from the keyframes that see it (risk, navigation)."""
 
 
 def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
@@ -390,7 +399,9 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
     reference, ref_name = inputs.reference_positions(optimal if optimal is not None else reduced)
     errs = landmark_errors(reduced.landmark_map, reference)
     focus = set(inputs.focus)
-    risk = path_risk(inputs.landmarks.geometry, reduced.landmark_map, reduced.observed_tag_ids, inputs.risk_params)
+    geo = inputs.landmarks.geometry
+    lmap = local_map(reduced, geo) if geo.has_laser or inputs.cfg.trials > 0 else None
+    risk = path_risk(geo, lmap or reduced.landmark_map, reduced.observed_tag_ids, inputs.risk_params)
     size = map_size(loaded, reduced)
     observed = set(reduced.observed_tag_ids)
     nan = float("nan")
@@ -427,57 +438,38 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         art.STATUS: measurement.message if measurement is not None else "",
     }
     row.update(_why_columns(inputs, reduced, selected, reference, focus))
-    row.update(dict.fromkeys(art.ALIGNED_COLUMNS, nan))
-    row[art.RISK_MARGIN_SIGMAS] = _margin_sigmas(risk.max)
-    result = CaseResult(case, tags, measurement, reduced, risk, None, row, reused=reused)
+    row[art.NAVIGATION_NEES] = nan
+    row[art.RISK_MARGIN_SIGMAS] = risk.min_z
+    result = CaseResult(case, tags, measurement, reduced, risk, None, row, reused=reused, local_map=lmap)
     navigate(inputs, result)
     return result
 
 
 def navigate(inputs: EvalInputs, result: CaseResult) -> None:
-    """Monte Carlo LQG trials with the case's map (when the navigation is set up); fills the row's columns."""
+    """Monte Carlo LQG trials of the case's robot in the world, planning and localising in the case's own map
+    (when the navigation is set up); fills the row's columns."""
     setup = inputs.navigation
     if setup is None or inputs.cfg.trials <= 0:
         return
+    path = case_path(inputs, result.reduced)
+    if len(path) != len(setup.world_path):
+        raise StageError(
+            f"case {result.case.name}: its path has {len(path)} steps, the world's {len(setup.world_path)}; "
+            "re-run 'focusmap graph'"
+        )
+    gains = lqr_gains(path, setup.params.Wx, setup.params.Wu)
     nav = simulate(
-        setup.path,
-        setup.gains,
-        result.reduced.landmark_map,
+        path,
+        gains,
+        result.local_map if result.local_map is not None else result.reduced.landmark_map,
         setup.true_landmarks,
         setup.visibility,
         setup.obstacles,
         setup.params,
         seed=inputs.cfg.seed,
+        true_path=setup.world_path.poses,
     )
     result.navigation = nav
-    if inputs.cfg.aligned_navigation and inputs.truth is not None:
-        lm = result.reduced.landmark_map
-        fit = rigid_alignment(lm.tag_ids, lm.positions, setup.true_landmarks)
-        if fit is not None:
-            R, t = fit
-            moved = NavigationMap(
-                np.asarray(lm.tag_ids),
-                np.asarray(lm.positions)[:, :2] @ R.T + t,
-                np.einsum("ij,njk,lk->nil", R, np.asarray(lm.covariances)[:, :2, :2], R),
-            )
-            al = simulate(
-                setup.path,
-                setup.gains,
-                moved,
-                setup.true_landmarks,
-                setup.visibility,
-                setup.obstacles,
-                setup.params,
-                seed=inputs.cfg.seed,
-            )
-            result.row.update(
-                {
-                    art.COLLISION_RATE_ALIGNED: al.collision_rate,
-                    art.COLLISION_CI_LOW_ALIGNED: al.ci_low,
-                    art.COLLISION_CI_HIGH_ALIGNED: al.ci_high,
-                    art.RMS_TRACKING_ERROR_ALIGNED_M: al.rms_tracking_error_m,
-                }
-            )
     result.row.update(
         {
             art.COLLISION_RATE: nav.collision_rate,
@@ -487,21 +479,13 @@ def navigate(inputs: EvalInputs, result: CaseResult) -> None:
             art.TRIALS: nav.trials,
             art.RMS_TRACKING_ERROR_M: nav.rms_tracking_error_m,
             art.RMS_ESTIMATION_ERROR_M: nav.rms_estimation_error_m,
+            art.NAVIGATION_NEES: nav.nees_per_dof,
         }
     )
     if setup.margin_m is not None and len(nav.step_rms_deviation_m) == len(setup.margin_m):
         margin = NavigationMargin(setup.margin_m, nav.step_rms_deviation_m, nav.step_ekf_sigma_m)
         result.margin = margin
         result.row.update(margin.summary())
-
-
-def _margin_sigmas(p: float) -> float:
-    """The risk model's margin in σ at its riskiest keyframe, ``Φ⁻¹(1 − max P)`` (inf when P underflows)."""
-    from scipy.stats import norm
-
-    if not np.isfinite(p):
-        return float("nan")
-    return float(norm.isf(p)) if p > 0 else float("inf")
 
 
 def _why_columns(

@@ -7,11 +7,15 @@ from typing import Literal
 from pydantic import Field
 
 from pipeline.config import SettingsModel
-from stages.limits import MAX_RATE_SIGMA, MAX_ROBOT_RADIUS_M, MAX_SIGMA_M, MAX_TRIALS, MIN_GRID_RESOLUTION_M
+from stages.limits import MAX_ROBOT_RADIUS_M, MAX_TRIALS, MIN_GRID_RESOLUTION_M
 
 
 class EvaluateConfig(SettingsModel):
-    """The six cases of Mu et al. Table I, other strategy pairs, and Monte Carlo LQG navigation on each map."""
+    """The six cases of Mu et al. Table I, other strategy pairs, and Monte Carlo LQG navigation on each map.
+
+    The simulated robot is the robot model of select_landmarks (its settings as recorded in ``focused.json``: control
+    period, motion and sensor noise, start covariance, visibility window), so stage one picks landmarks for the
+    robot evaluated here."""
 
     landmark_budget: int | None = Field(
         None, ge=0, description="Landmark budget alpha; null = select_landmarks.budget (the paper's office: 30)."
@@ -37,28 +41,9 @@ class EvaluateConfig(SettingsModel):
         None,
         gt=0,
         le=MAX_ROBOT_RADIUS_M,
-        description="Collision radius of the robot, m; null = select_landmarks.robot_radius_m.",
+        description="Collision radius of the robot, m; null = select_landmarks.robot_radius_m. Set, it is the radius "
+        "of the one robot model everywhere in evaluate: the focused set is picked again for it.",
     )
-    dt_s: float = Field(0.2, gt=0, description="Time step of the navigation simulation, s.")
-    visibility_window_s: float = Field(
-        0.5, gt=0, description="A landmark can be measured at a step if the recording saw it within this time, s."
-    )
-    bearing_sigma_rad: float | None = Field(
-        None, gt=0, description="Bearing noise of the simulated measurements, rad; null = the risk model's."
-    )
-    range_sigma_m: float | None = Field(
-        None, gt=0, le=MAX_SIGMA_M, description="Range noise of the simulated measurements, m; null = the risk model's."
-    )
-    speed_sigma_mps: float = Field(
-        0.05, ge=0, le=MAX_RATE_SIGMA, description="Actuation noise on the forward speed, m/s."
-    )
-    yaw_rate_sigma_radps: float = Field(
-        0.05, ge=0, le=MAX_RATE_SIGMA, description="Actuation noise on the yaw rate, rad/s."
-    )
-    initial_sigma_m: float = Field(
-        0.02, ge=0, le=MAX_SIGMA_M, description="Standard deviation of the start position, m."
-    )
-    initial_sigma_rad: float = Field(0.01, ge=0, description="Standard deviation of the start heading, rad.")
     lqr_position_weight: float = Field(10.0, gt=0, description="LQR weight on the position error (W_x).")
     lqr_heading_weight: float = Field(1.0, gt=0, description="LQR weight on the heading error (W_x).")
     lqr_control_weight: float = Field(1.0, gt=0, description="LQR weight on speed and yaw-rate corrections (W_u).")
@@ -73,12 +58,6 @@ class EvaluateConfig(SettingsModel):
         description="With a ground truth, re-solve every case with its kept tag measurements replaced by "
         "ground-truth-consistent ones (truth + noise drawn from the stated covariance) and report that error beside "
         "the real one: separates what the selection does from biases in the measurements.",
-    )
-    aligned_navigation: bool = Field(
-        True,
-        description="With a ground truth, also navigate every case with its map moved by the best rigid motion onto "
-        "the true landmarks (collision_rate_aligned): the robot then feels the map's shape errors but not the drift "
-        "between the start and the landmarks that moves the whole map in the first-pose frame.",
     )
     regime: str = Field(
         "default",

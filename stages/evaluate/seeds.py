@@ -34,7 +34,6 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("focused_nees", "focused NEES", "{:.2f}"),
     ("max_collision_probability", "max P", "{:.1e}"),
     ("collision_rate", "collision rate", "{:.3f}"),
-    ("collision_rate_aligned", "collision rate, aligned map", "{:.3f}"),
     ("selection_s", "selection (s)", "{:.2f}"),
 )
 """(column, header, format) of the tables."""
@@ -46,7 +45,6 @@ COMPARE = (
     "oracle_focused_error_aligned_m",
     "max_collision_probability",
     "collision_rate",
-    "collision_rate_aligned",
 )
 """Columns on which focus_info is compared with every other case (lower is better)."""
 

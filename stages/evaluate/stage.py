@@ -61,6 +61,8 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     focused = FOCUSED.read(ctx.input("select_landmarks"))
     selection = SELECTION.read(ctx.input("select_measurements"))
     sl_cfg, sm_cfg = focused.settings, selection.settings
+    if cfg.robot_radius_m is not None:  # one robot model: evaluate's radius is the radius of the focus too
+        sl_cfg = sl_cfg.model_copy(update={"robot_radius_m": cfg.robot_radius_m})
     loaded = load_graph(ctx.input("graph"))
     read = read_path_inputs(ctx)  # once, for the landmark inputs and the navigation's occupancy grid
     landmarks = LandmarkInputs.from_pieces(

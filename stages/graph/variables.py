@@ -64,6 +64,10 @@ class VarKind:
         """3x3 position covariance in the map frame from the variable's tangent-space marginal ``cov``."""
         raise ValueError(f"a {self.name} variable has no position")
 
+    def position_jacobian(self, value: Any) -> FloatArray:
+        """(3, dim): the map-frame position's derivative w.r.t. the tangent (``position_cov`` is ``J cov Jᵀ``)."""
+        raise ValueError(f"a {self.name} variable has no position")
+
     def pose3(self, value: Any) -> gtsam.Pose3:
         """The value as a Pose3 (poses only)."""
         raise ValueError(f"a {self.name} variable is not a pose")
@@ -115,6 +119,10 @@ class _Pose2(VarKind):
         out[:2, :2] = R2 @ cov[:2, :2] @ R2.T
         return _symmetric(out)
 
+    def position_jacobian(self, value: gtsam.Pose2) -> FloatArray:
+        c, s = np.cos(value.theta()), np.sin(value.theta())
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 0.0]])
+
     def pose3(self, value: gtsam.Pose2) -> gtsam.Pose3:
         return pose3_from_pose2(value)
 
@@ -140,6 +148,9 @@ class _Pose3(VarKind):
     def position_cov(self, value: gtsam.Pose3, cov: FloatArray) -> FloatArray:
         R = np.asarray(value.rotation().matrix())
         return _symmetric(R @ cov[3:, 3:] @ R.T)
+
+    def position_jacobian(self, value: gtsam.Pose3) -> FloatArray:
+        return np.hstack([np.zeros((3, 3)), np.asarray(value.rotation().matrix())])
 
     def pose3(self, value: gtsam.Pose3) -> gtsam.Pose3:
         return value
@@ -170,6 +181,9 @@ class _Point2(VarKind):
         out[:2, :2] = cov
         return _symmetric(out)
 
+    def position_jacobian(self, value: Any) -> FloatArray:
+        return np.vstack([np.eye(2), np.zeros((1, 2))])
+
 
 class _Point3(VarKind):
     name, dim, width = "Point3", 3, 3
@@ -188,6 +202,9 @@ class _Point3(VarKind):
 
     def position_cov(self, value: Any, cov: FloatArray) -> FloatArray:
         return _symmetric(np.asarray(cov, dtype=float).copy())
+
+    def position_jacobian(self, value: Any) -> FloatArray:
+        return np.eye(3)
 
 
 class _Scale(VarKind):

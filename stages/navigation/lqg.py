@@ -1,20 +1,31 @@
-"""LQG navigation along a recorded path with a landmark map (Mu et al. 2015, Sec. V, eqs. 24-27).
+"""LQG navigation in a case's own map (Mu et al. 2015, Sec. V, eqs. 24-27), with the robot of the risk model.
 
-The robot is a planar unicycle, state ``x = (x, y, θ)``, control ``u = (v, ω)``::
+The robot is the planar unicycle of :mod:`stages.estimation.robot` (the same model, noise and control period as
+the risk model of Alg. 2), state ``x = (x, y, θ)``, control ``u = (v, ω)``, white noise on (v, ω).
 
-    x_{k+1} = x_k + (v cos θ, v sin θ, ω) dt,   actuation noise on (v, ω)
+Frames. The robot *plans and estimates in the case's map*: its nominal trajectory ``x̂^d`` is the case's own
+trajectory estimate (the reduced graph's keyframes, resampled every control period), its EKF localises against
+the case's landmark positions. The robot *moves in the world*: it starts at the true start pose (the map's origin,
+where the first pose's prior pins it), the controls act on its true state, measurements are generated from the
+*true* landmarks, and a trial ends at the first collision of its true position with the *true* obstacles. So a map
+displaced as a whole (drift from the start) is harmless when the landmarks the robot sees are displaced with the
+path it follows, and a map whose path and landmarks disagree locally (or that has no landmark where the path needs
+one) steers the robot into a wall.
 
-It follows a nominal trajectory ``x^d`` (the recorded path resampled every ``dt``) with
-
-* an EKF that localises against the case's landmark map: range-bearing measurements of the map's
-  landmarks, with the landmark uncertainty folded into the measurement noise,
-  ``R̄ = R + M Σ_L Mᵀ`` (eq. 26, ``M`` the Jacobian w.r.t. the landmark), and
-* a finite-horizon LQR on the dynamics linearised along ``x^d`` (eq. 27):
+* Filter: range-bearing measurements of the case's landmarks visible at the step, in a Schmidt-Kalman filter
+  whose considered states are the map's landmark errors with the map's *joint* covariance
+  (:func:`stages.risk.map_covariances`): eq. 26's ``R + M Σ_L Mᵀ`` is its first update, and the cross-covariance
+  it carries keeps the same landmark error, met again, or the drift that several landmarks share, from being
+  taken for fresh information (which made the plain eq. 26 filter overconfident).
+* LQR: finite horizon on the dynamics linearised along the nominal path (eq. 27),
   ``u_k = u^d_k − L_k (x̂_k − x^d_k)``, ``L_k = (Bᵀ S_{k+1} B + W_u)⁻¹ Bᵀ S_{k+1} A``.
+* Random streams: the start, the actuation noise and the measurement noise each have their own stream, and the
+  measurement stream draws for every landmark the recording saw at a step whether or not the case's map has it,
+  so every case with the same seed meets the same world.
+* Consistency: the estimation error ``e = x̂ − x`` (both in the map frame: the world is brought into it by the
+  first pose, where the map is anchored); its NEES against the filter's covariance is reported per degree of
+  freedom.
 
-The world generates measurements from the *true* landmark positions, so a map whose landmarks are
-off by more than their stated covariance pulls the estimate, and the robot, off the path. A trial
-ends at its first collision (the true position closer than the robot radius to an obstacle).
 Trials run vectorised: all ``N`` trials advance together, one landmark update at a time.
 """
 
@@ -27,6 +38,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from stages.estimation.robot import PathSteps, RobotModel, resample_path, unicycle_jacobians, unicycle_step
 from stages.geometry import wrap_angle
 from stages.navigation.stats import wilson_interval
 from stages.navigation.walls import Obstacles
@@ -35,66 +47,18 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 
-@dataclass(frozen=True)
-class NominalPath:
-    """The path to follow, sampled every ``dt_s``, with the open-loop controls that drive along it."""
-
-    stamps_ns: IntArray
-    poses: FloatArray
-    """(K, 3) x, y, θ (θ unwrapped)."""
-    controls: FloatArray
-    """(K-1, 2) v (m/s), ω (rad/s) from step k to k+1."""
-    dt_s: float
-
-    def __len__(self) -> int:
-        return len(self.poses)
+NominalPath = PathSteps
+"""The path to follow, sampled every control period, with the open-loop controls that drive along it."""
 
 
 def nominal_path(stamps_ns: npt.ArrayLike, poses: FloatArray, dt_s: float = 0.2) -> NominalPath:
     """Resample a recorded path (keyframe stamps and x, y, θ) every ``dt_s`` and derive its controls."""
-    t = np.asarray(stamps_ns, dtype=np.int64)
-    order = np.argsort(t, kind="stable")
-    t, p = t[order], np.asarray(poses, dtype=float)[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
-    t, p = t[keep], p[keep]
-    if len(t) < 2:
-        raise ValueError("a nominal path needs at least two poses at distinct stamps")
-    step_ns = round(dt_s * 1e9)
-    q = np.arange(t[0], t[-1] + 1, step_ns, dtype=np.int64)
-    yaw = np.unwrap(p[:, 2])
-    tf, qf = (t - t[0]).astype(float), (q - t[0]).astype(float)
-    res = np.column_stack([np.interp(qf, tf, p[:, 0]), np.interp(qf, tf, p[:, 1]), np.interp(qf, tf, yaw)])
-    d = np.diff(res, axis=0)
-    v = (d[:, 0] * np.cos(res[:-1, 2]) + d[:, 1] * np.sin(res[:-1, 2])) / dt_s
-    w = d[:, 2] / dt_s
-    return NominalPath(q, res, np.column_stack([v, w]), float(dt_s))
-
-
-def _f(x: FloatArray, u: FloatArray, dt: float) -> FloatArray:
-    th = x[..., 2]
-    return np.stack(
-        [x[..., 0] + u[..., 0] * np.cos(th) * dt, x[..., 1] + u[..., 0] * np.sin(th) * dt, th + u[..., 1] * dt],
-        axis=-1,
-    )
-
-
-def _AB(x: FloatArray, u: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
-    """Jacobians of the unicycle step w.r.t. the state (…, 3, 3) and the control (…, 3, 2)."""
-    th = x[..., 2]
-    shape = th.shape
-    A = np.broadcast_to(np.eye(3), (*shape, 3, 3)).copy()
-    A[..., 0, 2] = -u[..., 0] * np.sin(th) * dt
-    A[..., 1, 2] = u[..., 0] * np.cos(th) * dt
-    B = np.zeros((*shape, 3, 2))
-    B[..., 0, 0] = np.cos(th) * dt
-    B[..., 1, 0] = np.sin(th) * dt
-    B[..., 2, 1] = dt
-    return A, B
+    return resample_path(stamps_ns, poses, dt_s)
 
 
 def lqr_gains(path: NominalPath, Wx: FloatArray, Wu: FloatArray) -> FloatArray:
     """Finite-horizon LQR gains ``L_k`` (K-1, 2, 3) along the path (backward Riccati recursion, eq. 27)."""
-    A, B = _AB(path.poses[:-1], path.controls, path.dt_s)
+    A, B = unicycle_jacobians(path.poses[:-1], path.controls, path.dt_s)
     S = Wx.copy()
     gains = np.zeros((len(path) - 1, 2, 3))
     for k in range(len(path) - 2, -1, -1):
@@ -118,6 +82,8 @@ class MapLike(Protocol):
     @property
     def covariances(self) -> FloatArray: ...
 
+    def covariance_at(self, keyframes: IntArray, rows: IntArray) -> FloatArray: ...
+
 
 @dataclass(frozen=True)
 class NavigationMap:
@@ -135,6 +101,10 @@ class NavigationMap:
 
     def __len__(self) -> int:
         return len(self.tag_ids)
+
+    def covariance_at(self, keyframes: IntArray, rows: IntArray) -> FloatArray:
+        """The marginal covariances of ``rows`` (this map has no local ones)."""
+        return np.asarray(self.covariances[rows])
 
 
 @dataclass(frozen=True)
@@ -156,6 +126,21 @@ class NavigationParams:
     max_speed_mps: float = 1.0
     max_yaw_rate_radps: float = 1.5
     keep_paths: int = 5
+
+    @classmethod
+    def of(cls, robot: RobotModel, **settings: float | int) -> NavigationParams:
+        """The navigation of ``robot`` (its radius, noise and start covariance) with the given trial and LQR
+        settings."""
+        return cls(
+            robot_radius_m=robot.robot_radius_m,
+            bearing_sigma_rad=robot.bearing_sigma_rad,
+            range_sigma_m=robot.range_sigma_m,
+            speed_sigma_mps=robot.speed_sigma_mps,
+            yaw_rate_sigma_radps=robot.yaw_rate_sigma_radps,
+            initial_sigma_m=robot.initial_sigma_m,
+            initial_sigma_rad=robot.initial_sigma_rad,
+            **settings,  # type: ignore[arg-type]
+        )
 
     @property
     def Wx(self) -> FloatArray:
@@ -192,6 +177,9 @@ class NavigationResult:
     every trial has collided)."""
     step_ekf_sigma_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     """(K,) per step, mean over the active trials of the EKF's position σ (sqrt of the largest xy eigenvalue)."""
+    nees_per_dof: float = float("nan")
+    """Mean over the active trials and steps of ``eᵀ P⁻¹ e / 3``, ``e = x̂ − x`` the filter's error: 1 for a
+    consistent filter."""
 
 
 def visibility_schedule(
@@ -223,29 +211,36 @@ def simulate(
     obstacles: Obstacles | None,
     params: NavigationParams,
     seed: int = 0,
+    true_path: FloatArray | None = None,
 ) -> NavigationResult:
     """Run ``params.trials`` LQG trials along ``path`` with ``landmark_map``; count collisions.
 
     Args:
-        path: the nominal trajectory.
+        path: the nominal trajectory in the case's map frame (the case's own trajectory estimate).
         gains: :func:`lqr_gains` of the path.
         landmark_map: the case's map (only these landmarks are used by the EKF).
         true_landmarks: true (x, y) of every landmark id that may be measured.
         visibility: per step, the landmark ids the robot can see (:func:`visibility_schedule`).
-        obstacles: walls; None = no collisions (open space).
+        obstacles: the true walls; None = no collisions (open space).
         params: noise, weights, radius, trials.
-        seed: seed of every random draw (the same seed gives the same noise to every map).
+        seed: seed of every random draw (the same seed gives the same world to every map).
+        true_path: (K, 3) the true path at the steps of ``path`` (where the walls leave room); the robot starts at
+            its first pose. None = ``path.poses`` (the map's path is the truth).
     """
-    rng = np.random.default_rng(seed)
+    ss = np.random.SeedSequence(seed)
+    start_rng, act_rng, meas_rng = (np.random.default_rng(s) for s in ss.spawn(3))
     N, K, dt = params.trials, len(path), path.dt_s
+    truth_path = path.poses if true_path is None else np.asarray(true_path, dtype=float)
     index = {int(i): j for j, i in enumerate(landmark_map.tag_ids)}
     truth = {int(i): np.asarray(p, dtype=float)[:2] for i, p in true_landmarks.items()}
     R = np.diag([params.bearing_sigma_rad**2, params.range_sigma_m**2])
     Qu = np.diag([params.speed_sigma_mps**2, params.yaw_rate_sigma_radps**2])
     P0 = np.diag([params.initial_sigma_m**2] * 2 + [params.initial_sigma_rad**2])
-    x = path.poses[0] + rng.standard_normal((N, 3)) * np.sqrt(np.diag(P0))
+    x = truth_path[0] + start_rng.standard_normal((N, 3)) * np.sqrt(np.diag(P0))
     xh = np.repeat(path.poses[:1], N, axis=0)
     P = np.repeat(P0[None], N, axis=0)
+    Lam = joint_covariance(landmark_map)
+    C = np.zeros((N, 3, len(Lam)))  # cross-covariance of the robot's error and the map's landmark errors
     collided = np.zeros(N, dtype=bool)
     col_step = np.full(N, -1, dtype=np.int64)
     keep = min(params.keep_paths, N)
@@ -256,27 +251,29 @@ def simulate(
         hit = obstacles.distance(x[:, :2]) < params.robot_radius_m
         collided |= hit
         col_step[hit] = 0
-    stats.step(0, ~collided, x, P, path.poses[0])
+    stats.step(0, ~collided, x, P, truth_path[0])
     for k in range(K - 1):
         u = _control(xh, path, gains, k, params)
         # the world
-        noisy = u + rng.standard_normal((N, 2)) * np.sqrt(np.diag(Qu))
-        x = np.where(collided[:, None], x, _f(x, noisy, dt))
+        noisy = u + act_rng.standard_normal((N, 2)) * np.sqrt(np.diag(Qu))
+        x = np.where(collided[:, None], x, unicycle_step(x, noisy, dt))
         # EKF predict
-        A, B = _AB(xh, u, dt)
-        xh = _f(xh, u, dt)
+        A, B = unicycle_jacobians(xh, u, dt)
+        xh = unicycle_step(xh, u, dt)
         P = A @ P @ A.transpose(0, 2, 1) + B @ Qu @ B.transpose(0, 2, 1) + 1e-12 * np.eye(3)
-        # EKF update, one landmark of the map at a time (eq. 26 noise)
+        # EKF update, one landmark of the map at a time (eq. 26 noise, the landmark as seen from this keyframe)
+        C = A @ C
         for lid in visibility[k + 1]:
+            noise = meas_rng.standard_normal((N, 2))  # drawn for every visible landmark: the same world for every map
             j = index.get(int(lid))
             if j is None or int(lid) not in truth:
                 continue
-            z = _measure(x, truth[int(lid)], R, rng)
-            xh, P = _ekf_update(xh, P, z, landmark_map.positions[j], landmark_map.covariances[j], R)
+            z = _measure(x, truth[int(lid)], R, noise)
+            xh, P, C = _schmidt_update(xh, P, C, z, landmark_map.positions[j], j, Lam, R)
         active = ~collided
         if active.any():
-            stats.add(active, x, xh, P, path.poses[k + 1])
-            stats.step(k + 1, active, x, P, path.poses[k + 1])
+            stats.add(active, x, xh, P, truth_path[k + 1])
+            stats.step(k + 1, active, x, P, truth_path[k + 1])
         if obstacles is not None:
             hit = active & (obstacles.distance(x[:, :2]) < params.robot_radius_m)
             collided |= hit
@@ -298,6 +295,7 @@ def simulate(
         mean_estimate_sigma_m=stats.sig_sum / denom,
         step_rms_deviation_m=np.where(stats.step_n > 0, np.sqrt(stats.step_dev / np.maximum(stats.step_n, 1)), np.nan),
         step_ekf_sigma_m=np.where(stats.step_n > 0, stats.step_sig / np.maximum(stats.step_n, 1), np.nan),
+        nees_per_dof=stats.nees_sum / (3.0 * denom) if stats.n_active else float("nan"),
     )
 
 
@@ -305,23 +303,33 @@ class _TrialStats:
     """Running sums over the trials still moving: tracking and estimation errors, EKF sigma, per step."""
 
     def __init__(self, K: int) -> None:
-        self.se_track = self.se_est = self.sig_sum = 0.0
+        self.se_track = self.se_est = self.sig_sum = self.nees_sum = 0.0
         self.n_active = 0
         self.step_dev = np.zeros(K)
         self.step_sig = np.zeros(K)
         self.step_n = np.zeros(K)
 
     def add(
-        self, active: npt.NDArray[np.bool_], x: FloatArray, xh: FloatArray, P: FloatArray, nominal: FloatArray
+        self,
+        active: npt.NDArray[np.bool_],
+        x: FloatArray,
+        xh: FloatArray,
+        P: FloatArray,
+        true_nominal: FloatArray,
     ) -> None:
-        """One step's squared errors (true from nominal, estimate from true) and position sigmas."""
-        self.se_track += float((np.square(x[active, :2] - nominal[:2])).sum())
-        self.se_est += float((np.square(xh[active, :2] - x[active, :2])).sum())
+        """One step's squared errors (true deviation from the true path; estimation error in the map frame),
+        position sigmas and NEES."""
+        e = xh[active] - x[active]
+        e[:, 2] = wrap_angle(e[:, 2])
+        self.se_track += float((np.square(x[active, :2] - true_nominal[:2])).sum())
+        self.se_est += float((np.square(e[:, :2])).sum())
         self.sig_sum += float(np.sqrt(np.maximum(P[active, 0, 0] + P[active, 1, 1], 0.0)).sum())
+        Pa = P[active] + 1e-12 * np.eye(3)  # a noise-free trial has P = 0
+        self.nees_sum += float(np.einsum("ni,ni->", e, np.linalg.solve(Pa, e[:, :, None])[:, :, 0]))
         self.n_active += int(active.sum())
 
     def step(self, k: int, active: npt.NDArray[np.bool_], x: FloatArray, P: FloatArray, nominal: FloatArray) -> None:
-        """Step ``k``'s squared deviation from the nominal path and the sum of the EKF's largest position sigmas."""
+        """Step ``k``'s squared deviation from the true path and the sum of the EKF's largest position sigmas."""
         if not active.any():
             return
         self.step_dev[k] = float(np.square(x[active, :2] - nominal[:2]).sum())
@@ -342,18 +350,50 @@ def _control(xh: FloatArray, path: NominalPath, gains: FloatArray, k: int, param
     return u
 
 
-def _measure(x: FloatArray, landmark: FloatArray, R: FloatArray, rng: np.random.Generator) -> FloatArray:
-    """Noisy bearing and range of the true ``landmark`` from each true pose."""
+def _measure(x: FloatArray, landmark: FloatArray, R: FloatArray, noise: FloatArray) -> FloatArray:
+    """Noisy bearing and range of the true ``landmark`` from each true pose (``noise`` standard normal (N, 2))."""
     d = landmark - x[:, :2]
     z = np.column_stack([wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - x[:, 2]), np.hypot(d[:, 0], d[:, 1])])
-    return z + rng.standard_normal((len(x), 2)) * np.sqrt(np.diag(R))
+    return z + noise * np.sqrt(np.diag(R))
 
 
-def _ekf_update(
-    xh: FloatArray, P: FloatArray, z: FloatArray, lh: FloatArray, SL: FloatArray, R: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """EKF update of every trial with one bearing-range measurement of a map landmark at ``lh`` with covariance
-    ``SL``: the landmark's uncertainty enters as measurement noise (eq. 26), Joseph form."""
+GATE_CHI2 = 13.82
+"""Innovation gate: χ² with 2 degrees of freedom at 99.9 %."""
+
+
+def joint_covariance(landmark_map: MapLike) -> FloatArray:
+    """(2L, 2L) joint covariance of the map's landmark positions: the map's own when it has one (``joint``), else
+    its marginals as independent blocks."""
+    joint = getattr(landmark_map, "joint", None)
+    if joint is not None:
+        return np.asarray(joint, dtype=float)
+    L = len(landmark_map.tag_ids)
+    out = np.zeros((2 * L, 2 * L))
+    for j in range(L):
+        out[2 * j : 2 * j + 2, 2 * j : 2 * j + 2] = landmark_map.covariances[j]
+    return out
+
+
+def _schmidt_update(
+    xh: FloatArray,
+    P: FloatArray,
+    C: FloatArray,
+    z: FloatArray,
+    lh: FloatArray,
+    j: int,
+    Lam: FloatArray,
+    R: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Schmidt (consider) update of every trial with a bearing-range measurement of map landmark ``j`` at ``lh``.
+
+    The map's landmark errors ``λ`` (joint covariance ``Lam``) are considered states: not estimated, but their
+    cross-covariance ``C`` with the robot's error is carried, so the same landmark error met again, or the drift
+    that several landmarks share, is not taken for fresh information (eq. 26 applied independently per measurement
+    would be). With ``δ = x − x̂``, ``ν = z − h(x̂, l̂) ≈ H δ + M λ_j + v``:
+    ``S = H P Hᵀ + H C_j Mᵀ + M C_jᵀ Hᵀ + M Λ_jj Mᵀ + R``, ``K = (P Hᵀ + C_j Mᵀ) S⁻¹``, ``P ← P − K S Kᵀ``,
+    ``C ← C − K (H C + M Λ_j·)``. A trial whose innovation fails the χ² gate (:data:`GATE_CHI2`) skips the update,
+    as a real filter rejects a measurement it cannot explain.
+    """
     N = len(xh)
     d = lh - xh[:, :2]
     q = np.maximum((d * d).sum(1), 1e-12)
@@ -365,11 +405,20 @@ def _ekf_update(
     M = np.zeros((N, 2, 2))
     M[:, 0, 0], M[:, 0, 1] = -d[:, 1] / q, d[:, 0] / q
     M[:, 1, 0], M[:, 1, 1] = d[:, 0] / r, d[:, 1] / r
-    Rbar = R + M @ SL @ M.transpose(0, 2, 1)
-    PHt = P @ H.transpose(0, 2, 1)
-    S = H @ PHt + Rbar
-    Kg = PHt @ np.linalg.inv(S)
+    cols = slice(2 * j, 2 * j + 2)
+    Cj = C[:, :, cols]
+    Ht, Mt = H.transpose(0, 2, 1), M.transpose(0, 2, 1)
+    HCjMt = H @ Cj @ Mt
+    S = H @ P @ Ht + HCjMt + HCjMt.transpose(0, 2, 1) + M @ Lam[cols, cols] @ Mt + R
+    G = P @ Ht + Cj @ Mt
+    Sinv = np.linalg.inv(S)
     nu = z - zh
     nu[:, 0] = wrap_angle(nu[:, 0])
-    IKH = np.eye(3) - Kg @ H
-    return xh + np.einsum("nij,nj->ni", Kg, nu), IKH @ P @ IKH.transpose(0, 2, 1) + Kg @ Rbar @ Kg.transpose(0, 2, 1)
+    # innovation gate, as a real filter has: a trial whose innovation is implausible skips this measurement
+    nis = np.einsum("ni,nij,nj->n", nu, Sinv, nu)
+    Kg = (G @ Sinv) * (nis <= GATE_CHI2)[:, None, None]
+    xh = xh + np.einsum("nij,nj->ni", Kg, nu)
+    P = P - Kg @ S @ Kg.transpose(0, 2, 1)
+    P = 0.5 * (P + P.transpose(0, 2, 1))
+    C = C - Kg @ (H @ C + M @ Lam[cols][None])
+    return xh, P, C

@@ -23,8 +23,10 @@ if TYPE_CHECKING:
     from stages.optimize.artifacts import read_reduced
     from stages.optimize.core import (
         ReducedMap,
+        full_local_map,
         gaussian_entropy,
         landmark_errors,
+        local_map,
         map_size,
         mean_or_nan,
         solve_reduced,
@@ -37,8 +39,10 @@ __getattr__ = lazy_exports(
         "artifacts": ("read_reduced",),
         "core": (
             "ReducedMap",
+            "full_local_map",
             "gaussian_entropy",
             "landmark_errors",
+            "local_map",
             "map_size",
             "mean_or_nan",
             "solve_settings",
@@ -83,8 +87,10 @@ __all__ = [
     "OptimizeConfig",
     "ReducedMap",
     "blueprint",
+    "full_local_map",
     "gaussian_entropy",
     "landmark_errors",
+    "local_map",
     "map_size",
     "mean_or_nan",
     "read_reduced",

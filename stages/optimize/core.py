@@ -18,6 +18,7 @@ same over the observed focused landmarks only.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ from stages.graph.load import LoadedGraph
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
 from stages.graph.variables import var_kind
-from stages.risk import LandmarkMap
+from stages.risk import LandmarkMap, PathGeometry, map_covariances
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -250,3 +251,21 @@ def solve_settings(cfg: object) -> dict[str, object]:
     return {
         k: getattr(cfg, k) for k in ("initialise_from", "max_iterations", "relative_error_tol", "unobserved_sigma_m")
     }
+
+
+def local_map(reduced: ReducedMap, geometry: PathGeometry) -> LandmarkMap:
+    """The reduced map with each landmark's covariance as seen from the keyframes that see it
+    (:func:`stages.risk.map_covariances`), what the risk model and the navigation's eq. 26 use."""
+    lm = dataclasses.replace(reduced.landmark_map)
+    graph = build_graph(reduced.problem.rows)
+    lm.local, lm.joint = map_covariances(
+        reduced.problem, graph, reduced.solution.values, reduced.marginals, lm, geometry
+    )
+    return lm
+
+
+def full_local_map(loaded: LoadedGraph, geometry: PathGeometry) -> LandmarkMap:
+    """The full graph's map with local covariances (see :func:`local_map`)."""
+    lm = LandmarkMap.from_graph(loaded)
+    lm.local, lm.joint = map_covariances(loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry)
+    return lm

@@ -36,7 +36,9 @@ from stages.optimize.checks import reduced_health
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
+    full_local_map,
     landmark_errors,
+    local_map,
     map_size,
     mean_or_nan,
     solve_reduced,
@@ -92,8 +94,8 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
 
     params = focused.risk_params  # the risk model of the landmark selection, so the figures compare
     geometry = load_geometry(ctx, loaded, params)
-    risk_reduced = path_risk(geometry, reduced.landmark_map, reduced.focused_observed, params)
-    risk_full = path_risk(geometry, full_map, full_map.tag_ids.tolist(), params)
+    risk_reduced = path_risk(geometry, local_map(reduced, geometry), reduced.focused_observed, params)
+    risk_full = path_risk(geometry, full_local_map(loaded, geometry), full_map.tag_ids.tolist(), params)
     RISK.write(ctx.output, risk_rows(geometry, risk_reduced, risk_full))
     size = map_size(loaded, reduced)
     log_recording(

@@ -39,8 +39,8 @@ class RiskNoise(BaseModel):
 
     bearing_sigma_rad: float = Field(description="bearing noise of the tag measurements, rad")
     range_sigma_m: float = Field(description="range noise of the tag measurements, m")
-    odometry_sigma_m: float = Field(description="translation noise per keyframe step, m")
-    odometry_sigma_rad: float = Field(description="heading noise per keyframe step, rad")
+    speed_sigma_mps: float = Field(description="the robot model's forward-speed noise over one control period, m/s")
+    yaw_rate_sigma_radps: float = Field(description="the robot model's yaw-rate noise over one control period, rad/s")
 
 
 class FocusedLandmarks(BaseModel):
@@ -64,7 +64,8 @@ class FocusedLandmarks(BaseModel):
     )
     noise: RiskNoise = Field(
         description="the risk model's noise as resolved from the graph: `bearing_sigma_rad`, `range_sigma_m`, "
-        "`odometry_sigma_m`, `odometry_sigma_rad` (per keyframe step)"
+        "`speed_sigma_mps`, `yaw_rate_sigma_radps` (the robot model's motion noise; evaluate's simulated robot is this "
+        "robot)"
     )
 
     @property
@@ -88,8 +89,8 @@ class FocusedLandmarks(BaseModel):
             noise=RiskNoise(
                 bearing_sigma_rad=float(geo.sigmas[0]),
                 range_sigma_m=float(geo.sigmas[1]),
-                odometry_sigma_m=float(np.sqrt(geo.Q[0, 0])),
-                odometry_sigma_rad=float(np.sqrt(geo.Q[2, 2])),
+                speed_sigma_mps=float(geo.robot.speed_sigma_mps),
+                yaw_rate_sigma_radps=float(geo.robot.yaw_rate_sigma_radps),
             ),
         )
 

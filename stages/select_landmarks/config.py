@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field
 
 from pipeline.config import SettingsModel
-from stages.limits import MAX_ROBOT_RADIUS_M, MAX_SIGMA_M
+from stages.limits import MAX_RATE_SIGMA, MAX_ROBOT_RADIUS_M, MAX_SIGMA_M
 
 if TYPE_CHECKING:  # stages.risk imports the estimation maths; settings must load without it
     from stages.risk import RiskParams
@@ -56,12 +56,31 @@ class SelectLandmarksConfig(SettingsModel):
     max_scan_gap_s: float = Field(
         0.25, gt=0, description="The laser scan used for a keyframe is at most this far from it in time, s."
     )
-    cap_steps: int = Field(
-        50,
-        ge=1,
-        description="A keyframe that sees no focused landmark gets dead reckoning from the nearest localised one, "
-        "capped at this many odometry steps.",
+    control_period_s: float = Field(
+        0.2,
+        gt=0,
+        le=10.0,
+        description="The robot's control period, s: the path is followed, and the robot's covariance propagated, in "
+        "steps this long (the risk model here and evaluate's simulated robot).",
     )
+    speed_sigma_mps: float | None = Field(
+        None,
+        gt=0,
+        le=MAX_RATE_SIGMA,
+        description="The robot's forward-speed noise over one control period, m/s; null = as fast as the "
+        "recording's odometry drifts (its factors' translation variance per second).",
+    )
+    yaw_rate_sigma_radps: float | None = Field(
+        None,
+        gt=0,
+        le=MAX_RATE_SIGMA,
+        description="The robot's yaw-rate noise over one control period, rad/s; null = from the recording's "
+        "odometry factors.",
+    )
+    initial_sigma_m: float = Field(
+        0.02, ge=0, le=MAX_SIGMA_M, description="Standard deviation of the robot's start position, m."
+    )
+    initial_sigma_rad: float = Field(0.01, ge=0, le=3.2, description="Standard deviation of its start heading, rad.")
     bearing_sigma_rad: float | None = Field(
         None, gt=0, description="Bearing noise of the risk model, rad; null = median of the graph's tag factors."
     )
@@ -70,15 +89,6 @@ class SelectLandmarksConfig(SettingsModel):
         gt=0,
         le=MAX_SIGMA_M,
         description="Range noise of the risk model, m; null = median of the graph's tag factors.",
-    )
-    odometry_sigma_m: float | None = Field(
-        None,
-        gt=0,
-        le=MAX_SIGMA_M,
-        description="Translation noise per keyframe step, m; null = from the graph's odometry factors.",
-    )
-    odometry_sigma_rad: float | None = Field(
-        None, gt=0, description="Heading noise per keyframe step, rad; null = from the graph's odometry factors."
     )
     ellipse_stride: int = Field(5, ge=1, description="Draw the Sigma* ellipse of every n-th keyframe in the recording.")
     max_replay_steps: int = Field(
@@ -93,9 +103,11 @@ class SelectLandmarksConfig(SettingsModel):
             robot_radius_m=self.robot_radius_m,
             visibility_window_s=self.visibility_window_s,
             max_scan_gap_s=self.max_scan_gap_s,
-            cap_steps=self.cap_steps,
+            control_period_s=self.control_period_s,
+            speed_sigma_mps=self.speed_sigma_mps,
+            yaw_rate_sigma_radps=self.yaw_rate_sigma_radps,
             bearing_sigma_rad=self.bearing_sigma_rad,
             range_sigma_m=self.range_sigma_m,
-            odometry_sigma_m=self.odometry_sigma_m,
-            odometry_sigma_rad=self.odometry_sigma_rad,
+            initial_sigma_m=self.initial_sigma_m,
+            initial_sigma_rad=self.initial_sigma_rad,
         )

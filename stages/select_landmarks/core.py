@@ -18,7 +18,7 @@ import numpy.typing as npt
 import pyarrow as pa
 
 from pipeline.errors import StageError
-from stages.estimation.collision import select_collision
+from stages.estimation.collision import Contribution, select_collision
 from stages.estimation.landmark_selection import (
     LandmarkSelection,
     schur_contribution,
@@ -32,9 +32,12 @@ from stages.risk import (
     PathGeometry,
     PathRisk,
     RiskParams,
+    landmark_contributions,
+    map_covariances,
     path_geometry,
     path_risk,
     read_path_inputs,
+    step_margins,
 )
 from stages.select_landmarks.config import NEEDS_LASER, SelectLandmarksConfig
 
@@ -56,8 +59,9 @@ class LandmarkInputs:
     params: RiskParams
     laser_note: str = ""
     """Why there is no laser (empty when there is)."""
-    sigma_cache: dict[tuple[int, frozenset[int]], FloatArray] = field(default_factory=dict, repr=False)
-    """Σ* by (keyframe, visible focused landmarks), shared by the :func:`stages.risk.path_risk` calls on these."""
+    sigma_cache: dict[int, Contribution] = field(default_factory=dict, repr=False)
+    """Each tag's measurement information along the path, shared by the :func:`stages.risk.path_risk` calls on
+    these inputs."""
     _trajectory: tuple[FloatArray, Contributions] | None = field(default=None, repr=False)
     _trajectory_prior: float | None = field(default=None, repr=False)
 
@@ -81,7 +85,10 @@ class LandmarkInputs:
         if not loaded.landmark_keys:
             raise StageError("the graph has no landmarks, so there is nothing to select; check 'focusmap graph'")
         geometry = path_geometry(loaded, scans, T_base_laser, detections, params)
-        return cls(loaded, LandmarkMap.from_graph(loaded), geometry, params, laser_note)
+        lm = LandmarkMap.from_graph(loaded)
+        if geometry.has_laser:
+            lm.local, lm.joint = map_covariances(loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry)
+        return cls(loaded, lm, geometry, params, laser_note)
 
     @classmethod
     def load(cls, ctx: StageContext, cfg: SelectLandmarksConfig) -> LandmarkInputs:
@@ -179,24 +186,13 @@ class LandmarkChoice:
 
 
 def collision_greedy(geo: PathGeometry, lm: LandmarkMap, budget: int, params: RiskParams) -> LandmarkSelection:
-    """Mu et al. Alg. 2 (:func:`stages.estimation.collision.select_collision`) on a run's keyframes and landmark map.
+    """Mu et al. Alg. 2 (:func:`stages.estimation.collision.select_collision`) on a run's path and landmark map.
 
     Scores: the maximum collision probability along the path after each pick.
     """
-    col = {int(t): c for c, t in enumerate(geo.tag_ids)}
-    visible = geo.visible[:, [col[int(t)] for t in lm.tag_ids]]
-    return select_collision(
-        geo.poses,
-        lm.positions,
-        lm.covariances,
-        visible,
-        geo.margin(params),
-        geo.normals,
-        geo.Q,
-        budget,
-        geo.sigmas,
-        params.cap_steps,
-    )
+    margin, normals = step_margins(geo, params)
+    contributions = landmark_contributions(geo, lm, lm.tag_ids.tolist())
+    return select_collision(geo.noise, contributions, margin, normals, budget)
 
 
 def _message(status: str, budget: int, n: int, picked: int, strategy: str) -> str:

@@ -59,9 +59,9 @@ def run(ctx: StageContext, cfg: SelectLandmarksConfig) -> dict[str, Any]:
     geo = inputs.geometry
     summary["risk_model"] = {
         "robot_radius_m": inputs.params.robot_radius_m,
-        "cap_steps": inputs.params.cap_steps,
-        "odometry_sigma_m": float(np.sqrt(geo.Q[0, 0])),
-        "odometry_sigma_rad": float(np.sqrt(geo.Q[2, 2])),
+        "control_period_s": geo.robot.control_period_s,
+        "speed_sigma_mps": geo.robot.speed_sigma_mps,
+        "yaw_rate_sigma_radps": geo.robot.yaw_rate_sigma_radps,
         "bearing_sigma_rad": geo.sigmas[0],
         "range_sigma_m": geo.sigmas[1],
         "mean_visible_landmarks": float(geo.visible.sum(axis=1).mean()) if len(geo.visible) else 0.0,

@@ -1,4 +1,4 @@
-"""Riccati steady state, collision probability, MI greedy vs brute force, leverage, Alg. 2."""
+"""The robot's belief along a path, collision probability, MI greedy vs brute force, leverage, Alg. 2."""
 
 from __future__ import annotations
 
@@ -7,11 +7,14 @@ import pytest
 import scipy.sparse as sp
 
 from stages.estimation.collision import (
+    StepNoise,
     collision_risk,
+    forward_covariances,
+    margin_sigmas,
     measurement_information,
+    pair_information,
     planar_range_bearing,
     select_collision,
-    stabilised_covariances,
 )
 from stages.estimation.landmark_selection import (
     landmark_leverage_probabilities,
@@ -20,13 +23,14 @@ from stages.estimation.landmark_selection import (
     select_landmark_uniform,
     select_mutual_information,
 )
+from stages.estimation.robot import RobotModel, resample_path
 from tests.fixtures.planar_problems import random_mi_problem
 from tests.oracles.collision import (
+    belief_reference,
     halfplane_collision_probability,
     riccati_iterate,
     riccati_steady_state,
     select_collision_reference,
-    stabilised_covariance,
 )
 from tests.oracles.mutual_information import brute_force_mutual_information, mutual_information
 
@@ -44,23 +48,92 @@ def _visible_at_pose():
     return pose, lms, covs, HR
 
 
-def test_riccati_equals_iteration_and_ekf_converges() -> None:
-    """Σ* by doubling (production) is the fixed point of eq. 19: DARE, the iterated recursion and an EKF agree."""
+def test_belief_held_still_converges_to_the_riccati_steady_state() -> None:
+    """A robot held still (A = I) that keeps measuring the same landmarks: the belief recursion (information form,
+    production) converges to eq. 19's Σ* (DARE), the posterior of its fixed point."""
     pose, lms, covs, HR = _visible_at_pose()
     H = np.vstack([h for h, _ in HR])
     R = np.block([[HR[0][1], np.zeros((2, 2))], [np.zeros((2, 2)), HR[1][1]]])
-    star = stabilised_covariances(Q, measurement_information(pose, lms, covs, SIGMAS)[None], 50)[0]
-    np.testing.assert_allclose(star, riccati_steady_state(np.eye(3), Q, H, R), rtol=1e-10)
-    np.testing.assert_allclose(star, stabilised_covariance(Q, HR), rtol=1e-10)
+    K = 600
+    noise = StepNoise(np.repeat(np.eye(3)[None], K - 1, axis=0), np.repeat(Q[None], K - 1, axis=0), 4.0 * np.eye(3))
+    J = np.repeat(measurement_information(pose, lms, covs, SIGMAS)[None, None], K, axis=1)
+    P = forward_covariances(noise, J)[0]
+    star = riccati_steady_state(np.eye(3), Q, H, R)  # the predicted (prior) covariance of the fixed point
+    np.testing.assert_allclose(P[-2] + Q, star, rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(riccati_iterate(np.eye(3), Q, H, R, np.eye(3), 2000), star, rtol=1e-6, atol=1e-12)
-    # an EKF held at the pose: predict with Q, update with the landmarks; its prior covariance converges to Σ*
-    P = 4.0 * np.eye(3)
-    for _ in range(500):
-        P = P + Q
-        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
-        P_post = (np.eye(3) - K @ H) @ P
-        P = P_post
-    np.testing.assert_allclose(P + Q, star, rtol=1e-6, atol=1e-12)
+
+
+def _path_problem(seed: int, K: int = 60, L: int = 6):
+    """A curving path resampled by the robot model, landmarks beside it, random visibility runs, walls."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 20, 41)
+    poses = np.column_stack([t, 2.0 * np.sin(t / 5.0), np.arctan2(0.4 * np.cos(t / 5.0), 1.0)])
+    steps = resample_path((t * 1e9).astype(np.int64), poses, 20.0 / (K - 1))
+    robot = RobotModel(speed_sigma_mps=0.05, yaw_rate_sigma_radps=0.03)
+    A, Qs = steps.transition(robot)
+    noise = StepNoise(A, Qs, robot.P0)
+    K = len(steps)
+    lms = np.column_stack([rng.uniform(0, 20, L), rng.choice([-1.5, 3.5], L)])
+    covs = np.stack([np.diag(rng.uniform(0.0005, 0.01, 2)) for _ in range(L)])
+    visible = np.zeros((K, L), dtype=bool)
+    for c in range(L):
+        for _ in range(2):
+            k0 = int(rng.integers(0, K - 8))
+            visible[k0 : k0 + int(rng.integers(2, 8)), c] = True
+    margin = np.where(rng.random(K) < 0.3, rng.uniform(0.05, 0.4, K), np.inf)
+    normals = np.tile([0.0, 1.0], (K, 1))
+    return steps, noise, robot, lms, covs, visible, margin, normals
+
+
+def _contributions(steps, robot, lms, covs, visible):
+    from stages.risk import _run_lengths
+
+    out = []
+    for c in range(len(lms)):
+        ks = np.flatnonzero(visible[:, c])
+        inflated = covs[c][None] * _run_lengths(ks)[:, None, None]
+        out.append((ks, pair_information(steps.poses[ks], np.repeat(lms[c][None], len(ks), 0), inflated, robot.sigmas)))
+    return out
+
+
+def test_belief_along_a_path_equals_a_kalman_filter() -> None:
+    """The batched information-form recursion equals a Kalman filter run step by step in the gain form, with the
+    unicycle's A (heading coupled to position) and process noise, for several landmark sets at once."""
+    steps, noise, robot, lms, covs, visible, _, _ = _path_problem(3)
+    K = len(steps)
+    sets = [[], [0], [1, 3], list(range(len(lms)))]
+    J = np.zeros((len(sets), K, 3, 3))
+    meas_all = []
+    for b, chosen in enumerate(sets):
+        meas = [[] for _ in range(K)]
+        for c in chosen:
+            for k in np.flatnonzero(visible[:, c]):
+                H, Rb = planar_range_bearing(steps.poses[k], lms[c], covs[c], robot.sigmas)
+                meas[k].append((H, Rb))
+                J[b, k] += H.T @ np.linalg.solve(Rb, H)
+        meas_all.append(meas)
+    P = forward_covariances(noise, J)
+    for b in range(len(sets)):
+        ref = belief_reference(noise.A, noise.Q, noise.P0, meas_all[b])
+        np.testing.assert_allclose(P[b], ref, rtol=1e-8, atol=1e-14)
+    # dead reckoning grows without a cap, and heading error turns into cross-track error
+    assert np.all(np.diff(P[0][:, 1, 1]) > 0) and P[0][-1, 1, 1] > 10 * P[0][1, 1, 1]
+
+
+def test_adding_a_landmark_never_raises_any_steps_risk() -> None:
+    """Monotone: more information never widens the belief (the issue's saturating Alg. 2 could raise a pose's risk
+    by adding a landmark, since a localised pose ignored its path neighbours)."""
+    steps, noise, robot, lms, covs, visible, margin, normals = _path_problem(5)
+    contrib = _contributions(steps, robot, lms, covs, visible)
+    K = len(steps)
+    J = np.zeros((1, K, 3, 3))
+    z_prev = margin_sigmas(forward_covariances(noise, J)[0], margin, normals)
+    for ks, info in contrib:
+        np.add.at(J[0], ks, info)
+        z = margin_sigmas(forward_covariances(noise, J)[0], margin, normals)
+        fin = np.isfinite(z)
+        assert np.all(z[fin] >= z_prev[fin] - 1e-9)
+        z_prev = z
 
 
 def test_halfplane_probability_matches_monte_carlo_against_laser_points() -> None:
@@ -109,22 +182,27 @@ def test_landmark_leverage_probabilities_sum_to_one() -> None:
 
 
 def _corridor():
-    """A straight path past a narrow door at x = 10 with landmarks along it."""
-    T = 41
-    poses = np.column_stack([np.linspace(0, 20, T), np.zeros(T), np.zeros(T)])
+    """A straight path past a narrow door at x = 10 with landmarks along it (a step every 0.5 m)."""
+    K = 41
+    poses = np.column_stack([np.linspace(0, 20, K), np.zeros(K), np.zeros(K)])
+    steps = resample_path((np.arange(K) * 1e9).astype(np.int64), poses, 1.0)
+    robot = RobotModel(speed_sigma_mps=0.02, yaw_rate_sigma_radps=0.01, bearing_sigma_rad=0.02, range_sigma_m=0.1)
+    A, Qs = steps.transition(robot)
+    noise = StepNoise(A, Qs, robot.P0)
     landmarks = np.array([[2.0, 2.0], [6.0, -2.0], [10.0, 1.5], [14.0, -2.0], [18.0, 2.0], [10.0, -1.5]])
     covs = np.stack([0.01 * np.eye(2)] * len(landmarks))
     dist = np.linalg.norm(poses[:, None, :2] - landmarks[None], axis=2)
     visible = dist < 5.0
-    clearance = np.where(np.abs(poses[:, 0] - 10) < 1.5, 0.25, 2.0)
-    normals = np.tile([0.0, 1.0], (T, 1))
-    return poses, landmarks, covs, visible, clearance, normals
+    margin = np.where(np.abs(poses[:, 0] - 10) < 1.5, 0.25, 2.0)
+    normals = np.tile([0.0, 1.0], (K, 1))
+    return steps, noise, robot, landmarks, covs, visible, margin, normals
 
 
 def test_collision_greedy_picks_the_door_landmarks_first() -> None:
-    poses, landmarks, covs, visible, clearance, normals = _corridor()
-    sel = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 2, SIGMAS, 50)
-    door = np.flatnonzero(clearance < 1.0)
+    steps, noise, robot, landmarks, covs, visible, margin, normals = _corridor()
+    contrib = _contributions(steps, robot, landmarks, covs, visible)
+    sel = select_collision(noise, contrib, margin, normals, 2)
+    door = np.flatnonzero(margin < 1.0)
     assert visible[door, sel.picks[0]].any()  # the first pick serves the probabilistically narrow door
     assert sel.extra["risk_after"].max() < sel.extra["risk_before"].max()
     assert sel.scores == sorted(sel.scores, reverse=True)
@@ -134,31 +212,59 @@ def test_collision_greedy_picks_the_door_landmarks_first() -> None:
 
 
 def test_landmark_budget_edge_cases() -> None:
-    poses, landmarks, covs, visible, clearance, normals = _corridor()
-    assert select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 0, SIGMAS, 50).status == (
-        "budget_zero"
-    )
-    over = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, 99, SIGMAS, 50)
+    steps, noise, robot, landmarks, covs, visible, margin, normals = _corridor()
+    contrib = _contributions(steps, robot, landmarks, covs, visible)
+    assert select_collision(noise, contrib, margin, normals, 0).status == "budget_zero"
+    over = select_collision(noise, contrib, margin, normals, 99)
     assert over.status == "budget_exceeds_landmarks" and sorted(over.picks) == list(range(6))
-    none = select_collision(poses, landmarks[:0], covs[:0], visible[:, :0], clearance, normals, Q, 3, SIGMAS, 50)
+    none = select_collision(noise, [], margin, normals, 3)
     assert none.status == "no_landmarks" and none.picks == []
-    info0, contrib = random_mi_problem(np.random.default_rng(0), L=4)
-    assert select_mutual_information(info0, contrib, 0).picks == []
-    assert sorted(select_mutual_information(info0, contrib, 9).picks) == [0, 1, 2, 3]
+    info0, contrib_mi = random_mi_problem(np.random.default_rng(0), L=4)
+    assert select_mutual_information(info0, contrib_mi, 0).picks == []
+    assert sorted(select_mutual_information(info0, contrib_mi, 9).picks) == [0, 1, 2, 3]
 
 
 @pytest.mark.parametrize("budget", [1, 3, 6, 9])
 def test_alg2_equals_the_reference_on_the_corridor(budget: int) -> None:
-    """Production Alg. 2 (batched doubling Σ*) picks and scores as the per-pose DARE reference does."""
-    poses, landmarks, covs, visible, clearance, normals = _corridor()
-    landmarks[5] = [10.7, -1.9]  # no mirror image of landmark 2: no exact tie for the two Σ* solvers to break
+    """Production Alg. 2 (batched information-form belief) picks and scores as the one-candidate-at-a-time Kalman
+    reference does."""
+    steps, noise, robot, landmarks, covs, visible, margin, normals = _corridor()
+    landmarks[5] = [10.7, -1.9]  # no mirror image of landmark 2: no exact tie for the two solvers to break
     covs[3] *= 4.0
-    visible[30:, 4] = False  # a landmark seen from fewer poses, so picks differ in their re-solved poses
-    fast = select_collision(poses, landmarks, covs, visible, clearance, normals, Q, budget, SIGMAS, 50)
-    ref = select_collision_reference(poses, landmarks, covs, visible, clearance, normals, Q, budget, SIGMAS, 50)
+    visible[30:, 4] = False
+    contrib = _contributions(steps, robot, landmarks, covs, visible)
+    fast = select_collision(noise, contrib, margin, normals, budget)
+    ref = select_collision_reference(
+        noise.A, noise.Q, noise.P0, steps.poses, landmarks, covs, visible, margin, normals, budget, robot.sigmas
+    )
     assert fast.picks == ref.picks and fast.status == ref.status
-    np.testing.assert_allclose(fast.scores, ref.scores, rtol=1e-8)
-    np.testing.assert_allclose(fast.extra["risk_after"], ref.extra["risk_after"], rtol=1e-8, atol=1e-300)
+    np.testing.assert_allclose(fast.scores, ref.scores, rtol=1e-6, atol=1e-300)
+    np.testing.assert_allclose(fast.extra["z_after"], ref.extra["z_after"], rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_alg2_equals_the_reference_on_random_curved_paths(seed: int) -> None:
+    steps, noise, robot, lms, covs, visible, margin, normals = _path_problem(seed)
+    contrib = _contributions(steps, robot, lms, covs, visible)
+    fast = select_collision(noise, contrib, margin, normals, 4)
+    ref = select_collision_reference(
+        noise.A, noise.Q, noise.P0, steps.poses, lms, covs, visible, margin, normals, 4, robot.sigmas
+    )
+    assert fast.picks == ref.picks
+    np.testing.assert_allclose(fast.extra["z_after"], ref.extra["z_after"], rtol=1e-6)
+
+
+def test_alg2_still_chooses_where_the_collision_probability_underflows() -> None:
+    """Far from walls every P is 0.0 in floating point; the margin in σ still tells the candidates apart, so the
+    greedy picks the landmark that helps the riskiest step most, not the first index (the saturation found)."""
+    steps, noise, robot, landmarks, covs, visible, margin, normals = _corridor()
+    wide = np.where(np.isfinite(margin), margin * 100.0, margin)
+    contrib = _contributions(steps, robot, landmarks, covs, visible)
+    sel = select_collision(noise, contrib, wide, normals, 3)
+    assert sel.extra["risk_before"].max() == 0.0  # every probability underflows
+    narrow = select_collision(noise, contrib, margin, normals, 3)
+    assert sel.picks == narrow.picks  # scaling every margin does not change which landmark helps most
+    assert sel.picks[0] != 0
 
 
 def _dense_leverage_probabilities(info0, contrib):

@@ -1,7 +1,9 @@
 """Reference implementations of the collision maths (Mu et al. 2015, eqs. 19-20, Alg. 2), for tests only.
 
-Written as the paper states them, one pose at a time with ``scipy.linalg.solve_discrete_are``; the production
-code (:mod:`stages.estimation.collision`) solves Σ* for all poses at once by doubling and must agree with these.
+Written plainly: eq. 19 with ``scipy.linalg.solve_discrete_are``; the robot's belief along a path as a Kalman
+filter's covariance in the standard (gain) form, one step and one measurement at a time; Alg. 2 one candidate at a
+time. The production code (:mod:`stages.estimation.collision`: information form, batched over candidates) must
+agree with these.
 """
 
 from __future__ import annotations
@@ -13,12 +15,7 @@ import numpy.typing as npt
 import scipy.linalg as sla
 from scipy.stats import norm
 
-from stages.estimation.collision import (
-    collision_risk,
-    dead_reckoning_covariances,
-    mahalanobis_to_obstacle,
-    planar_range_bearing,
-)
+from stages.estimation.collision import planar_range_bearing
 from stages.estimation.landmark_selection import LandmarkSelection, _status
 
 FloatArray = npt.NDArray[np.float64]
@@ -41,115 +38,107 @@ def riccati_iterate(
     return S
 
 
-def stabilised_covariance(
-    Q: FloatArray, H_R: Sequence[tuple[FloatArray, FloatArray]], cap_steps: int = 50
-) -> FloatArray:
-    """``Σ*`` at a pose held still (``A = I``) observing the given landmarks (stacked ``H``, block ``R̄``).
-
-    When the landmarks leave a direction unobservable (e.g. one range-bearing landmark and a
-    planar pose), ``A = I`` has no finite fixed point; then ``A = ρ I`` with
-    ``ρ = 1 − 1/(2·cap_steps)`` is used, so that unobservable directions saturate at about
-    ``cap_steps · Q``, the same cap as the dead-reckoning rule for poses that see no landmark.
-    """
-    H = np.vstack([h for h, _ in H_R])
-    R = sla.block_diag(*[r for _, r in H_R])
-    n = Q.shape[0]
-    observable = np.linalg.matrix_rank(H) == n  # with A = I the observability matrix has the rank of H
-    rho = 1.0 if observable else 1.0 - 0.5 / cap_steps
-    return riccati_steady_state(rho * np.eye(n), Q, H, R)
-
-
 def halfplane_collision_probability(cov_pos: FloatArray, normal: FloatArray, clearance: float) -> float:
     """``P = 1 − Φ(d / sqrt(nᵀΣn))``: probability that the position crosses the obstacle half-plane."""
     s = float(np.sqrt(max(normal @ cov_pos @ normal, 1e-300)))
     return float(norm.sf(clearance / s))
 
 
+def belief_reference(
+    A: FloatArray,
+    Q: FloatArray,
+    P0: FloatArray,
+    measurements: Sequence[Sequence[tuple[FloatArray, FloatArray]]],
+) -> FloatArray:
+    """Kalman filter covariances along a path: ``P ← A P Aᵀ + Q`` between steps, then at step k one update per
+    ``(H, R̄)`` of ``measurements[k]`` in the gain form ``P ← (I − K H) P``. Returns (K, 3, 3)."""
+    K = len(measurements)
+    out = np.zeros((K, 3, 3))
+    P = P0.copy()
+    for k in range(K):
+        if k:
+            P = A[k - 1] @ P @ A[k - 1].T + Q[k - 1]
+        for H, R in measurements[k]:
+            G = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+            P = (np.eye(3) - G @ H) @ P
+            P = 0.5 * (P + P.T)
+        out[k] = P
+    return out
+
+
 def select_collision_reference(
+    A: FloatArray,
+    Q: FloatArray,
+    P0: FloatArray,
     poses: FloatArray,
     landmarks: FloatArray,
     landmark_covs: FloatArray,
     visible: npt.NDArray[np.bool_],
-    clearance: FloatArray,
+    margin: FloatArray,
     normals: FloatArray,
-    Q: FloatArray,
     budget: int,
-    bearing_range_sigmas: tuple[float, float] = (0.02, 0.1),
-    cap_steps: int = 50,
+    sigmas: tuple[float, float] = (0.02, 0.1),
 ) -> LandmarkSelection:
-    """Mu et al. Alg. 2 for planar poses: pick the landmark seen from the riskiest pose, repeat.
+    """Alg. 2 on the belief along the path, as :func:`stages.estimation.collision.select_collision` states it.
 
-    Args:
-        poses: (T, 3) x, y, θ of the keyframes, in time order.
-        landmarks: (L, 2) landmark positions; ``landmark_covs`` (L, 2, 2) their marginals.
-        visible: (T, L) whether landmark l is visible from pose t.
-        clearance: (T,) distance to the nearest laser return; ``normals`` (T, 2) unit vectors from
-            the pose towards it (world frame).
-        Q: (3, 3) odometry noise per step.
-        budget: number of landmarks to pick.
-        bearing_range_sigmas: measurement noise (rad, m).
-        cap_steps: cap of the dead-reckoning rule for poses that see no selected landmark.
-
-    Returns:
-        Picks with, as scores, the maximum collision probability along the path after each pick;
-        ``extra`` holds ``risk_before``/``risk_after`` (T,), ``sigma_after`` (T, 3, 3) and
-        ``mahalanobis_after`` (T,).
+    Each pick: the step with the smallest margin in σ among those that see an unselected landmark between the last
+    localised step and themselves; among those landmarks, the one that gives that step the largest margin, ties by
+    the path's smallest margin, then by the sum of log P. Landmark covariances are inflated by the length of the
+    run of consecutive steps that see them (as ``stages.risk.landmark_contributions`` does).
     """
-    T, L = visible.shape
+    K, L = visible.shape
     st = _status(budget, L)
-    sig = np.zeros((T, 3, 3))
-    localised = np.zeros(T, dtype=bool)
+
+    def belief(chosen: list[int]) -> FloatArray:
+        meas: list[list[tuple[FloatArray, FloatArray]]] = [[] for _ in range(K)]
+        for c in chosen:
+            ks = np.flatnonzero(visible[:, c])
+            runs = np.split(ks, np.flatnonzero(np.diff(ks) > 1) + 1)
+            for run in runs:
+                for k in run:
+                    meas[int(k)].append(
+                        planar_range_bearing(poses[k], landmarks[c], len(run) * landmark_covs[c], sigmas)
+                    )
+        return belief_reference(A, Q, P0, meas)
+
+    def margins(P: FloatArray) -> FloatArray:
+        z = np.full(K, np.inf)
+        for k in range(K):
+            if np.isfinite(margin[k]):
+                z[k] = margin[k] / np.sqrt(normals[k] @ P[k, :2, :2] @ normals[k])
+        return z
+
     chosen: list[int] = []
-
-    def refresh(ts: npt.NDArray[np.int64]) -> None:
-        for t in ts:
-            ls = [l_ for l_ in chosen if visible[t, l_]]
-            if ls:
-                sig[t] = stabilised_covariance(
-                    Q,
-                    [
-                        planar_range_bearing(poses[t], landmarks[l_], landmark_covs[l_], bearing_range_sigmas)
-                        for l_ in ls
-                    ],
-                )
-                localised[t] = True
-
-    cov = dead_reckoning_covariances(sig, localised, Q, cap_steps)
-    risk0 = collision_risk(cov, clearance, normals, [0, 1])
+    P = belief(chosen)
+    z = margins(P)
+    risk0 = norm.sf(z)
     if st in ("no_landmarks", "budget_zero"):
         return LandmarkSelection([], [], st, {"risk_before": risk0, "risk_after": risk0})
-    budget = min(budget, L)
-    risk = risk0
     scores: list[float] = []
-    for _ in range(budget):
-        available = visible & ~np.isin(np.arange(L), chosen)[None, :]
-        cand_poses = np.flatnonzero(available.any(axis=1))
-        if len(cand_poses) == 0:  # remaining landmarks are seen from nowhere: append by index
-            rest = [l_ for l_ in range(L) if l_ not in chosen]
-            chosen.append(rest[0])
-            scores.append(float(risk.max()))
-            continue
-        t = cand_poses[np.argmax(risk[cand_poses])]
-        # among the landmarks seen from the riskiest pose, the one that lowers its risk most
-        best: tuple[float, int] | None = None
-        for l_ in np.flatnonzero(available[t]):
-            ls = [x for x in chosen if visible[t, x]] + [int(l_)]
-            s = stabilised_covariance(
-                Q, [planar_range_bearing(poses[t], landmarks[x], landmark_covs[x], bearing_range_sigmas) for x in ls]
-            )
-            p = halfplane_collision_probability(s[:2, :2], normals[t], clearance[t])
-            if best is None or p < best[0]:
-                best = (p, int(l_))
-        assert best is not None
-        chosen.append(best[1])
-        refresh(np.flatnonzero(visible[:, best[1]]))
-        cov = dead_reckoning_covariances(sig, localised, Q, cap_steps)
-        risk = collision_risk(cov, clearance, normals, [0, 1])
-        scores.append(float(risk.max()))
-    maha = np.array([mahalanobis_to_obstacle(cov[t, :2, :2], clearance[t] * normals[t]) for t in range(T)])
-    return LandmarkSelection(
-        chosen,
-        scores,
-        st or "ok",
-        {"risk_before": risk0, "risk_after": risk, "sigma_after": cov, "mahalanobis_after": maha},
-    )
+    for _ in range(min(budget, L)):
+        localised = np.array([any(visible[k, c] for c in chosen) for k in range(K)])
+        best_step, best_cands = None, []
+        for k in np.argsort(z, kind="stable"):
+            if not np.isfinite(z[k]):
+                break
+            last = max([j for j in range(k + 1) if localised[j]], default=0)
+            cands = [c for c in range(L) if c not in chosen and visible[last : k + 1, c].any()]
+            if cands:
+                best_step, best_cands = int(k), cands
+                break
+        if best_step is None:
+            pick = next(c for c in range(L) if c not in chosen)
+        else:
+            keyed = []
+            for c in best_cands:
+                zc = margins(belief([*chosen, c]))
+                fin = np.isfinite(zc)
+                keyed.append(
+                    (-round(float(zc[best_step]), 9), -float(zc[fin].min()), float(norm.logsf(zc[fin]).sum()), c)
+                )
+            pick = min(keyed)[3]
+        chosen.append(pick)
+        P = belief(chosen)
+        z = margins(P)
+        scores.append(float(norm.sf(z.min())))
+    return LandmarkSelection(chosen, scores, st or "ok", {"risk_before": risk0, "risk_after": norm.sf(z), "z_after": z})

@@ -76,7 +76,8 @@ def test_every_case_is_in_the_table(evaluated) -> None:
         for col in ("focused_nees", "focused_error_aligned_m", "oracle_focused_error_m", "kept_tag_nees"):
             assert math.isfinite(r[col]), col
         assert r["tight_margin_m"] > 0 and r["margin_sigmas"] > 0 and r["risk_margin_sigmas"] > 0
-        assert 0.0 <= r["collision_rate_aligned"] <= 1.0
+        # the trials' filter (Schmidt, the map's joint covariance considered) is consistent: NEES per dof near 1
+        assert 0.2 < r["navigation_nees"] < 3.0, (r["case"], r["navigation_nees"])
 
 
 def test_report_figures_summary_and_recording(evaluated) -> None:

@@ -67,7 +67,7 @@ def test_seed_summary_counts_wins(tmp_path) -> None:
     line = next(x for x in md.splitlines() if x.startswith("| focus_ds |"))
     cells = dict(zip([c.strip() for c in head.split("|")], [c.strip() for c in line.split("|")], strict=True))
     assert cells["focused_entropy"] == "1/2" and cells["collision_rate"] == "2/2"
-    assert cells["collision_rate_aligned"] == "0/0"  # not in these tables
+    assert cells["max_collision_probability"] == "0/0"  # not in these tables
 
 
 def test_rigid_alignment_recovers_the_motion() -> None:

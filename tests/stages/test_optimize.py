@@ -69,7 +69,7 @@ def write_selection(run: RunFolder, tag_ids: list[int], factor_indices: list[int
         n_landmarks=len(tag_ids),
         seconds=0.0,
         settings=SelectLandmarksConfig(),
-        noise=RiskNoise(bearing_sigma_rad=0.02, range_sigma_m=0.05, odometry_sigma_m=0.02, odometry_sigma_rad=0.01),
+        noise=RiskNoise(bearing_sigma_rad=0.02, range_sigma_m=0.05, speed_sigma_mps=0.05, yaw_rate_sigma_radps=0.05),
     )
     FOCUSED.write(StageOutput(run.stage_dir("select_landmarks")), focused)
     selected = {"factor_index": factor_indices, "step": list(range(n)), "gain": [np.nan] * n, "tag_id": [0] * n}

@@ -113,13 +113,15 @@ def test_collision_focuses_on_corridor_and_door(inputs: LandmarkInputs) -> None:
     for strategy in ("collision", "uniform", "random"):
         c = choose(inputs, SelectLandmarksConfig(strategy=strategy, budget=budget))
         assert c.risk_focused is not None
-        results[strategy] = (np.mean([region[t] != "room" for t in c.tag_ids]), c.risk_focused.max, c.risk_focused.mean)
+        share = np.mean([region[t] != "room" for t in c.tag_ids])
+        results[strategy] = (share, c.risk_focused.max, c.risk_focused.min_z)
     print(f"\nshare of corridor+door: all landmarks {share_all:.2f} ({len(all_tags)})")
-    for k, (share, mx, mean) in results.items():
-        print(f"{k:10s} budget {budget}: share {share:.2f}  max P {mx:.3g}  mean P {mean:.3g}")
-    assert results["collision"][0] >= 1.5 * share_all
-    assert results["collision"][1] < results["uniform"][1]
-    assert results["collision"][1] < results["random"][1]
+    for k, (share, mx, z) in results.items():
+        print(f"{k:10s} budget {budget}: share {share:.2f}  max P {mx:.3g}  smallest margin {z:.1f} sigma")
+    assert results["collision"][0] > max(share_all, results["uniform"][0], results["random"][0])
+    # the riskiest step's margin in sigma (P = Phi(-z) underflows here): collision's is the widest
+    assert results["collision"][2] > results["uniform"][2]
+    assert results["collision"][2] > results["random"][2]
 
 
 def test_budget_edges(office_run: Path, tmp_path: Path) -> None:
@@ -198,46 +200,41 @@ def test_import_graph_run(office_run: Path, tmp_path: Path) -> None:
     assert json.loads((run.stage_dir("select_landmarks") / "focused.json").read_text())["strategy"] == "uniform"
 
 
-def test_batched_sigma_star_and_greedy_equal_the_reference(inputs: LandmarkInputs) -> None:
-    """The batched doubling Σ* equals the per-pose DARE reference; Alg. 2 picks as the reference does."""
-    from stages.estimation.collision import measurement_information, planar_range_bearing, stabilised_covariances
+def test_alg2_on_the_sample_equals_the_reference(inputs: LandmarkInputs) -> None:
+    """Alg. 2 on the sample's path (the robot model's steps, the recording's visibility and laser margins) picks as
+    the one-candidate-at-a-time Kalman reference does; the local covariances are never wider than the marginals."""
+    from stages.risk import step_margins
     from stages.select_landmarks.core import collision_greedy
-    from tests.oracles.collision import select_collision_reference, stabilised_covariance
+    from tests.oracles.collision import select_collision_reference
 
-    geo, lm, params = inputs.geometry, inputs.landmarks, inputs.params
-    rng = np.random.default_rng(0)
-    J, ref = [], []
-    for t in rng.choice(len(geo.poses), 40, replace=False):
-        rows = sorted(rng.choice(len(lm.tag_ids), int(rng.integers(1, 5)), replace=False).tolist())
-        H_R = [planar_range_bearing(geo.poses[t], lm.positions[r], lm.covariances[r], geo.sigmas) for r in rows]
-        ref.append(stabilised_covariance(geo.Q, H_R, params.cap_steps))
-        J.append(measurement_information(geo.poses[t], lm.positions[rows], lm.covariances[rows], geo.sigmas))
-    S = stabilised_covariances(geo.Q, np.array(J), params.cap_steps)
-    for a, b in zip(S, ref, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-12 * np.abs(b).max())
-    # Alg. 2 on the first 150 keyframes of the sample
-    n = 150
-    sub = dataclasses.replace(
-        geo,
-        stamps_ns=geo.stamps_ns[:n],
-        poses=geo.poses[:n],
-        clearance_m=geo.clearance_m[:n],
-        normals=geo.normals[:n],
-        obstacles=geo.obstacles[:n],
-        visible=geo.visible[:n],
-    )
-    fast = collision_greedy(sub, lm, 6, params)
+    geo, params = inputs.geometry, inputs.params
+    lm = dataclasses.replace(inputs.landmarks, local=None, joint=None)
+    fast = collision_greedy(geo, lm, 3, params)
+    col = {int(t): c for c, t in enumerate(geo.tag_ids)}
+    visible = geo.visible[geo.steps.keyframe][:, [col[int(t)] for t in lm.tag_ids]]
+    margin, normals = step_margins(geo, params)
     slow = select_collision_reference(
-        sub.poses,
+        geo.noise.A,
+        geo.noise.Q,
+        geo.noise.P0,
+        geo.steps.poses,
         lm.positions,
         lm.covariances,
-        sub.visible,
-        sub.margin(params),
-        sub.normals,
-        sub.Q,
-        6,
-        sub.sigmas,
-        params.cap_steps,
+        visible,
+        margin,
+        normals,
+        3,
+        geo.sigmas,
     )
     assert fast.picks == slow.picks
-    np.testing.assert_allclose(fast.scores, slow.scores, rtol=1e-6)
+    np.testing.assert_allclose(fast.extra["z_after"], slow.extra["z_after"], rtol=1e-6)
+    local = inputs.landmarks
+    assert local.local is not None and local.joint is not None
+    ok = np.isfinite(local.local).all(axis=(2, 3))
+    assert ok.any()
+    t, r = np.nonzero(ok)
+    tr_local = np.trace(local.local[t, r], axis1=1, axis2=2)
+    tr_marg = np.trace(local.covariances[r], axis1=1, axis2=2)
+    print(f"local / marginal trace: median {np.median(tr_local / tr_marg):.3f}")
+    assert np.all(tr_local <= tr_marg * (1 + 1e-6))  # conditioning never adds uncertainty
+    assert np.median(tr_local / tr_marg) < 0.9
