@@ -131,7 +131,8 @@ def test_the_ground_truth_file_appearing_or_changing_reruns_its_readers(make_run
     run = make_run()
     assert summary(run, "evaluate")["reference"] == "optimal"
     truth_key = str((tmp_path / "run.ground_truth.json").resolve())
-    assert run.stage_entry("evaluate")["outside_files"] == {truth_key: None}  # looked for, absent
+    yaml_key = str((tmp_path / "run.truth.yaml").resolve())
+    assert run.stage_entry("evaluate")["outside_files"] == {truth_key: None, yaml_key: None}  # looked for, absent
     truth = tmp_path / "run.ground_truth.json"
     readers = {**dict.fromkeys(STAGES, "skipped"), "optimize": "done", "evaluate": "done"}
     write_ground_truth(sim, truth)
