@@ -88,6 +88,35 @@ COLLISION_CI_LOW_ALIGNED = _f64("collision_ci_low_aligned", "its 95 % interval, 
 COLLISION_CI_HIGH_ALIGNED = _f64("collision_ci_high_aligned", "its 95 % interval, high end")
 RMS_TRACKING_ERROR_ALIGNED_M = _f64("rms_tracking_error_aligned_m", "RMS tracking error with the aligned map, m")
 RISK_MARGIN_SIGMAS = _f64("risk_margin_sigmas", "Φ⁻¹(1 − max P): the risk model's margin in σ at its riskiest keyframe")
+# the entropy split and the risk model against the simulation (stages/evaluate/risk_check.py)
+UNOBSERVED_FOCUSED = _i64(
+    "unobserved_focused_landmarks", "collision-focused landmarks the case keeps no measurement of"
+)
+FOCUSED_ENTROPY_PRIOR = _f64(
+    "focused_entropy_prior",
+    "the part of `focused_entropy` set by the prior of the unobserved focused landmarks, nats "
+    "(`focused_entropy` = `focused_entropy_observed` + this)",
+)
+PREDICTED_COLLISION_LOW = _f64(
+    "predicted_collision_low", "the risk model's path collision probability, lower bound: max over keyframes of P"
+)
+PREDICTED_COLLISION_HIGH = _f64(
+    "predicted_collision_high", "the same, upper (union) bound: min(1, sum over keyframes of P)"
+)
+RISK_DISAGREES = Column(
+    "risk_disagrees",
+    pa.bool_(),
+    "the simulated collision rate's 95 % interval lies more than 10× outside [predicted_collision_low, "
+    "predicted_collision_high] (null: no trials or no risk)",
+)
+CHECK_COLUMNS: Final = (
+    UNOBSERVED_FOCUSED,
+    FOCUSED_ENTROPY_PRIOR,
+    PREDICTED_COLLISION_LOW,
+    PREDICTED_COLLISION_HIGH,
+    RISK_DISAGREES,
+)
+"""Columns filled after the cases ran (:func:`stages.evaluate.risk_check.check_columns`)."""
 
 WHY_COLUMNS: Final = (
     FOCUSED_ERROR_ALIGNED_M,
@@ -150,6 +179,7 @@ CASES: Final = TableSpec(
         *MARGIN_COLUMNS,
         *ALIGNED_COLUMNS,
         RISK_MARGIN_SIGMAS,
+        *CHECK_COLUMNS,
     ],
 )
 
