@@ -286,7 +286,7 @@ def risk_check_line(row: dict[str, Any]) -> str:
         side = direction(low, high, row["collision_ci_low"], row["collision_ci_high"])
         verdict = f"**DISAGREE**: the simulated rate is more than {FACTOR:g}x {side} the prediction"
     else:
-        verdict = f"agree within {FACTOR:g}x"
+        verdict = f"consistent (the interval reaches within {FACTOR:g}x of the bracket)"
     return f"- {row[LABEL]}: {predicted}; {rate}: {verdict}"
 
 

@@ -125,7 +125,7 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
     lines = [line for line in section.splitlines() if line.startswith("- ")]
     assert len(lines) == len(TABLE_I) + 1
     assert all("predicted P(collision on the path) in [" in line and "simulated " in line for line in lines)
-    assert all(("agree within 10x" in line) != ("DISAGREE" in line) for line in lines)
+    assert all(("consistent (the interval reaches within 10x" in line) != ("DISAGREE" in line) for line in lines)
     assert "data:image/png;base64," in (out / "report.html").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["headline"]["case"] == "focus_info" and summary["alpha"] == 5 and summary["K"] == 15
