@@ -44,6 +44,7 @@ from cli.options import (
     StrictOpt,
 )
 from pipeline.errors import InputError, PipelineError, one_line, write_error
+from pipeline.stage import run_options
 
 if TYPE_CHECKING:
     from typer._click import Context as _VendoredContext
@@ -79,12 +80,10 @@ def _option_setting(err: BadParameter) -> str:
     """`` (setting SECTION.KEY)`` when the bad value was given to a stage option, else empty."""
     command = err.ctx.info_name if err.ctx is not None else None
     name = err.param.name if err.param is not None else None
-    stages = [s for s in _registry() if s.command == command] or _source_stages(_registry())
-    for stage in stages:
-        for option in stage.options:
-            if _param_name(option) == name:
-                return f" (setting {stage.name}.{option.key})"
-    return ""
+    stages = [s for s in _registry() if s.command == command]
+    options = [(s.name, o) for s in stages for o in s.options] if stages else run_options(_registry())
+    settings = [f"{section}.{option.key}" for section, option in options if _param_name(option) == name]
+    return f" (setting {', '.join(settings)})" if settings else ""
 
 
 app = typer.Typer(
@@ -304,14 +303,19 @@ def _param_name(option: Option) -> str:
     return option.flag.lstrip("-").replace("-", "_")
 
 
-def _overrides(stages: Iterable[AnyStage], given: Mapping[str, object]) -> list[str]:
-    """The ``--set`` overrides of the stage options given on the command line."""
+def _stage_options(stage: AnyStage) -> list[tuple[str, Option]]:
+    """A stage command's options, as ``(section, option)``."""
+    return [(stage.name, o) for o in stage.options]
+
+
+def _overrides(options: Iterable[tuple[str, Option]], given: Mapping[str, object]) -> list[str]:
+    """The ``--set`` overrides of the stage options given on the command line (a flag shared by several stages
+    sets the key of each)."""
     out = []
-    for stage in stages:
-        for option in stage.options:
-            override = option.override(stage.name, given.get(_param_name(option)))
-            if override is not None:
-                out.append(override)
+    for section, option in options:
+        override = option.override(section, given.get(_param_name(option)))
+        if override is not None:
+            out.append(override)
     return out
 
 
@@ -329,19 +333,20 @@ def _option_parameter(option: Option) -> inspect.Parameter:
 
 
 def _with_options(
-    func: Callable[..., None], stages: Iterable[AnyStage], after: str | None = None
+    func: Callable[..., None], options: Iterable[tuple[str, Option]], after: str | None = None
 ) -> Callable[..., None]:
-    """``func`` with its ``**options`` replaced by the options of ``stages``, as typer parameters.
+    """``func`` with its ``**options`` replaced by stage ``options`` (``(section, option)``), as typer parameters.
 
     The options go right after the parameter ``after`` (at the end when None); ``func`` gets them in
-    ``**options``, by parameter name.
+    ``**options``, by parameter name. A flag several stages share is one parameter.
     """
     fixed = [
         p.replace(kind=inspect.Parameter.KEYWORD_ONLY)
         for p in inspect.signature(func, eval_str=True).parameters.values()
         if p.kind is not inspect.Parameter.VAR_KEYWORD
     ]
-    extra = [_option_parameter(o) for s in stages for o in s.options]
+    unique = {_param_name(o): o for _, o in options}
+    extra = [_option_parameter(o) for o in unique.values()]
     clash = {p.name for p in fixed} & {p.name for p in extra}
     if clash:
         raise ValueError(f"stage options {sorted(clash)} clash with the parameters of {func.__name__}")
@@ -371,11 +376,11 @@ def _stage_command(stage: AnyStage) -> None:
             reset: ResetOpt = False,
             **options: object,
         ) -> None:
-            overrides = _overrides([stage], options)
+            overrides = _overrides(_stage_options(stage), options)
             settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, [stage.name])
             _run_on_bag(bag, out, name, [stage.name], settings, force)
 
-        command = _with_options(handled(on_source), [stage])
+        command = _with_options(handled(on_source), _stage_options(stage))
     else:
 
         def on_run_folder(
@@ -386,13 +391,13 @@ def _stage_command(stage: AnyStage) -> None:
             reset: ResetOpt = False,
             **options: object,
         ) -> None:
-            overrides = _overrides([stage], options)
+            overrides = _overrides(_stage_options(stage), options)
             with _locked_run(run_dir) as run:
                 settings = _settings(config, set_, overrides, run.path, reset, [stage.name])
                 results = _run_stages(run, [stage.name], settings, force)
             _print_headline(results)  # evaluate: its report's path and headline row, as run prints them
 
-        command = _with_options(handled(on_run_folder), [stage], after="run_dir")
+        command = _with_options(handled(on_run_folder), _stage_options(stage), after="run_dir")
     help_text = stage.help or f"Run the {stage.command} stage on a run folder."
     command.__doc__ = help_text
     app.command(name=stage.command, help=help_text)(command)
@@ -489,7 +494,7 @@ def run_pipeline(
     """Run the stages in order on a recording, skipping those whose inputs and settings have not changed."""
     registry = _registry()
     stages = [s.name for s in registry.between(start_stage, until)]
-    overrides = _overrides(_source_stages(registry), options) + _strict_overrides(registry, strict)
+    overrides = _overrides(run_options(registry), options) + _strict_overrides(registry, strict)
     settings = _settings(config, set_, overrides, out / _run_name(bag, name), reset, stages)
     run, results = _run_on_bag(bag, out, name, stages, settings, force)
     _print_headline(results)
@@ -501,12 +506,7 @@ def _strict_overrides(registry: Registry, strict: bool) -> list[str]:
     return [f"{s.name}.strict=true" for s in registry if strict and any(o.key == "strict" for o in s.options)]
 
 
-def _source_stages(registry: Registry) -> list[AnyStage]:
-    """The stages that read the recording: ``focusmap run`` takes their options."""
-    return [s for s in registry if s.needs_source]
-
-
-app.command(name="run")(_with_options(handled(run_pipeline), _source_stages(_registry())))
+app.command(name="run")(_with_options(handled(run_pipeline), run_options(_registry())))
 
 
 def _print_headline(results: list[StageResult]) -> None:

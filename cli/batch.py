@@ -90,7 +90,7 @@ def batch(
     """Run the pipeline over many recordings: one run folder each, a summary table, resumable."""
     from rich.console import Console
 
-    from cli.app import _overrides, _source_stages, _strict_overrides
+    from cli.app import _overrides, _strict_overrides
     from pipeline.batch import (
         collect_recordings,
         plan_tasks,
@@ -104,11 +104,12 @@ def batch(
     from pipeline.config import load_settings
     from pipeline.errors import InputError
     from pipeline.progress import terminal
+    from pipeline.stage import run_options
     from stages import REGISTRY
 
     if not recordings and batch_file is None:
         raise InputError("no recordings given; pass bag files, ROS 2 bag folders, glob patterns or --file FILE")
-    overrides = _overrides(_source_stages(REGISTRY), options) + _strict_overrides(REGISTRY, strict)
+    overrides = _overrides(run_options(REGISTRY), options) + _strict_overrides(REGISTRY, strict)
     settings = load_settings(REGISTRY.models(), config, [*(set_ or []), *overrides])
     stages = [s.name for s in REGISTRY.between(start_stage, until)]
     entries: list[BatchEntry] = [BatchEntry(r) for r in collect_recordings(recordings)] if recordings else []
@@ -154,6 +155,7 @@ def _cores() -> int:
 def register(app: typer.Typer) -> None:
     """Add the ``batch`` command to the focusmap application."""
     # cli.app calls register() at its end, after defining these; batch takes run's input options (--camera, ...)
-    from cli.app import _registry, _source_stages, _with_options, handled
+    from cli.app import _registry, _with_options, handled
+    from pipeline.stage import run_options
 
-    app.command(name="batch", help=BATCH_HELP)(_with_options(handled(batch), _source_stages(_registry())))
+    app.command(name="batch", help=BATCH_HELP)(_with_options(handled(batch), run_options(_registry())))

@@ -9,13 +9,15 @@ columns (CSV) of an entry are:
 - ``name``: its run folder's name (default: chosen by :func:`pipeline.batch.run_names`);
 - ``config``: a YAML settings file layered over the batch's ``--config`` and ``--set``;
 - the input options of ``focusmap run``, by flag without the dashes (``camera``, ``start``, ``end``,
-  ``stride``, ``salvage``: the options of the stages that read the recording, taken from the registry);
+  ``stride``, ``salvage``, ``truth``: the options of the stages that read the recording and those other stages
+  share with run, taken from the registry);
 - ``SECTION.KEY``: any setting, as ``--set SECTION.KEY=VALUE`` takes it (``detect.tag_size_m``); in
   YAML a section may also be a nested mapping (``detect: {tag_size_m: 0.2}``).
 
-An empty value (an empty CSV cell) leaves the key unset. Relative paths (recording, config, camera) are
-relative to the batch file's folder. An entry's settings are the batch's (defaults, ``--config``,
-``--set`` and the command's options), then the entry's ``config``, then its options and settings.
+An empty value (an empty CSV cell) leaves the key unset. Relative paths (recording, config, and path options
+such as camera and truth) are relative to the batch file's folder. An entry's settings are the batch's
+(defaults, ``--config``, ``--set`` and the command's options), then the entry's ``config``, then its options
+and settings.
 
 The whole file is checked when it is loaded, before anything runs: every problem (an unknown key, a
 missing recording, a bad value, a duplicate name) is one line of :class:`BatchFileError`.
@@ -35,7 +37,7 @@ from pipeline.config import SHARED_SECTIONS, Settings, load_settings
 from pipeline.errors import ConfigError, InputError
 from pipeline.registry import Registry
 from pipeline.run_folder import check_run_name
-from pipeline.stage import Option
+from pipeline.stage import Option, run_options
 
 RECORDING: Final = "recording"
 NAME: Final = "name"
@@ -69,9 +71,13 @@ class BatchEntry:
     where: str = ""
 
 
-def _options(registry: Registry) -> dict[str, tuple[str, Option]]:
-    """The input options of ``focusmap run`` by entry key (``camera``): the options of the stages reading the source."""
-    return {o.flag.lstrip("-"): (s.name, o) for s in registry if s.needs_source for o in s.options}
+def _options(registry: Registry) -> dict[str, list[tuple[str, Option]]]:
+    """The options of ``focusmap run`` by entry key (``camera``, ``truth``): the options of the stages reading the
+    source and those other stages share with run; a key several stages share sets the setting of each."""
+    out: dict[str, list[tuple[str, Option]]] = {}
+    for section, option in run_options(registry):
+        out.setdefault(option.flag.lstrip("-"), []).append((section, option))
+    return out
 
 
 def _nearest(key: str, choices: Iterable[str]) -> str:
@@ -186,14 +192,14 @@ def _entry(
         if key in (RECORDING, NAME, CONFIG):
             continue
         if key in options:
-            section, option = options[key]
-            try:
-                override = option.override(section, _option_value(option, value, folder))
-            except (ValueError, InputError) as err:
-                found.append(f"{key}: {err}")
-                continue
-            if override is not None:
-                overrides.append(override)
+            for section, option in options[key]:
+                try:
+                    override = option.override(section, _option_value(option, value, folder))
+                except (ValueError, InputError) as err:
+                    found.append(f"{key}: {err}")
+                    break
+                if override is not None:
+                    overrides.append(override)
             continue
         problem = _key_problem(key, registry)
         if problem is not None:

@@ -12,7 +12,7 @@ its command's options, the line printed after it ran and, for a report, what ``f
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Generic, TypeAlias, TypeVar
 
@@ -31,7 +31,17 @@ Summary: TypeAlias = JSONObject
 
 C = TypeVar("C", bound=BaseModel)
 
-__all__ = ["AnyStage", "JSONValue", "Option", "Stage", "Summary", "lazy", "summary_figures", "summary_notes"]
+__all__ = [
+    "AnyStage",
+    "JSONValue",
+    "Option",
+    "Stage",
+    "Summary",
+    "lazy",
+    "run_options",
+    "summary_figures",
+    "summary_notes",
+]
 
 
 @dataclass(frozen=True)
@@ -47,6 +57,9 @@ class Option:
         min: smallest accepted value (numbers).
         value: turns the given value into the YAML text of the setting (default ``str(value)``); may raise
             :class:`~pipeline.errors.InputError` for a value the user can fix.
+        on_run: also an option of ``focusmap run`` and ``batch`` (and a key of a batch file's entries), though the
+            stage does not read the recording; stages that declare the same flag share it there: one value sets
+            the key of each (:func:`run_options`).
     """
 
     flag: str
@@ -55,6 +68,7 @@ class Option:
     kind: type = str
     min: float | None = None
     value: Callable[[Any], str] | None = None  # takes a value of type ``kind``, which only the option knows
+    on_run: bool = False
 
     def override(self, section: str, given: object) -> str | None:
         """The ``SECTION.KEY=VALUE`` override for a given value, None when the option was not given."""
@@ -62,6 +76,12 @@ class Option:
             return None
         text = self.value(given) if self.value is not None else ("true" if given is True else str(given))
         return f"{section}.{self.key}={text}"
+
+
+def run_options(stages: Iterable[AnyStage]) -> list[tuple[str, Option]]:
+    """The options of ``focusmap run`` and ``batch`` as ``(stage name, option)``: every option of the stages that
+    read the recording, and the options other stages mark ``on_run`` (one flag may appear for several stages)."""
+    return [(s.name, o) for s in stages for o in s.options if s.needs_source or o.on_run]
 
 
 def summary_figures(summary: Summary, hidden: Sequence[str] = ("seconds", "notes"), limit: int = 6) -> str:

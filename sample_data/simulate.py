@@ -38,7 +38,9 @@ camera model is pinhole with plumb_bob (k1, k2, p1, p2, k3) distortion, as
 Ground truth goes beside the bag as ``<name>.ground_truth.json`` where ``<name>`` is the
 bag file's stem (``office.bag`` -> ``office.ground_truth.json``, ``run.mcap`` ->
 ``run.ground_truth.json``) or the ROS 2 folder's name (``run/`` ->
-``run.ground_truth.json`` in the folder's parent); see :func:`ground_truth_path`.
+``run.ground_truth.json`` in the folder's parent); see :func:`ground_truth_path`. The walls, tags and
+true poses also go beside it as ``<name>.truth.yaml`` and ``<name>.truth.tum``, focusmap's hand-writable
+ground-truth format (:func:`write_truth_yaml`, ``docs/evaluate.md``).
 
 Usage::
 
@@ -1470,6 +1472,42 @@ def write_ground_truth(rec: Recording, path: Path) -> Path:
     return path
 
 
+def truth_yaml_paths(bag: Path) -> tuple[Path, Path]:
+    """Where the ground truth of ``bag`` goes in focusmap's hand-writable format: ``<name>.truth.yaml`` and the
+    ``<name>.truth.tum`` it names (``<name>`` as in :func:`ground_truth_path`)."""
+    json_path = ground_truth_path(bag)
+    name = json_path.name.removesuffix(".ground_truth.json")
+    return json_path.with_name(f"{name}.truth.yaml"), json_path.with_name(f"{name}.truth.tum")
+
+
+def write_truth_yaml(rec: Recording, yaml_path: Path, tum_path: Path) -> Path:
+    """Write the walls, tags and true poses of ``rec`` as a truth YAML (tags and walls inline) and a TUM file.
+
+    The format is focusmap's ground-truth file (``docs/evaluate.md``, "Ground truth file"): what a user writes by
+    hand for their own recording. The numbers are those of the JSON, so both read as the same truth.
+    """
+    gt = rec.ground_truth
+    lines = [
+        f"# Ground truth of a simulated recording (seed {gt.get('seed')}); docs/evaluate.md, 'Ground truth file'.",
+        "frame: world  # z up, origin on the floor at the room's south-west corner",
+        f"poses: {tum_path.name}  # TUM: stamp_s x y z qx qy qz qw, the base_link in world",
+        "tags:  # id x y z, m (tag centres)",
+        *(f"  - {json.dumps([int(t['id']), *[float(v) for v in t['position']]])}" for t in gt["tags"]),
+        "walls:  # x0 y0 x1 y1, m",
+        *(f"  - {json.dumps([float(v) for v in w])}" for w in gt["world"]["walls"]),
+    ]
+    yaml_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    tum = ["# stamp_s x y z qx qy qz qw"]
+    for p in gt["poses"]:
+        ns, half = int(p["stamp_ns"]), float(p["yaw"]) / 2
+        tum.append(
+            f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} {float(p['x'])!r} {float(p['y'])!r} 0.0 "
+            f"0.0 0.0 {math.sin(half)!r} {math.cos(half)!r}"
+        )
+    tum_path.write_text("\n".join(tum) + "\n", encoding="utf-8")
+    return yaml_path
+
+
 def write_bag(
     rec: Recording,
     path: Path,
@@ -1478,7 +1516,8 @@ def write_bag(
     *,
     overwrite: bool = False,
 ) -> Path:
-    """Write a recording as a bag and its ground truth beside it (:func:`ground_truth_path`).
+    """Write a recording as a bag and its ground truth beside it: the JSON (:func:`ground_truth_path`) and the
+    same truth as focusmap's truth YAML with its TUM poses (:func:`truth_yaml_paths`).
 
     Args:
         rec: the simulated recording.
@@ -1524,6 +1563,7 @@ def write_bag(
             (mcap_file,) = folder.glob("*.mcap")
             shutil.move(mcap_file, path)
     write_ground_truth(rec, ground_truth_path(path))
+    write_truth_yaml(rec, *truth_yaml_paths(path))
     return path
 
 
@@ -1587,7 +1627,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileExistsError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    print(f"wrote {out} and {ground_truth_path(out)}")
+    print(f"wrote {out}, {ground_truth_path(out)} and {truth_yaml_paths(out)[0]} (+ .tum)")
     for topic, n in rec.counts().items():
         print(f"  {topic}: {n}")
     return 0

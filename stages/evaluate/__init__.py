@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Final
 from pipeline.lazy import lazy_exports
 from pipeline.stage import Stage, Summary, lazy
 from stages.evaluate.config import EvaluateConfig
+from stages.optimize import TRUTH
 
 if TYPE_CHECKING:
     from stages.evaluate.cases import TABLE_I, Case, CaseResult, EvalInputs, cases_table, run_all, run_case
@@ -50,8 +51,15 @@ def report_lines(summary: Summary) -> list[str]:
             value = head.get(key)
             return float(value) if isinstance(value, int | float) else float("nan")
 
+        unobserved = head.get("unobserved_focused_landmarks")
+        split = (
+            f" ({num('focused_entropy_observed'):.1f} observed + {num('focused_entropy_prior'):.1f} prior of "
+            f"{unobserved} unobserved)"
+            if isinstance(unobserved, int) and unobserved > 0
+            else ""
+        )
         lines.append(
-            f"headline ({head.get('case')}): focused entropy {num('focused_entropy'):.1f} nats, "
+            f"headline ({head.get('case')}): focused entropy {num('focused_entropy'):.1f} nats{split}, "
             f"focused error {100 * num('focused_error_m'):.1f} cm, "
             f"max P(collision) {num('max_collision_probability'):.2g}, "
             f"collision rate {num('collision_rate'):.3f} "
@@ -70,6 +78,7 @@ STAGE: Final = Stage(
     blueprint=blueprint,
     help="Compare the six cases of Mu et al. Table I (and other strategy pairs), navigate on each map, report.",
     report_lines=report_lines,
+    options=(TRUTH,),
 )
 
 __all__ = [

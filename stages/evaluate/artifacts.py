@@ -90,6 +90,35 @@ NAVIGATION_NEES = _f64(
 RISK_MARGIN_SIGMAS = _f64(
     "risk_margin_sigmas", "the risk model's smallest margin in σ along the path (z, P = Φ(−z); does not underflow)"
 )
+# the entropy split and the risk model against the simulation (stages/evaluate/risk_check.py)
+UNOBSERVED_FOCUSED = _i64(
+    "unobserved_focused_landmarks", "collision-focused landmarks the case keeps no measurement of"
+)
+FOCUSED_ENTROPY_PRIOR = _f64(
+    "focused_entropy_prior",
+    "the part of `focused_entropy` set by the prior of the unobserved focused landmarks, nats "
+    "(`focused_entropy` = `focused_entropy_observed` + this)",
+)
+PREDICTED_COLLISION_LOW = _f64(
+    "predicted_collision_low", "the risk model's path collision probability, lower bound: max over keyframes of P"
+)
+PREDICTED_COLLISION_HIGH = _f64(
+    "predicted_collision_high", "the same, upper (union) bound: min(1, sum over keyframes of P)"
+)
+RISK_DISAGREES = Column(
+    "risk_disagrees",
+    pa.bool_(),
+    "the simulated collision rate's 95 % interval lies more than 10× outside [predicted_collision_low, "
+    "predicted_collision_high] (null: no trials or no risk)",
+)
+CHECK_COLUMNS: Final = (
+    UNOBSERVED_FOCUSED,
+    FOCUSED_ENTROPY_PRIOR,
+    PREDICTED_COLLISION_LOW,
+    PREDICTED_COLLISION_HIGH,
+    RISK_DISAGREES,
+)
+"""Columns filled after the cases ran (:func:`stages.evaluate.risk_check.check_columns`)."""
 
 WHY_COLUMNS: Final = (
     FOCUSED_ERROR_ALIGNED_M,
@@ -144,6 +173,7 @@ CASES: Final = TableSpec(
         *MARGIN_COLUMNS,
         NAVIGATION_NEES,
         RISK_MARGIN_SIGMAS,
+        *CHECK_COLUMNS,
     ],
 )
 

@@ -223,7 +223,7 @@ class EvalInputs:
 
     def reference_positions(self, optimal: ReducedMap | None) -> tuple[dict[int, FloatArray], str]:
         """Where landmarks really are: the ground truth, else case 1's map."""
-        if self.truth is not None:
+        if self.truth is not None and self.truth.has_tags:
             return dict(self.truth.tags), "ground_truth"
         lmap = optimal.landmark_map if optimal is not None else self.landmarks.landmarks
         return dict(zip(lmap.tag_ids.tolist(), lmap.positions, strict=True)), "optimal"
@@ -271,7 +271,7 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
     cfg = inputs.cfg
     geo = inputs.landmarks.geometry
     stamps = np.asarray(geo.stamps_ns, dtype=np.int64)
-    poses = inputs.truth.pose_at(stamps) if inputs.truth is not None else geo.poses
+    poses = inputs.truth.pose_at(stamps) if inputs.truth is not None and inputs.truth.has_poses else geo.poses
     world_path = nominal_path(stamps, poses, geo.robot.control_period_s)
     radius = inputs.risk_params.robot_radius_m
     robot = dataclasses.replace(geo.robot, robot_radius_m=radius)
@@ -283,14 +283,15 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
         lqr_speed_weight=cfg.lqr_control_weight,
         lqr_yaw_rate_weight=cfg.lqr_control_weight,
     )
-    use_truth = cfg.walls == "ground_truth" or (cfg.walls == "auto" and inputs.truth is not None)
+    true_walls = inputs.truth.walls if inputs.truth is not None and inputs.truth.has_walls else None
+    use_truth = cfg.walls == "ground_truth" or (cfg.walls == "auto" and true_walls is not None)
     if use_truth:
-        if inputs.truth is None:
+        if true_walls is None:
             raise StageError(
-                "evaluate.walls=ground_truth but the run has no <name>.ground_truth.json beside its bag; "
-                "use evaluate.walls=laser"
+                "evaluate.walls=ground_truth but the run has no ground truth with walls (--truth FILE, or "
+                "<name>.ground_truth.json beside its bag); use evaluate.walls=laser"
             )
-        obstacles: Obstacles = SegmentWalls(inputs.truth.walls)
+        obstacles: Obstacles = SegmentWalls(true_walls)
     else:
         obstacles = _scan_pose_grid(inputs)
     clearances = obstacles.distance(world_path.poses[:, :2])
@@ -303,7 +304,7 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
     step_visible = geo.visible[world_path.keyframe]
     vis = [geo.tag_ids[row] for row in step_visible]
     truth_lm, _ = inputs.reference_positions(optimal)
-    world = "ground_truth" if inputs.truth is not None else "full_map"
+    world = "ground_truth" if inputs.truth is not None and inputs.truth.has_poses else "full_map"
     return NavigationSetup(world_path, vis, obstacles, truth_lm, params, clearance, world, clearances - radius)
 
 
@@ -364,7 +365,12 @@ def prepare(inputs: EvalInputs) -> None:
             )
             choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
             inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
-    if inputs.truth is not None and not inputs.consistency and inputs.loaded.model == "planar":
+    if (
+        inputs.truth is not None
+        and inputs.truth.has_poses
+        and not inputs.consistency
+        and inputs.loaded.model == "planar"
+    ):
         inputs.consistency = measurement_consistency(inputs.loaded, inputs.truth)
         inputs.by_range = residuals_by_range(inputs.loaded, inputs.truth)
 
@@ -494,7 +500,7 @@ def _why_columns(
     """NEES of the focused landmarks, the kept measurements at the truth, and the oracle re-solve's errors."""
     out: dict[str, float] = dict.fromkeys((*art.WHY_COLUMNS, *art.MARGIN_COLUMNS), float("nan"))
     truth = inputs.truth
-    if truth is None or inputs.loaded.model != "planar":
+    if truth is None or not (truth.has_tags and truth.has_poses) or inputs.loaded.model != "planar":
         return out
     lm = reduced.landmark_map
     lc = landmark_consistency(lm.tag_ids, lm.positions, lm.covariances, reference, focus)

@@ -32,6 +32,12 @@ class EvaluateConfig(SettingsModel):
     trials: int = Field(
         100, ge=0, le=MAX_TRIALS, description="Monte Carlo navigation trials per case (0 skips navigation)."
     )
+    truth_file: str = Field(
+        "",
+        description="Ground truth of the recording (--truth): a truth YAML (docs/evaluate.md, 'Ground truth file': "
+        "tags, poses as a TUM file, walls) or a simulator .ground_truth.json; empty = <name>.ground_truth.json, "
+        "else <name>.truth.yaml, beside the recording, if there.",
+    )
     walls: Literal["auto", "ground_truth", "laser"] = Field(
         "auto",
         description="Obstacles of the navigation: the ground truth's walls (when the run has one), a laser occupancy "

@@ -14,12 +14,14 @@ import numpy as np
 from stages.evaluate.analysis import CHI2_2_95
 from stages.evaluate.artifacts import LABEL, ORACLE_ERROR_ALL_M, WHY_COLUMNS
 from stages.evaluate.cases import CaseResult, EvalInputs
+from stages.evaluate.risk_check import FACTOR, direction
 
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("label", "case", "{}"),
     ("observed_landmarks", "No. observed lms", "{}"),
     ("focused_landmarks", "No. focused lms", "{}"),
-    ("focused_entropy", "Entropy on focused lms (nats)", "{:.2f}"),
+    ("focused_entropy_observed", "Entropy on observed focused lms (nats) [unobserved]", "entropy"),
+    ("focused_entropy_prior", "+ prior of unobserved (nats)", "{:.2f}"),
     ("error_all_m", "Error on all observed lms (m)", "{:.4f}"),
     ("focused_error_m", "Error on focused lms (m)", "{:.4f}"),
     ("measurements", "measurements", "{}"),
@@ -40,6 +42,8 @@ def _fmt(row: dict[str, Any], key: str, fmt: str) -> str:
         return f"{row['collision_rate']:.3f} [{row['collision_ci_low']:.3f}, {row['collision_ci_high']:.3f}]"
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
+    if fmt == "entropy":
+        return f"{v:.2f} [{row.get('unobserved_focused_landmarks', '?')}]"
     return fmt.format(v)
 
 
@@ -230,8 +234,10 @@ def markdown_report(
         "",
         f"Budgets: alpha = {inputs.alpha} landmarks, K = {inputs.K} measurements. "
         f"Focused landmarks (entropy and focused error): the {len(inputs.focus)} collision-focused landmarks "
-        "(Alg. 2) for every case. Entropy: ½ log det(2πe Σ_F) nats; focused landmarks without a kept measurement "
-        "enter with a 100 m prior per dimension. Errors: mean planar distance to "
+        "(Alg. 2) for every case. Entropy: ½ log det(2πe Σ_F) nats over the focused landmarks the case observes, "
+        "with the number it does not observe in brackets; each of those enters Table I's entropy with a fixed "
+        "term of its weak prior (optimize.unobserved_sigma_m per dimension), shown separately (Table I's figure, "
+        "`focused_entropy` in cases.parquet, is the sum of the two columns). Errors: mean planar distance to "
         f"{'the ground truth' if ref == 'ground_truth' else 'case 1 (optimal)'}.",
         "",
         markdown_table(results),
@@ -255,11 +261,52 @@ def markdown_report(
             "",
         ]
     lines += ["## Expectation (focus,info best of the budgeted cases)", "", *expectation_checks(results), ""]
+    lines += risk_check_section(results)
     lines += why_section(inputs, results)
     if notes:
         lines += ["## Notes", "", *notes, ""]
     lines += ["## Figures", ""] + [f"![{name}]({name})" for name in images]
     return "\n".join(lines) + "\n"
+
+
+def risk_check_line(row: dict[str, Any]) -> str:
+    """One case: the risk model's path collision probability beside the simulated rate, flagged where they
+    disagree by more than :data:`~stages.evaluate.risk_check.FACTOR` (rule: :mod:`stages.evaluate.risk_check`)."""
+    low, high = row.get("predicted_collision_low", math.nan), row.get("predicted_collision_high", math.nan)
+    predicted = (
+        f"predicted P(collision on the path) in [{low:.2g}, {high:.2g}] (riskiest keyframe, union bound)"
+        if math.isfinite(low) and math.isfinite(high)
+        else "no predicted P(collision) (no laser)"
+    )
+    if not row.get("trials"):
+        return f"- {row[LABEL]}: {predicted}; not simulated"
+    rate = f"simulated {row['collision_rate']:.3f} [{row['collision_ci_low']:.3f}, {row['collision_ci_high']:.3f}]"
+    flag = row.get("risk_disagrees")
+    if flag is None:
+        verdict = "not comparable"
+    elif flag:
+        side = direction(low, high, row["collision_ci_low"], row["collision_ci_high"])
+        verdict = f"**DISAGREE**: the simulated rate is more than {FACTOR:g}x {side} the prediction"
+    else:
+        verdict = f"consistent (the interval reaches within {FACTOR:g}x of the bracket)"
+    return f"- {row[LABEL]}: {predicted}; {rate}: {verdict}"
+
+
+def risk_check_section(results: Sequence[CaseResult]) -> list[str]:
+    """Markdown: per case, the risk model against the simulated collision rate."""
+    if not results:
+        return []
+    return [
+        "## Risk model against the simulation",
+        "",
+        "Per case, the risk model's probability that the robot collides somewhere on the path, bracketed by the "
+        "riskiest keyframe's P (lower bound) and min(1, the sum over keyframes) (union bound), beside the "
+        f"simulated collision rate with its 95 % Wilson interval. Flagged where the interval lies more than "
+        f"{FACTOR:g}x outside the bracket.",
+        "",
+        *(risk_check_line(r.row) for r in results),
+        "",
+    ]
 
 
 def html_report(markdown_text: str, out_dir: Path) -> str:
@@ -363,7 +410,7 @@ def why_section(inputs: EvalInputs, results: Sequence[CaseResult]) -> list[str]:
     tag = inputs.consistency.get("tag")
     if tag is None:
         lines += [
-            "No ground truth beside the recording (or a 3-D graph): the consistency analysis needs the true poses and "
+            "No ground truth with poses and tags (or a 3-D graph): the consistency analysis needs the true poses and "
             "tag positions, so only the navigation margin below is computed.",
             "",
         ]

@@ -24,6 +24,7 @@ from stages.evaluate.cases import (
 )
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
+from stages.evaluate.risk_check import check_columns
 from stages.graph.load import LoadedGraph, load_graph
 from stages.navigation.truth import load_truth
 from stages.optimize import OptimizeConfig, ReducedMap, read_reduced, solve_settings
@@ -36,6 +37,9 @@ ENTITY = "/evaluate"
 HEADLINE = (
     art.CASE,
     art.FOCUSED_ENTROPY,
+    art.FOCUSED_ENTROPY_OBSERVED,
+    art.UNOBSERVED_FOCUSED,
+    art.FOCUSED_ENTROPY_PRIOR,
     art.FOCUSED_ERROR_M,
     art.MAX_COLLISION_PROBABILITY,
     art.COLLISION_RATE,
@@ -45,10 +49,15 @@ HEADLINE = (
 """The columns of the headline case in the summary (what ``focusmap run`` prints last)."""
 PER_CASE = (
     art.FOCUSED_ENTROPY,
+    art.FOCUSED_ENTROPY_OBSERVED,
+    art.UNOBSERVED_FOCUSED,
+    art.FOCUSED_ENTROPY_PRIOR,
     art.FOCUSED_ERROR_M,
     art.ERROR_ALL_M,
     art.MAX_COLLISION_PROBABILITY,
+    art.PREDICTED_COLLISION_HIGH,
     art.COLLISION_RATE,
+    art.RISK_DISAGREES,
 )
 """The columns of every case in the summary's ``table``."""
 
@@ -72,7 +81,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     inputs = EvalInputs(
         loaded=loaded,
         landmarks=landmarks,
-        truth=load_truth(ctx, loaded),
+        truth=load_truth(ctx, loaded, cfg.truth_file),
         heights=loaded.landmark_heights,
         sl_cfg=sl_cfg,
         sm_cfg=sm_cfg,
@@ -83,12 +92,14 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     )
     todo = cases(cfg)
     results = run_all(inputs, todo, ctx.progress)
+    for r in results:  # the entropy split and the risk model against the simulation, from what each case measured
+        r.row.update(check_columns(r.row, r.risk.p_collision, len(inputs.focus)))
     out = ctx.output
     art.CASES.write(out, cases_table(results))
     art.MAPS.write(out, map_rows(results))
     art.PATH_RISK.write(out, risk_rows(inputs, results))
     art.GREEDY.write(out, greedy_rows(results))
-    notes: list[str] = []
+    notes: list[str] = [f"- {n}" for n in inputs.truth.missing_notes()] if inputs.truth is not None else []
     if not landmarks.geometry.has_laser:
         notes.append(
             "- the run has no laser scans: collision probabilities are not available and the focused set is picked "
@@ -117,6 +128,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         "report": str(ctx.run.stage_dir("evaluate") / art.REPORT_HTML.file),
         "from_upstream": {r.case.name: r.reused for r in results if r.reused},
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
+        **({"notes": inputs.truth.missing_notes()} if inputs.truth is not None and inputs.truth.missing else {}),
     }
 
 

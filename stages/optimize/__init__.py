@@ -12,10 +12,13 @@ Public API:
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
+from pipeline.errors import InputError
 from pipeline.lazy import lazy_exports
-from pipeline.stage import Stage, lazy
+from pipeline.stage import Option, Stage, lazy
 from stages.graph import STRICT, remarks
 from stages.optimize.config import OptimizeConfig
 
@@ -52,6 +55,28 @@ __getattr__ = lazy_exports(
 )
 
 
+def _truth_file(path: Path) -> str:
+    """``--truth``: an existing file, as an absolute path (a run folder keeps working from any directory)."""
+    if not path.is_file():
+        raise InputError(
+            f"ground truth {str(path)!r} not found; pass an existing truth YAML (docs/evaluate.md, 'Ground truth "
+            "file') or .ground_truth.json to --truth"
+        )
+    return json.dumps(str(path.resolve()))
+
+
+TRUTH: Final = Option(
+    "--truth",
+    "truth_file",
+    "Ground truth of the recording: a truth YAML (tags, poses as TUM, walls; docs/evaluate.md) or a simulator "
+    ".ground_truth.json; default: <name>.ground_truth.json or <name>.truth.yaml beside the recording.",
+    Path,
+    value=_truth_file,
+    on_run=True,
+)
+"""The ``--truth`` option of optimize, evaluate, run and batch (their ``truth_file`` setting)."""
+
+
 def blueprint() -> Any:
     """The layout of ``optimize.rrd``: the maps from above, risk along the path, the summary."""
     import rerun.blueprint as rrb
@@ -78,12 +103,13 @@ STAGE: Final = Stage(
     version="1",
     blueprint=blueprint,
     help="Re-optimise the reduced graph (focused landmarks, selected measurements); entropy, errors, risk, size.",
-    options=(STRICT,),
+    options=(STRICT, TRUTH),
     remarks=remarks,
 )
 
 __all__ = [
     "STAGE",
+    "TRUTH",
     "OptimizeConfig",
     "ReducedMap",
     "blueprint",

@@ -27,6 +27,12 @@ class OptimizeConfig(SettingsModel):
         description="A focused landmark that keeps no measurement enters the focused entropy with this isotropic "
         "standard deviation per dimension, m (the weak landmark prior of measurement selection).",
     )
+    truth_file: str = Field(
+        "",
+        description="Ground truth of the recording (--truth): a truth YAML (docs/evaluate.md, 'Ground truth file': "
+        "tags, poses as a TUM file, walls) or a simulator .ground_truth.json; empty = <name>.ground_truth.json, "
+        "else <name>.truth.yaml, beside the recording, if there.",
+    )
     strict: bool = Field(
         False,
         description="Make a failed health check of the reduced graph (stages/graph/health.py) an error: the stage "

@@ -88,8 +88,9 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
     summary = write_artifacts(ctx.output, reduced.problem, reduced.solution, reduced.marginals)
     KEPT.write(ctx.output, {INDEX: np.arange(len(reduced.full_index)), FULL_INDEX: reduced.full_index})
     full_map = LandmarkMap.from_graph(loaded)
-    truth = load_truth(ctx, loaded)
-    lm_table, errors = error_table(reduced, full_map, truth)
+    truth = load_truth(ctx, loaded, cfg.truth_file)
+    true_tags = truth if truth is not None and truth.has_tags else None  # errors against the truth need its tags
+    lm_table, errors = error_table(reduced, full_map, true_tags)
     LANDMARK_ERRORS.write(ctx.output, lm_table)
 
     params = focused.risk_params  # the risk model of the landmark selection, so the figures compare
@@ -117,7 +118,7 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
             "entropy_convention": "0.5*logdet(Sigma_F) + (d/2)*log(2*pi*e) nats; unobserved focused landmarks "
             f"enter with sigma {cfg.unobserved_sigma_m} m per dimension",
             **errors,
-            "reference": "ground_truth" if truth is not None else "full_graph",
+            "reference": "ground_truth" if true_tags is not None else "full_graph",
             "max_collision_probability": risk_reduced.max,
             "mean_collision_probability": risk_reduced.mean,
             "max_collision_probability_full": risk_full.max,
@@ -130,6 +131,8 @@ def run(ctx: StageContext, cfg: OptimizeConfig) -> dict[str, Any]:
             "timing_s": {**reduced.timing_s, "total": round(time.perf_counter() - t0, 4)},
         }
     )
+    if truth is not None and truth.missing:
+        summary["notes"] = truth.missing_notes()
     return summary
 
 

@@ -80,6 +80,29 @@ def test_every_case_is_in_the_table(evaluated) -> None:
         assert 0.2 < r["navigation_nees"] < 3.0, (r["case"], r["navigation_nees"])
 
 
+def test_the_entropy_split_and_the_risk_bracket_are_per_case_columns(evaluated) -> None:
+    table = pq.read_table(evaluated.stage_dir("evaluate") / "cases.parquet").to_pylist()
+    summary = json.loads((evaluated.stage_dir("evaluate") / "summary.json").read_text())
+    risk = pq.read_table(evaluated.stage_dir("evaluate") / "path_risk.parquet").to_pydict()
+    n_focus = len(summary["focused_tag_ids"])
+    assert n_focus == 5
+    for row in table:
+        assert row["unobserved_focused_landmarks"] == n_focus - row["focused_landmarks"]
+        assert row["focused_entropy"] == pytest.approx(row["focused_entropy_observed"] + row["focused_entropy_prior"])
+        if row["unobserved_focused_landmarks"] == 0:
+            assert row["focused_entropy_prior"] == 0.0
+        else:  # the 100 m prior: about 19 nats per unobserved planar landmark
+            assert row["focused_entropy_prior"] / row["unobserved_focused_landmarks"] == pytest.approx(
+                1 + math.log(2 * math.pi) + 2 * math.log(100.0)
+            )
+        p = [v for c, v in zip(risk["case"], risk["p_collision"], strict=True) if c == row["case"]]
+        assert row["predicted_collision_low"] == max(p)
+        assert row["predicted_collision_high"] == pytest.approx(min(1.0, sum(p)))
+        assert row["risk_disagrees"] in (True, False)  # trials ran and the run has a laser
+    head = summary["headline"]
+    assert head["unobserved_focused_landmarks"] == summary["table"]["focus_info"]["unobserved_focused_landmarks"]
+
+
 def test_report_figures_summary_and_recording(evaluated) -> None:
     out = evaluated.stage_dir("evaluate")
     for f in (
@@ -97,7 +120,13 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
     ):
         assert (out / f).is_file(), f
     md = (out / "report.md").read_text()
-    assert "Entropy on focused lms" in md and "focus, info" in md and "![maps.png](maps.png)" in md
+    assert "Entropy on observed focused lms" in md and "focus, info" in md and "![maps.png](maps.png)" in md
+    # the risk model beside the simulation: one line per case, each with its verdict
+    section = md.split("## Risk model against the simulation", 1)[1].split("\n## ", 1)[0]
+    lines = [line for line in section.splitlines() if line.startswith("- ")]
+    assert len(lines) == len(TABLE_I) + 1
+    assert all("predicted P(collision on the path) in [" in line and "simulated " in line for line in lines)
+    assert all(("consistent (the interval reaches within 10x" in line) != ("DISAGREE" in line) for line in lines)
     assert "data:image/png;base64," in (out / "report.html").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["headline"]["case"] == "focus_info" and summary["alpha"] == 5 and summary["K"] == 15
