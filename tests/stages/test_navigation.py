@@ -173,3 +173,67 @@ def test_per_step_deviation_and_ekf_sigma(corridor) -> None:
     # no collisions: every step has all trials, so the overall RMS is the RMS over steps 1..K-1
     overall = np.sqrt(np.mean(res.step_rms_deviation_m[1:] ** 2))
     assert overall == pytest.approx(res.rms_tracking_error_m, rel=1e-9)
+
+
+def test_random_streams_pair_the_cases(corridor) -> None:
+    """Every case meets the same world: the same map gives identical trajectories, and a map without landmarks,
+    which makes no measurement, still sees the same start and actuation noise until the first landmark update."""
+    path, gains, ids, xy, vis, walls, truth = corridor
+    params = NavigationParams(trials=12)
+    a = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, None, params, seed=9)
+    b = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, None, params, seed=9)
+    np.testing.assert_array_equal(a.sample_paths, b.sample_paths)
+    # a map with only the far landmarks: before the robot first sees one, it moves exactly as with the full map
+    far = ids >= 8
+    c = simulate(path, gains, _map(ids[far], xy[far], 0.05), truth, vis, None, params, seed=9)
+    blind = simulate(path, gains, _map(ids[:0], xy[:0], 0.05), truth, vis, None, params, seed=9)
+    first = next(k for k, v in enumerate(vis) if np.isin(v, ids[far]).any())
+    np.testing.assert_array_equal(c.sample_paths[:, : first + 1], blind.sample_paths[:, : first + 1])
+    # and the world's noise does not depend on which landmarks the map holds: the first step is the same for all
+    np.testing.assert_array_equal(a.sample_paths[:, :2], blind.sample_paths[:, :2])
+
+
+def test_the_robot_follows_its_own_map_so_a_displaced_map_is_harmless(corridor) -> None:
+    """Own-frame navigation: a map whose path and landmarks are displaced together (drift since the start) keeps
+    the robot in the true corridor; the same landmarks displaced without the path push it into the wall."""
+    path, gains, ids, xy, vis, walls, truth = corridor
+    params = NavigationParams(trials=40, robot_radius_m=0.3)
+    shift = np.array([0.0, 0.45])  # beyond the 0.3 m the walls leave the robot
+    ramp = np.clip(path.poses[:, 0] / 3.0, 0.0, 1.0)[:, None]  # the drift grows over the first 3 m
+    moved_poses = path.poses.copy()
+    moved_poses[:, :2] += ramp * shift
+    moved_path = nominal_path(path.stamps_ns, moved_poses, path.dt_s)
+    moved_map = _map(ids, xy + np.clip(xy[:, :1] / 3.0, 0.0, 1.0) * shift, 0.01)
+    own = simulate(
+        moved_path,
+        lqr_gains(moved_path, params.Wx, params.Wu),
+        moved_map,
+        truth,
+        vis,
+        walls,
+        params,
+        seed=4,
+        true_path=path.poses,
+    )
+    anchored = simulate(path, gains, moved_map, truth, vis, walls, params, seed=4, true_path=path.poses)
+    assert own.collision_rate <= 0.05 and anchored.collision_rate >= 0.9, (own.collision_rate, anchored.collision_rate)
+
+
+def test_the_filter_is_consistent_with_an_honest_map(corridor) -> None:
+    """Maps drawn from their own covariance (shared drift included, the joint covariance given to the filter):
+    the Schmidt filter's NEES per degree of freedom is near 1."""
+    from stages.risk import LandmarkMap
+
+    path, gains, ids, xy, vis, walls, truth = corridor
+    rng = np.random.default_rng(11)
+    L = len(ids)
+    A = rng.normal(size=(2 * L, 2 * L)) * 0.01
+    joint = A @ A.T + np.kron(np.ones((L, L)), np.eye(2)) * 0.03**2 + np.eye(2 * L) * 0.01**2
+    nees = []
+    for r in range(6):
+        err = rng.multivariate_normal(np.zeros(2 * L), joint).reshape(L, 2)
+        covs = np.stack([joint[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(L)])
+        lm = LandmarkMap(ids, xy + err, covs, np.zeros(L), None, joint)
+        res = simulate(path, gains, lm, truth, vis, None, NavigationParams(trials=50), seed=r)
+        nees.append(res.nees_per_dof)
+    assert 0.5 < float(np.mean(nees)) < 2.0, nees
