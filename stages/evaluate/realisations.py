@@ -303,8 +303,11 @@ def run_realisations(
     seed: int,
     detections: pa.Table | None = None,
     progress: Callable[[int, float], None] | None = None,
+    indices: Sequence[int] | None = None,
 ) -> Study:
     """``n`` realisations of the run's full graph, every case on each (see the module docstring).
+
+    ``indices``: run only these of the ``n`` (a worker's share; realisation ``r`` is the same whoever runs it).
 
     The realisations' cases skip what does not enter the statistics: the oracle re-solve and the aligned-map
     navigation (``evaluate.oracle_measurements``, ``evaluate.aligned_navigation``).
@@ -313,7 +316,10 @@ def run_realisations(
     world = World.of(base.loaded, base.truth)
     study = Study(world.source, n, trials, seed)
     cfg = base.cfg.model_copy(update={"oracle_measurements": False, "aligned_navigation": False})
+    todo_r = set(range(n)) if indices is None else {int(i) for i in indices}
     for r, st in enumerate(streams(seed, n)):
+        if r not in todo_r:
+            continue
         rng = np.random.default_rng(st.measurements)
         try:
             loaded = redraw_graph(base.loaded, world, rng)
