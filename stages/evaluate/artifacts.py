@@ -184,9 +184,9 @@ GREEDY: Final = TableSpec("greedy.parquet", "per information case, one row per g
 REALISATION = _i64("realisation", "index of the map realisation (its seeds: `evaluate.seed`, docs/evaluate.md)")
 REALISATIONS: Final = TableSpec(
     "realisations.parquet",
-    "with `evaluate.realisations` > 0: one row per realisation and case (the full graph's measurements redrawn)",
+    "one row per map realisation and case (the full graph's measurements redrawn; empty with "
+    "`evaluate.realisations: 0`)",
     [REALISATION, CASE, COLLISION_RATE, COLLISIONS, TRIALS, FOCUSED_ENTROPY, FOCUSED_ERROR_M],
-    optional=True,
 )
 
 # the report --------------------------------------------------------------------------------------------

@@ -374,11 +374,11 @@ def load_run_inputs(run_dir: Path, cfg: EvaluateConfig) -> tuple[EvalInputs, pa.
 REFERENCE_CASE = "focus_info"
 
 
-def study_table(study: Study) -> pa.Table:
-    """:data:`~stages.evaluate.artifacts.REALISATIONS` of a study."""
+def study_table(study: Study | None) -> pa.Table:
+    """:data:`~stages.evaluate.artifacts.REALISATIONS` of a study (no rows without one)."""
     from stages.evaluate import artifacts as art
 
-    return art.REALISATIONS.table(study.rows)
+    return art.REALISATIONS.table(study.rows if study is not None else {c: [] for c in art.REALISATIONS.names})
 
 
 def statistics_rows(study: Study, seed: int = 0, ref: str = REFERENCE_CASE) -> list[dict[str, Any]]:

@@ -95,8 +95,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
             "by mutual information instead of Alg. 2"
         )
     study = _realisations(inputs, todo, cfg, read.detections)
-    if study is not None:
-        art.REALISATIONS.write(out, study_table(study))
+    art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma) if cfg.plots else []
     md = markdown_report(inputs, results, images, notes) + report_section(study, cfg, TABLE_I_LABELS)
     out.write_text(art.REPORT_MD.file, md)
