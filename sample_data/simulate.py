@@ -877,6 +877,9 @@ def _validate(cfg: SimConfig) -> None:
         if getattr(cfg, name) <= 0:
             msg = f"{name} must be > 0, got {getattr(cfg, name)}"
             raise ValueError(msg)
+    if cfg.pixel_noise_sigma < 0 or cfg.odom_v_sigma_mps < 0 or cfg.odom_yaw_rate_sigma_radps < 0:
+        msg = "pixel and odometry noise must be >= 0"
+        raise ValueError(msg)
     if cfg.duration_s is not None and cfg.duration_s <= 0:
         msg = f"duration_s must be > 0 (or None for the whole path), got {cfg.duration_s}"
         raise ValueError(msg)
@@ -1597,6 +1600,19 @@ def main(argv: list[str] | None = None) -> int:
         default=1.0,
         help="reported pose covariance = this x the propagated white noise (< 1: too small; 0: all zero)",
     )
+    noise = parser.add_argument_group("sensor noise (default: the sample's)")
+    noise.add_argument(
+        "--pixel-noise",
+        type=float,
+        default=SimConfig.pixel_noise_sigma,
+        help="Gaussian pixel noise, grey levels (the tags' corner noise, so their measurement noise, grows with it)",
+    )
+    noise.add_argument(
+        "--odom-noise-scale",
+        type=float,
+        default=1.0,
+        help="multiply the odometry's white speed and yaw-rate noise (and so its reported covariance) by this",
+    )
     parser.add_argument(
         "--laser-sweep",
         action="store_true",
@@ -1618,6 +1634,9 @@ def main(argv: list[str] | None = None) -> int:
         odom_yaw_bias_rad_per_m=args.odom_yaw_bias,
         odom_cov_scale=args.odom_cov_scale,
         laser_sweep=args.laser_sweep,
+        pixel_noise_sigma=args.pixel_noise,
+        odom_v_sigma_mps=SimConfig.odom_v_sigma_mps * args.odom_noise_scale,
+        odom_yaw_rate_sigma_radps=SimConfig.odom_yaw_rate_sigma_radps * args.odom_noise_scale,
     )
     suffix = {"ros1": ".bag", "mcap": ".mcap"}.get(args.fmt, "")
     out = args.out / f"{args.name}{suffix}"

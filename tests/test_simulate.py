@@ -353,6 +353,17 @@ def test_cli_writes_bag_and_refuses_to_overwrite(tmp_path: Path) -> None:
     assert main([*args, "--force"]) == 0
 
 
+def test_cli_noise_options_reach_the_recording(tmp_path: Path) -> None:
+    args = ["--out", str(tmp_path), "--duration", "0.5", "--width", "160", "--height", "120"]
+    assert main([*args, "--name", "noisy", "--pixel-noise", "12", "--odom-noise-scale", "2"]) == 0
+    noise = json.loads((tmp_path / "noisy.ground_truth.json").read_text())["noise"]
+    assert noise["pixel_noise_sigma"] == 12.0
+    assert noise["odom_v_sigma_mps"] == pytest.approx(2 * SimConfig.odom_v_sigma_mps)
+    assert noise["odom_yaw_rate_sigma_radps"] == pytest.approx(2 * SimConfig.odom_yaw_rate_sigma_radps)
+    assert main([*args, "--name", "bad", "--odom-noise-scale", "-1"]) == 1
+    assert not (tmp_path / "bad.bag").exists()
+
+
 def test_bad_options_are_refused(small_rec: Recording, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="image_format"):
         simulate(SimConfig(image_format="tiff"))  # type: ignore[arg-type]

@@ -204,6 +204,15 @@ STEP = _i64("step", "picks so far (0: before the first)")
 ENTROPY = _f64("entropy", "entropy of that selection's own focused landmarks after the step, nats")
 GREEDY: Final = TableSpec("greedy.parquet", "per information case, one row per greedy step", [CASE, STEP, ENTROPY])
 
+# realisations.parquet ----------------------------------------------------------------------------------
+REALISATION = _i64("realisation", "index of the map realisation (its seeds: `evaluate.seed`, docs/evaluate.md)")
+REALISATIONS: Final = TableSpec(
+    "realisations.parquet",
+    "one row per map realisation and case (the full graph's measurements redrawn; empty with "
+    "`evaluate.realisations: 0`)",
+    [REALISATION, CASE, COLLISION_RATE, COLLISIONS, TRIALS, FOCUSED_ENTROPY, FOCUSED_ERROR_M],
+)
+
 # the report --------------------------------------------------------------------------------------------
 REPORT_MD = FileSpec("report.md", "Table I layout and extra columns, expectation checks, the Why analysis, figures")
 REPORT_HTML = FileSpec("report.html", "the same with the figures embedded")
@@ -222,5 +231,5 @@ ARTIFACTS: Final = ArtifactSet(
     "evaluate",
     "Every case of Mu et al. Table I (and other strategy pairs) on the run, scored on the same focused landmarks, "
     "with Monte Carlo navigation and a report.",
-    [CASES, MAPS, PATH_RISK, GREEDY, REPORT_MD, REPORT_HTML, *FIGURES],
+    [CASES, MAPS, PATH_RISK, GREEDY, REALISATIONS, REPORT_MD, REPORT_HTML, *FIGURES],
 )

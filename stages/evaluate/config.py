@@ -65,6 +65,18 @@ class EvaluateConfig(SettingsModel):
         "ground-truth-consistent ones (truth + noise drawn from the stated covariance) and report that error beside "
         "the real one: separates what the selection does from biases in the measurements.",
     )
+    realisations: int = Field(
+        0,
+        ge=0,
+        le=10_000,
+        description="Map realisations: redraw every tag and odometry measurement of the full graph from the ground "
+        "truth (else from the full graph's solution) with its stated noise, re-run every case on each, and report per "
+        "case the mean collision rate with a bootstrap interval and focus_info's paired tests (0: off; each costs "
+        "about one evaluate of the six cases).",
+    )
+    realisation_trials: int | None = Field(
+        None, ge=0, le=MAX_TRIALS, description="Navigation trials per case in each realisation; null = trials."
+    )
     regime: str = Field(
         "default",
         description="Name of the navigation regime, printed in the report (configs/office_hard.yaml sets 'hard').",

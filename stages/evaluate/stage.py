@@ -13,6 +13,7 @@ from pipeline.recording import colormap, ellipsoids
 from stages.estimation.blas import blas_single
 from stages.evaluate import artifacts as art
 from stages.evaluate.cases import (
+    TABLE_I_LABELS,
     EvalInputs,
     Upstream,
     cases,
@@ -23,6 +24,7 @@ from stages.evaluate.cases import (
     run_all,
 )
 from stages.evaluate.config import EvaluateConfig
+from stages.evaluate.realisations import Study, report_section, run_realisations, statistics_rows, study_table
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
 from stages.evaluate.risk_check import check_columns
 from stages.graph.load import LoadedGraph, load_graph
@@ -105,8 +107,10 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
             "- the run has no laser scans: collision probabilities are not available and the focused set is picked "
             "by mutual information instead of Alg. 2"
         )
+    study = _realisations(inputs, todo, cfg, read.detections)
+    art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma) if cfg.plots else []
-    md = markdown_report(inputs, results, images, notes)
+    md = markdown_report(inputs, results, images, notes) + report_section(study, cfg, TABLE_I_LABELS)
     out.write_text(art.REPORT_MD.file, md)
     out.write_text(art.REPORT_HTML.file, html_report(md, out.path))
     log_recording(ctx.rec, inputs, results, ctx.n_sigma)
@@ -127,8 +131,39 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         "why": why_findings(inputs, results),
         "report": str(ctx.run.stage_dir("evaluate") / art.REPORT_HTML.file),
         "from_upstream": {r.case.name: r.reused for r in results if r.reused},
+        "realisations": _realisations_summary(study),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
         **({"notes": inputs.truth.missing_notes()} if inputs.truth is not None and inputs.truth.missing else {}),
+    }
+
+
+def _realisations(inputs: EvalInputs, todo: list[Any], cfg: EvaluateConfig, detections: Any) -> Study | None:
+    """``evaluate.realisations`` map realisations of every case (None when off)."""
+    if cfg.realisations <= 0:
+        return None
+    trials = cfg.trials if cfg.realisation_trials is None else cfg.realisation_trials
+    return run_realisations(inputs, todo, cfg.realisations, trials, cfg.seed, detections)
+
+
+def _realisations_summary(study: Study | None) -> dict[str, Any] | None:
+    """The summary's ``realisations``: what was run and per case the mean collision rate with its interval."""
+    if study is None:
+        return None
+    return {
+        "realisations": study.realisations,
+        "trials": study.trials,
+        "world": study.world,
+        "failed": len(study.failed),
+        "seconds": round(study.seconds, 3),
+        "collision_rate": {
+            r["case"]: {
+                "mean": r["mean_rate"],
+                "ci": [r["ci_low"], r["ci_high"]],
+                "vs_focus_info_sign_p": r["paired"].sign_p if r["paired"] is not None else None,
+                "vs_focus_info_wilcoxon_p": r["paired"].wilcoxon_p if r["paired"] is not None else None,
+            }
+            for r in statistics_rows(study)
+        },
     }
 
 

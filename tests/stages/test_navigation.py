@@ -178,7 +178,7 @@ def test_per_step_deviation_and_ekf_sigma(corridor) -> None:
 def test_random_streams_pair_the_cases(corridor) -> None:
     """Every case meets the same world: the same map gives identical trajectories, and a map without landmarks,
     which makes no measurement, still sees the same start and actuation noise until the first landmark update."""
-    path, gains, ids, xy, vis, walls, truth = corridor
+    path, gains, ids, xy, vis, _, truth = corridor
     params = NavigationParams(trials=12)
     a = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, None, params, seed=9)
     b = simulate(path, gains, _map(ids, xy, 0.05), truth, vis, None, params, seed=9)
@@ -224,7 +224,7 @@ def test_the_filter_is_consistent_with_an_honest_map(corridor) -> None:
     the Schmidt filter's NEES per degree of freedom is near 1."""
     from stages.risk import LandmarkMap
 
-    path, gains, ids, xy, vis, walls, truth = corridor
+    path, gains, ids, xy, vis, _, truth = corridor
     rng = np.random.default_rng(11)
     L = len(ids)
     A = rng.normal(size=(2 * L, 2 * L)) * 0.01
