@@ -536,6 +536,22 @@ def path_risk(
     return PathRisk(sigma, localised, np.asarray(norm.sf(z)), maha, z)
 
 
+def riskiest_keyframes(
+    mahalanobis: FloatArray, stamps_ns: npt.NDArray[np.int64], n: int, min_gap_s: float
+) -> list[int]:
+    """The ``n`` riskiest keyframes by eq. 20 (smallest squared σ to the obstacle; inf = none known is never
+    picked), at least ``min_gap_s`` apart in time, so one narrow door does not take them all. In time order."""
+    order = np.argsort(np.asarray(mahalanobis, dtype=float), kind="stable")
+    gap = round(min_gap_s * 1e9)
+    chosen: list[int] = []
+    for t in order:
+        if len(chosen) >= n or not np.isfinite(mahalanobis[t]):
+            break
+        if all(abs(int(stamps_ns[t]) - int(stamps_ns[c])) >= gap for c in chosen):
+            chosen.append(int(t))
+    return sorted(chosen)
+
+
 def step_margins(geometry: PathGeometry, params: RiskParams) -> tuple[FloatArray, FloatArray]:
     """Margin (K,) and obstacle normal (K, 2) of every path step: those of its nearest keyframe."""
     kf = geometry.steps.keyframe

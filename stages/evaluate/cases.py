@@ -54,8 +54,16 @@ from stages.navigation import (
     simulate,
 )
 from stages.navigation.truth import MapTruth
-from stages.optimize import ReducedMap, landmark_errors, local_map, map_size, mean_or_nan, solve_reduced
-from stages.risk import LandmarkMap, PathRisk, RiskParams, path_risk
+from stages.optimize import (
+    ReducedMap,
+    full_local_map,
+    landmark_errors,
+    local_map,
+    map_size,
+    mean_or_nan,
+    solve_reduced,
+)
+from stages.risk import LandmarkMap, PathRisk, RiskParams, path_risk, riskiest_keyframes
 from stages.select_landmarks import LandmarkInputs, SelectLandmarksConfig
 from stages.select_landmarks import choose as choose_landmarks
 from stages.select_landmarks.artifacts import FocusedLandmarks
@@ -80,6 +88,7 @@ TABLE_I_LABELS = {
     "focus_ds": "focus, DS",
     "full_info": "full, info",
     "full_ds": "full, DS",
+    "focus_info_poses": "focus, info + risky poses",
 }
 
 
@@ -90,6 +99,8 @@ class Case:
     name: str
     landmark_strategy: str
     measurement_strategy: str
+    focus_poses: int = 0
+    """The riskiest keyframes whose poses join the measurement selection's focused set (eq. 23's W)."""
 
 
 def cases(cfg: EvaluateConfig) -> list[Case]:
@@ -107,6 +118,8 @@ def cases(cfg: EvaluateConfig) -> list[Case]:
             )
         if not any(c.landmark_strategy == lm and c.measurement_strategy == ms for c in out):
             out.append(Case(pair, lm, ms))
+    if cfg.focused_poses > 0:
+        out.append(Case("focus_info_poses", "collision", "information", cfg.focused_poses))
     return out
 
 
@@ -165,6 +178,9 @@ class EvalInputs:
     focus: list[int] = field(default_factory=list)
     """The collision-focused landmarks (Alg. 2, budget α): what every case's entropy and focused error are on."""
     focus_seconds: float = 0.0
+    risky_keyframes: list[int] = field(default_factory=list)
+    """Keyframes by eq. 20 with the collision focus and the full map, riskiest first up to ``cfg.focused_poses``
+    (in time order): the poses the ``focus_info_poses`` case focuses."""
     consistency: dict[str, MeasurementConsistency] = field(default_factory=dict)
     """Every measurement of the full graph at the truth (empty without a ground truth)."""
     by_range: list[dict[str, float]] = field(default_factory=list)
@@ -199,10 +215,15 @@ class EvalInputs:
             return None
         return list(up.tag_ids), up.seconds
 
-    def upstream_measurements(self, cfg: SelectMeasurementsConfig, tags: Sequence[int]) -> MeasurementChoice | None:
-        """select_measurements' choice when it is what ``cfg`` on ``tags`` would choose, else None."""
+    def upstream_measurements(
+        self, cfg: SelectMeasurementsConfig, tags: Sequence[int], poses: Sequence[int] = ()
+    ) -> MeasurementChoice | None:
+        """select_measurements' choice when it is what ``cfg`` on ``tags`` (and focused ``poses``) would choose, else
+        None."""
         up = self.upstream.measurements
         if up is None or (up.strategy, up.budget, up.focus) != (cfg.strategy, cfg.budget, cfg.focus):
+            return None
+        if list(up.focused_pose_indices) != [int(p) for p in poses]:
             return None
         if cfg.strategy in SEEDED and self.sm_cfg.seed != cfg.seed:
             return None
@@ -365,6 +386,12 @@ def prepare(inputs: EvalInputs) -> None:
             )
             choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
             inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
+    if inputs.cfg.focused_poses > 0 and not inputs.risky_keyframes and inputs.landmarks.geometry.has_laser:
+        geo = inputs.landmarks.geometry
+        full = full_local_map(inputs.loaded, geo)
+        risk = path_risk(geo, full, inputs.focus, inputs.risk_params)
+        window = inputs.sl_cfg.visibility_window_s
+        inputs.risky_keyframes = riskiest_keyframes(risk.mahalanobis, geo.stamps_ns, inputs.cfg.focused_poses, window)
     if (
         inputs.truth is not None
         and inputs.truth.has_poses
@@ -389,13 +416,20 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None) 
         ms_seconds = 0.0
     else:
         ms_focus = "all" if case.landmark_strategy == "all" else "selected"
-        update = {"strategy": case.measurement_strategy, "budget": inputs.K, "focus": ms_focus, "seed": inputs.cfg.seed}
+        poses = inputs.risky_keyframes[: case.focus_poses] if case.focus_poses else []
+        update = {
+            "strategy": case.measurement_strategy,
+            "budget": inputs.K,
+            "focus": ms_focus,
+            "seed": inputs.cfg.seed,
+            "focus_poses": len(poses),
+        }
         cfg = inputs.sm_cfg.model_copy(update=update)
-        measurement = inputs.upstream_measurements(cfg, tags)
+        measurement = inputs.upstream_measurements(cfg, tags, poses)
         if measurement is not None:
             reused.append("measurements")
         else:
-            measurement = choose_measurements(loaded, tags, cfg, inputs.system)
+            measurement = choose_measurements(loaded, tags, cfg, inputs.system, focus_pose_indices=poses)
         selected, ms_seconds = measurement.factor_indices, measurement.seconds
     reduced = inputs.upstream_reduced(tags, selected)
     if reduced is not None:
@@ -539,6 +573,7 @@ def _why_columns(
 def run_all(inputs: EvalInputs, todo: Sequence[Case], progress: Any = None) -> list[CaseResult]:
     """Case 1 first (its map is the reference without ground truth and fixes the navigation's truth), then the rest."""
     prepare(inputs)
+    todo = [c for c in todo if not c.focus_poses or inputs.risky_keyframes]  # no laser: no risky poses to focus
     results: list[CaseResult] = []
     first = run_case(inputs, todo[0])
     optimal = first.reduced

@@ -28,6 +28,14 @@ class EvaluateConfig(SettingsModel):
         description="Further cases as 'landmark_strategy+measurement_strategy' (select_landmarks and "
         "select_measurements strategy names); the six Table I cases always run.",
     )
+    focused_poses: int = Field(
+        10,
+        ge=0,
+        le=100_000,
+        description="Add the case focus_info_poses: as focus, info, with the poses of this many riskiest keyframes "
+        "(eq. 20, at least the visibility window apart) focused beside the landmarks (select_measurements."
+        "focus_poses), so its kept measurements also tie the path to the map where it is tight; 0 = no such case.",
+    )
     seed: int = Field(0, description="Seed of the random/leverage selections and of the Monte Carlo trials.")
     trials: int = Field(
         100, ge=0, le=MAX_TRIALS, description="Monte Carlo navigation trials per case (0 skips navigation)."

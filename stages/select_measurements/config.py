@@ -34,6 +34,14 @@ class SelectMeasurementsConfig(SettingsModel):
         "poses: every pose is focused and the loop closures (pose-to-pose edges between non-consecutive poses of "
         "an imported graph) are the candidates, so a pose graph is sparsified to K loop closures.",
     )
+    focus_poses: int = Field(
+        0,
+        ge=0,
+        le=100_000,
+        description="Also focus the poses of this many riskiest keyframes (eq. 20 with the focused landmarks, from "
+        "select_landmarks' risk.parquet; at least its visibility window apart), so the kept measurements also tie "
+        "the path to the map where it is tight (Mu et al. eq. 23 allows any focused set W); 0 = landmarks only.",
+    )
     landmark_prior_sigma_m: float = Field(
         100.0,
         gt=0,

@@ -58,6 +58,10 @@ class MeasurementChoice(BaseModel):
     budget: int = Field(description="K, the measurement budget as run (`all`: the number of candidates)")
     focus: str = Field(description="`selected` (the focused landmarks of select_landmarks) or `all`")
     focused_tag_ids: list[int] = Field(description="the landmarks whose measurements were candidates")
+    focused_pose_indices: list[int] = Field(
+        default_factory=list,
+        description="keyframes (rows of `graph/poses.parquet`) whose poses were focused too (`focus_poses`)",
+    )
     factor_indices: list[int] = Field(
         description="kept tag-measurement factors (rows of `graph/factors.parquet`), in pick order"
     )
@@ -141,6 +145,7 @@ def choose(
     cfg: SelectMeasurementsConfig,
     system: LinearSystem | None = None,
     tracker: TrackerOptions | None = None,
+    focus_pose_indices: Sequence[int] = (),
 ) -> MeasurementChoice:
     """Run one measurement-selection strategy.
 
@@ -151,6 +156,8 @@ def choose(
         system: the graph linearised at its solution (:func:`linear_system`), to reuse across calls.
         tracker: ``information``: how the greedy tracks the covariance (default :class:`TrackerOptions`; the
             variants give the same selection at different costs).
+        focus_pose_indices: keyframes whose poses join the focused set (eq. 23's W), e.g. the riskiest ones
+            (:func:`stages.risk.riskiest_keyframes`); the entropy is then over the landmarks and these poses.
 
     Raises:
         StageError: no focused landmarks, or focused tags that the graph does not have.
@@ -183,6 +190,7 @@ def choose(
         focused, cands, base = _pose_focus(loaded, system)
     else:
         focused = focused_variables(loaded, system, tags)
+        focused += [system.index_of_key(loaded.pose_keys[int(i)]) for i in focus_pose_indices]
         cands = candidate_factors(loaded, tags)
         base = [int(i) for i in loaded.fixed_factor_indices]
     sigma = cfg.landmark_prior_sigma_m
@@ -211,6 +219,7 @@ def choose(
         budget=budget,
         focus=cfg.focus,
         focused_tag_ids=tags,
+        focused_pose_indices=[int(i) for i in focus_pose_indices] if cfg.focus != "poses" else [],
         factor_indices=[int(p) for p in sel.picks],
         gains=[float(g) for g in sel.gains],
         status=sel.status,

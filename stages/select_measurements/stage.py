@@ -10,8 +10,11 @@ import rerun as rr
 from pipeline.context import StageContext
 from pipeline.errors import StageError
 from pipeline.recording import ellipsoids, set_step
+from stages.columns import STAMP_NS
 from stages.estimation.blas import blas_single
+from stages.risk import riskiest_keyframes
 from stages.select_landmarks.artifacts import FOCUSED as FOCUSED_JSON
+from stages.select_landmarks.artifacts import MAHALANOBIS_FOCUSED, RISK
 from stages.select_measurements.artifacts import SELECTED, SELECTION, SelectedMeasurements, selected_table
 from stages.select_measurements.config import SelectMeasurementsConfig
 from stages.select_measurements.core import (
@@ -51,6 +54,27 @@ def _focused_tags(ctx: StageContext, cfg: SelectMeasurementsConfig, loaded: Load
     return FOCUSED_JSON.read(ctx.input("select_landmarks")).tag_ids
 
 
+def _risky_poses(ctx: StageContext, cfg: SelectMeasurementsConfig, loaded: LoadedGraph) -> list[int]:
+    """``focus_poses``: the riskiest keyframes by eq. 20 with the focused landmarks (select_landmarks' risk.parquet)."""
+    if cfg.focus_poses <= 0 or cfg.focus == "poses":
+        return []
+    if not ctx.has_input("select_landmarks"):
+        raise StageError(
+            "select_measurements.focus_poses needs select_landmarks' risk.parquet: run 'focusmap select-landmarks RUN' "
+            "first, or set select_measurements.focus_poses=0"
+        )
+    sl = ctx.input("select_landmarks")
+    risk = RISK.read(sl, columns=[STAMP_NS, MAHALANOBIS_FOCUSED]).to_pydict()
+    maha = np.asarray(risk[MAHALANOBIS_FOCUSED], dtype=float)
+    if len(maha) != len(loaded.pose_keys) or not np.isfinite(maha).any():
+        raise StageError(
+            "select_measurements.focus_poses: select_landmarks has no collision risk for this graph's keyframes (no "
+            "laser, or it is stale); set select_measurements.focus_poses=0 or re-run 'focusmap select-landmarks RUN'"
+        )
+    window = FOCUSED_JSON.read(sl).settings.visibility_window_s
+    return riskiest_keyframes(maha, np.asarray(risk[STAMP_NS], dtype=np.int64), cfg.focus_poses, window)
+
+
 @blas_single
 def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
     """Select the measurements; write ``selected.parquet``; log ``select_measurements.rrd``."""
@@ -59,7 +83,7 @@ def run(ctx: StageContext, cfg: SelectMeasurementsConfig) -> dict[str, Any]:
     loaded = load_graph(ctx.input("graph"))
     tags = _focused_tags(ctx, cfg, loaded)
     system = linear_system(loaded)
-    choice = choose(loaded, tags, cfg, system)
+    choice = choose(loaded, tags, cfg, system, focus_pose_indices=_risky_poses(ctx, cfg, loaded))
     SELECTED.write(ctx.output, selected_table(choice, loaded))
     SELECTION.write(ctx.output, SelectedMeasurements.of(choice, cfg))
     log_recording(ctx, loaded, system, choice, cfg)
