@@ -70,12 +70,12 @@ def test_negative_budget_is_one_error_line(tmp_path: Path, command: str) -> None
         ("detect.tag_size_m=inf", ["detect.tag_size_m", "finite", "0 < value <= 5"]),
         ("detect.tag_size_m=1e9", ["detect.tag_size_m", "0 < value <= 5"]),
         ("optimize.unobserved_sigma_m=inf", ["optimize.unobserved_sigma_m", "finite", "<= 1000"]),
-        ("evaluate.dt_s=-.inf", ["evaluate.dt_s"]),
+        ("select_landmarks.control_period_s=-.inf", ["select_landmarks.control_period_s"]),
         ("rerun.n_sigma=inf", ["rerun.n_sigma", "finite"]),
         # found by the fault matrix (tests/benchmarks/bench_faults.py): an OverflowError in evaluate, and a run
         # the kernel killed for memory
-        ("evaluate.speed_sigma_mps=1e300", ["evaluate.speed_sigma_mps", "<= 1000"]),
-        ("evaluate.yaw_rate_sigma_radps=1e300", ["evaluate.yaw_rate_sigma_radps", "<= 1000"]),
+        ("select_landmarks.speed_sigma_mps=1e300", ["select_landmarks.speed_sigma_mps", "<= 1000"]),
+        ("select_landmarks.yaw_rate_sigma_radps=1e300", ["select_landmarks.yaw_rate_sigma_radps", "<= 1000"]),
         ("evaluate.trials=1000000000", ["evaluate.trials", "0 <= value <= 100000"]),
         ("select_landmarks.robot_radius_m=1e300", ["select_landmarks.robot_radius_m", "<= 100"]),
         ("evaluate.robot_radius_m=1e300", ["evaluate.robot_radius_m", "<= 100"]),

@@ -20,18 +20,7 @@ from pipeline.runner import run_stage
 from stages.select_landmarks.artifacts import FOCUSED
 from tests.fixtures.room import synthetic_scans, write_ground_truth
 from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
-from tests.fixtures.upstream import seed_upstream, stand_in_registry
-
-STAGES = ("graph", "select_landmarks", "select_measurements", "optimize", "evaluate")
-BASE = (
-    "select_landmarks.budget=5",
-    "select_measurements.budget=15",
-    "evaluate.trials=0",
-    "evaluate.plots=false",
-    "evaluate.oracle_measurements=false",
-    "evaluate.extra_pairs=[]",
-)
-REG = stand_in_registry()
+from tests.fixtures.upstream import BASE, REG, STAGES, run_all, seed_upstream, summary
 
 
 @pytest.fixture(scope="module")
@@ -52,15 +41,6 @@ def make_run(sim: SyntheticRun, tmp_path: Path):
         return run
 
     return make
-
-
-def run_all(run: RunFolder, *sets: str) -> dict[str, str]:
-    settings = load_settings(REG.models(), None, [*BASE, *sets])
-    return {name: run_stage(run, REG, name, settings).status for name in STAGES}
-
-
-def summary(run: RunFolder, stage: str) -> dict:
-    return json.loads((run.stage_dir(stage) / "summary.json").read_text())
 
 
 AFTER_SELECT_LANDMARKS = {

@@ -43,7 +43,7 @@ def evaluated(tmp_path_factory):
 
 def test_every_case_is_in_the_table(evaluated) -> None:
     table = pq.read_table(evaluated.stage_dir("evaluate") / "cases.parquet").to_pydict()
-    assert table["case"] == [c[0] for c in TABLE_I] + ["random+random"]
+    assert table["case"] == [c[0] for c in TABLE_I] + ["random+random", "focus_info_poses"]
     for col in (
         "focused_entropy",
         "focused_error_m",
@@ -124,7 +124,7 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
     # the risk model beside the simulation: one line per case, each with its verdict
     section = md.split("## Risk model against the simulation", 1)[1].split("\n## ", 1)[0]
     lines = [line for line in section.splitlines() if line.startswith("- ")]
-    assert len(lines) == len(TABLE_I) + 1
+    assert len(lines) == len(TABLE_I) + 2
     assert all("predicted P(collision on the path) in [" in line and "simulated " in line for line in lines)
     assert all(("consistent (the interval reaches within 10x" in line) != ("DISAGREE" in line) for line in lines)
     assert "data:image/png;base64," in (out / "report.html").read_text()

@@ -145,7 +145,7 @@ def test_a_3d_graph_is_refused_in_one_line(run_dir) -> None:
 def test_the_stage_writes_the_table_and_the_report_section(run_dir) -> None:
     out = run_dir.stage_dir("evaluate")
     t = pq.read_table(out / "realisations.parquet").to_pydict()
-    names = [c[0] for c in TABLE_I] + ["random+random"]
+    names = [c[0] for c in TABLE_I] + ["random+random", "focus_info_poses"]
     assert t["realisation"] == [r for r in range(3) for _ in names] and t["case"] == names * 3
     assert all(n == 4 for n in t["trials"])
     md = (out / "report.md").read_text()

@@ -16,8 +16,7 @@ from sample_data.simulate import SimConfig, simulate, truth_yaml_paths, write_ba
 from stages.navigation.truth import MISSING, read_truth, read_tum
 from tests.fixtures.room import room_walls, synthetic_scans
 from tests.fixtures.synthetic_runs import SyntheticRun, synthetic_run
-from tests.fixtures.upstream import seed_upstream
-from tests.pipeline.test_cache import STAGES, run_all, summary
+from tests.fixtures.upstream import STAGES, run_all, seed_upstream, summary
 
 
 @pytest.fixture(scope="module")
