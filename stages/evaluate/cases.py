@@ -185,6 +185,9 @@ class EvalInputs:
     """Every measurement of the full graph at the truth (empty without a ground truth)."""
     by_range: list[dict[str, float]] = field(default_factory=list)
     """Tag residuals at the truth by measured range."""
+    analysis: bool = True
+    """Compute the measurement-consistency analysis (the report's "Why"); map realisations, which do not report it,
+    switch it off."""
 
     @property
     def risk_params(self) -> RiskParams:
@@ -393,7 +396,8 @@ def prepare(inputs: EvalInputs) -> None:
         window = inputs.sl_cfg.visibility_window_s
         inputs.risky_keyframes = riskiest_keyframes(risk.mahalanobis, geo.stamps_ns, inputs.cfg.focused_poses, window)
     if (
-        inputs.truth is not None
+        inputs.analysis
+        and inputs.truth is not None
         and inputs.truth.has_poses
         and not inputs.consistency
         and inputs.loaded.model == "planar"

@@ -237,6 +237,7 @@ def realisation_inputs(
         cfg=cfg,
         scans=base.scans,
         T_base_laser=base.T_base_laser,
+        analysis=False,
     )
 
 
