@@ -263,13 +263,16 @@ def simulate(
         P = A @ P @ A.transpose(0, 2, 1) + B @ Qu @ B.transpose(0, 2, 1) + 1e-12 * np.eye(3)
         # EKF update, one landmark of the map at a time (eq. 26 noise, the landmark as seen from this keyframe)
         C = A @ C
+        zs, js = [], []
         for lid in visibility[k + 1]:
             noise = meas_rng.standard_normal((N, 2))  # drawn for every visible landmark: the same world for every map
             j = index.get(int(lid))
             if j is None or int(lid) not in truth:
                 continue
-            z = _measure(x, truth[int(lid)], R, noise)
-            xh, P, C = _schmidt_update(xh, P, C, z, landmark_map.positions[j], j, Lam, R)
+            zs.append(_measure(x, truth[int(lid)], R, noise))
+            js.append(j)
+        if js:  # every landmark measured at this step in one update
+            xh, P, C = schmidt_update(xh, P, C, np.stack(zs, axis=1), landmark_map.positions[js], js, Lam, R)
         active = ~collided
         if active.any():
             stats.add(active, x, xh, P, truth_path[k + 1])
@@ -374,51 +377,70 @@ def joint_covariance(landmark_map: MapLike) -> FloatArray:
     return out
 
 
-def _schmidt_update(
+def schmidt_update(
     xh: FloatArray,
     P: FloatArray,
     C: FloatArray,
     z: FloatArray,
     lh: FloatArray,
-    j: int,
+    js: Sequence[int],
     Lam: FloatArray,
     R: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Schmidt (consider) update of every trial with a bearing-range measurement of map landmark ``j`` at ``lh``.
+    """Schmidt (consider) update of every trial with bearing-range measurements ``z`` (N, m, 2) of the map landmarks
+    ``js`` (rows of the map) at ``lh`` (m, 2), all at once.
 
     The map's landmark errors ``λ`` (joint covariance ``Lam``) are considered states: not estimated, but their
-    cross-covariance ``C`` with the robot's error is carried, so the same landmark error met again, or the drift
+    cross-covariance ``C`` with the robot's error is carried, so the same landmark error, met again, or the drift
     that several landmarks share, is not taken for fresh information (eq. 26 applied independently per measurement
-    would be). With ``δ = x − x̂``, ``ν = z − h(x̂, l̂) ≈ H δ + M λ_j + v``:
-    ``S = H P Hᵀ + H C_j Mᵀ + M C_jᵀ Hᵀ + M Λ_jj Mᵀ + R``, ``K = (P Hᵀ + C_j Mᵀ) S⁻¹``, ``P ← P − K S Kᵀ``,
-    ``C ← C − K (H C + M Λ_j·)``. A trial whose innovation fails the χ² gate (:data:`GATE_CHI2`) skips the update,
-    as a real filter rejects a measurement it cannot explain.
+    would be). With ``δ = x − x̂``, ``ν = z − h(x̂, l̂) ≈ H δ + M λ_J + v``:
+    ``S = H P Hᵀ + H C_J Mᵀ + M C_Jᵀ Hᵀ + M Λ_JJ Mᵀ + R``, ``K = (P Hᵀ + C_J Mᵀ) S⁻¹``, ``P ← P − K S Kᵀ``,
+    ``C ← C − K (H C + M Λ_J·)``. A measurement whose own innovation fails the χ² gate (:data:`GATE_CHI2`, on its
+    block of ``S``) is left out for that trial (its noise is made uninformative), as a real filter rejects a
+    measurement it cannot explain.
     """
-    N = len(xh)
-    d = lh - xh[:, :2]
-    q = np.maximum((d * d).sum(1), 1e-12)
+    N, m = z.shape[0], len(js)
+    d = np.asarray(lh, dtype=float)[None] - xh[:, None, :2]  # (N, m, 2)
+    q = np.maximum((d * d).sum(axis=2), 1e-12)
     r = np.sqrt(q)
-    zh = np.column_stack([np.arctan2(d[:, 1], d[:, 0]) - xh[:, 2], r])
-    H = np.zeros((N, 2, 3))
-    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = d[:, 1] / q, -d[:, 0] / q, -1.0
-    H[:, 1, 0], H[:, 1, 1] = -d[:, 0] / r, -d[:, 1] / r
-    M = np.zeros((N, 2, 2))
-    M[:, 0, 0], M[:, 0, 1] = -d[:, 1] / q, d[:, 0] / q
-    M[:, 1, 0], M[:, 1, 1] = d[:, 0] / r, d[:, 1] / r
-    cols = slice(2 * j, 2 * j + 2)
-    Cj = C[:, :, cols]
-    Ht, Mt = H.transpose(0, 2, 1), M.transpose(0, 2, 1)
-    HCjMt = H @ Cj @ Mt
-    S = H @ P @ Ht + HCjMt + HCjMt.transpose(0, 2, 1) + M @ Lam[cols, cols] @ Mt + R
-    G = P @ Ht + Cj @ Mt
-    Sinv = np.linalg.inv(S)
-    nu = z - zh
-    nu[:, 0] = wrap_angle(nu[:, 0])
-    # innovation gate, as a real filter has: a trial whose innovation is implausible skips this measurement
-    nis = np.einsum("ni,nij,nj->n", nu, Sinv, nu)
-    Kg = (G @ Sinv) * (nis <= GATE_CHI2)[:, None, None]
+    zh = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], r], axis=2)
+    H = np.zeros((N, m, 2, 3))
+    H[..., 0, 0], H[..., 0, 1], H[..., 0, 2] = d[..., 1] / q, -d[..., 0] / q, -1.0
+    H[..., 1, 0], H[..., 1, 1] = -d[..., 0] / r, -d[..., 1] / r
+    M = np.zeros((N, m, 2, 2))  # w.r.t. each landmark's own position
+    M[..., 0, 0], M[..., 0, 1] = -d[..., 1] / q, d[..., 0] / q
+    M[..., 1, 0], M[..., 1, 1] = d[..., 0] / r, d[..., 1] / r
+    cols = np.stack([2 * np.asarray(js), 2 * np.asarray(js) + 1], axis=1).ravel()
+    Hs = H.reshape(N, 2 * m, 3)
+    MLam = np.matmul(M, Lam[cols].reshape(1, m, 2, -1)).reshape(N, 2 * m, -1)  # M Λ_J·
+    Mt = M.transpose(0, 1, 3, 2)
+
+    def times_Mt(X: FloatArray) -> FloatArray:  # X (N, a, 2m) @ blockdiag(M_i)ᵀ
+        a = X.shape[1]
+        blocks = np.matmul(X.reshape(N, a, m, 2).transpose(0, 2, 1, 3), Mt)  # (N, m, a, 2)
+        return blocks.transpose(0, 2, 1, 3).reshape(N, a, 2 * m)
+
+    HC = Hs @ C
+    HCM = times_Mt(HC[:, :, cols])
+    nu = (z - zh).reshape(N, 2 * m)
+    nu[:, 0::2] = wrap_angle(nu[:, 0::2])
+    S = Hs @ P @ Hs.transpose(0, 2, 1) + HCM + HCM.transpose(0, 2, 1) + times_Mt(MLam[:, :, cols])
+    S += np.kron(np.eye(m), R)
+    # innovation gate, per measurement on its own block of S
+    blocks = S.reshape(N, m, 2, m, 2)[:, np.arange(m), :, np.arange(m), :]  # (m, N, 2, 2)
+    nu_m = nu.reshape(N, m, 2).transpose(1, 0, 2)
+    nis = np.einsum("mni,mni->mn", nu_m, np.linalg.solve(blocks, nu_m[..., None])[..., 0])
+    rejected = (nis > GATE_CHI2).T  # (N, m)
+    if rejected.any():
+        big = np.repeat(rejected, 2, axis=1)
+        nu[big] = 0.0
+        idx = np.flatnonzero(big.any(axis=0))
+        for c in idx:
+            S[big[:, c], c, c] += 1e12
+    G = P @ Hs.transpose(0, 2, 1) + times_Mt(C[:, :, cols])
+    Kg = G @ np.linalg.inv(S)
     xh = xh + np.einsum("nij,nj->ni", Kg, nu)
     P = P - Kg @ S @ Kg.transpose(0, 2, 1)
     P = 0.5 * (P + P.transpose(0, 2, 1))
-    C = C - Kg @ (H @ C + M @ Lam[cols][None])
+    C = C - Kg @ (HC + MLam)
     return xh, P, C

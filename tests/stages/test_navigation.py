@@ -237,3 +237,39 @@ def test_the_filter_is_consistent_with_an_honest_map(corridor) -> None:
         res = simulate(path, gains, lm, truth, vis, None, NavigationParams(trials=50), seed=r)
         nees.append(res.nees_per_dof)
     assert 0.5 < float(np.mean(nees)) < 2.0, nees
+
+
+def test_the_schmidt_update_equals_the_augmented_kalman_update() -> None:
+    """The robot part of one Schmidt update, every landmark of the step at once, is the textbook Kalman update of the
+    state augmented with the map's landmark errors; the gate leaves out only the measurement that fails it."""
+    from stages.navigation.lqg import schmidt_update
+    from tests.oracles.schmidt import augmented_update
+
+    rng = np.random.default_rng(3)
+    N, L = 6, 5
+    xh = rng.normal(size=(N, 3)) * [0.1, 0.1, 0.05]
+    A = rng.normal(size=(3 + 2 * L, 3 + 2 * L)) * 0.05
+    full = A @ A.T + 1e-3 * np.eye(3 + 2 * L)
+    P = np.repeat(full[None, :3, :3], N, 0)
+    C = np.repeat(full[None, :3, 3:], N, 0)
+    Lam = full[3:, 3:]
+    lh = rng.uniform(-3, 3, size=(L, 2))
+    lh[:, 0] += 4.0
+    js = [4, 1, 2]
+    R = np.diag([0.02, 0.05]) ** 2
+    d = lh[js][None] - xh[:, None, :2]
+    z = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], np.hypot(d[..., 0], d[..., 1])], axis=2)
+    z += rng.normal(size=z.shape) * 0.01
+    got = schmidt_update(xh, P, C, z, lh[js], js, Lam, R)
+    want = augmented_update(xh, P, C, z, lh[js], js, Lam, R)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    # a wild measurement of landmark 1 in trial 0 is left out there, the others still count
+    z_bad = z.copy()
+    z_bad[0, 1, 1] += 5.0
+    gated = schmidt_update(xh, P, C, z_bad, lh[js], js, Lam, R)
+    kept = augmented_update(xh[:1], P[:1], C[:1], z[:1, [0, 2]], lh[[4, 2]], [4, 2], Lam, R)
+    for a, b in zip(gated, kept, strict=True):
+        np.testing.assert_allclose(a[0], b[0], rtol=1e-6, atol=1e-9)
+    for a, b in zip(gated, got, strict=True):
+        np.testing.assert_allclose(a[1:], b[1:], rtol=1e-12)
