@@ -168,6 +168,9 @@ class SimConfig:
     tag_spacing_m: float = 0.6
     corridor_length_m: float = 10.0
     """Length of the corridor behind the door (x from 8 m to 8 m + this)."""
+    laps: int = 1
+    """``corridor_return`` only: drive the there-and-back this many times (a turn in place between laps), for
+    recordings of any length (the scaling benchmark)."""
     first_tag_id: int = 0
     """Tags get ids first_tag_id, first_tag_id + 1, ... in wall order."""
 
@@ -487,10 +490,15 @@ def build_trajectory(cfg: SimConfig) -> Trajectory:
         legs = [_drive_leg(_corridor_leg(cfg), cfg)]
     elif cfg.path == "corridor_return":
         out = _corridor_leg(cfg)
-        legs = [_drive_leg(out, cfg)]
-        _, x, y, yaw, _, _ = legs[0]
-        legs.append(_spin_leg(float(x[-1]), float(y[-1]), float(yaw[-1]), math.pi, cfg))
-        legs.append(_drive_leg(out[::-1], cfg))
+        legs = []
+        for lap in range(max(cfg.laps, 1)):
+            if lap:  # back at the start facing the room: turn to face the corridor again
+                _, x, y, yaw, _, _ = legs[-1]
+                legs.append(_spin_leg(float(x[-1]), float(y[-1]), float(yaw[-1]), math.pi, cfg))
+            legs.append(_drive_leg(out, cfg))
+            _, x, y, yaw, _, _ = legs[-1]
+            legs.append(_spin_leg(float(x[-1]), float(y[-1]), float(yaw[-1]), math.pi, cfg))
+            legs.append(_drive_leg(out[::-1], cfg))
     else:
         msg = f"unknown path {cfg.path!r}; expected 'office', 'corridor' or 'corridor_return'"
         raise ValueError(msg)
@@ -882,6 +890,9 @@ def _validate(cfg: SimConfig) -> None:
         raise ValueError(msg)
     if cfg.duration_s is not None and cfg.duration_s <= 0:
         msg = f"duration_s must be > 0 (or None for the whole path), got {cfg.duration_s}"
+        raise ValueError(msg)
+    if cfg.laps < 1 or (cfg.laps > 1 and cfg.path != "corridor_return"):
+        msg = f"laps must be >= 1, and above 1 only with path corridor_return (got {cfg.laps}, path {cfg.path})"
         raise ValueError(msg)
 
 
@@ -1588,6 +1599,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--camera-rate", type=float, default=5.0, help="Hz")
     parser.add_argument("--corridor-length", type=float, default=10.0, help="corridor length behind the door, m")
+    parser.add_argument(
+        "--laps", type=int, default=1, help="corridor_return: drive there and back this many times (longer recordings)"
+    )
     wheel = parser.add_argument_group("systematic wheel odometry errors (default: none)")
     wheel.add_argument(
         "--odom-distance-scale-error", type=float, default=0.0, help="reported distance = (1 + this) x driven"
@@ -1629,6 +1643,7 @@ def main(argv: list[str] | None = None) -> int:
         image_height=args.height,
         camera_rate_hz=args.camera_rate,
         corridor_length_m=args.corridor_length,
+        laps=args.laps,
         odom_distance_scale_error=args.odom_distance_scale_error,
         odom_yaw_scale_error=args.odom_yaw_scale_error,
         odom_yaw_bias_rad_per_m=args.odom_yaw_bias,

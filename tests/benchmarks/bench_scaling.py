@@ -1,0 +1,122 @@
+"""Growth with the recording's length (issue #16): per stage, time and peak memory on 2, 4, 8, 16 minute recordings.
+
+    python tests/benchmarks/bench_scaling.py --out /tmp/scaling [--minutes 2 4 8 16] [--format ros1]
+
+Each recording is the simulator's corridor there and back, driven lap after lap (``--laps``) until it lasts the
+given minutes (640x480 JPEG at 5 Hz, wheel odometry, a laser). Every stage runs as its own ``focusmap`` command
+inside a fresh wrapper process, so the wrapper's ``RUSAGE_CHILDREN`` peak is that stage's (its worker processes
+included: the largest single process, not their sum). Printed per stage: the wall time and peak RSS per length,
+and the growth exponent fitted on log-log (1 = linear); the whole run's time over the recording's duration; and the
+peak RSS extrapolated to an hour with the fitted exponent. Nothing is asserted: the machine is shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+STAGES = ("ingest", "detect", "graph", "select_landmarks", "select_measurements", "optimize", "evaluate")
+LAP_S = 63.6
+"""One more lap of the corridor there and back, with the turn before it, s (the first is 57.7 s)."""
+
+_WRAPPER = """
+import resource, subprocess, sys, time
+t = time.perf_counter()
+rc = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+dt = time.perf_counter() - t
+if rc.returncode:
+    sys.stderr.write(rc.stderr)
+    sys.exit(rc.returncode)
+print(dt, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+"""
+
+
+def laps_for(minutes: float) -> int:
+    """Laps whose recording lasts about ``minutes``."""
+    return max(1, round((60.0 * minutes - 57.7) / LAP_S) + 1)
+
+
+def measured(cmd: list[str]) -> tuple[float, float]:
+    """(wall s, peak RSS MiB) of ``cmd`` run in a fresh wrapper process."""
+    out = subprocess.run([sys.executable, "-c", _WRAPPER, *cmd], capture_output=True, text=True, check=False)
+    if out.returncode:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{out.stderr[-2000:]}")
+    dt, rss_kb = out.stdout.split()
+    return float(dt), float(rss_kb) / 1024.0
+
+
+def slope(x: list[float], y: list[float]) -> float:
+    """Least-squares slope of log y on log x (NaN with fewer than two points or a non-positive value)."""
+    if len(x) < 2 or min(y) <= 0:
+        return float("nan")
+    return float(np.polyfit(np.log(x), np.log(y), 1)[0])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, required=True, help="folder for the recordings and run folders")
+    parser.add_argument("--minutes", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
+    parser.add_argument("--format", default="ros1", choices=("ros1", "ros2-sqlite", "ros2-mcap", "mcap"))
+    parser.add_argument("--seed", type=int, default=11)
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    focusmap = str(Path(sys.executable).with_name("focusmap"))
+    rows: dict[float, dict[str, tuple[float, float]]] = {}
+    durations: dict[float, float] = {}
+    for minutes in args.minutes:
+        name = f"m{minutes:g}"
+        laps = laps_for(minutes)
+        bag = args.out / (
+            name if args.format.startswith("ros2") else f"{name}.bag" if args.format == "ros1" else f"{name}.mcap"
+        )
+        if not bag.exists():
+            t0 = time.perf_counter()
+            subprocess.run(
+                [sys.executable, "-m", "sample_data.simulate", "--out", str(args.out), "--name", name, "--format",
+                 args.format, "--seed", str(args.seed), "--path", "corridor_return", "--laps", str(laps),
+                 "--laser-sweep"],
+                check=True, cwd=ROOT, stdout=subprocess.DEVNULL,
+            )  # fmt: skip
+            print(f"simulated {name}: {laps} laps in {time.perf_counter() - t0:.0f} s", flush=True)
+        run = args.out / "runs" / name
+        rows[minutes] = {}
+        for stage in STAGES:
+            cmd = [focusmap, "ingest", str(bag), "--out", str(run.parent), "--name", name, "--force"]
+            if stage != "ingest":
+                cmd = [focusmap, stage.replace("_", "-"), str(run), "--force"]
+            rows[minutes][stage] = measured(cmd)
+            print(f"{name} {stage:20s} {rows[minutes][stage][0]:8.1f} s {rows[minutes][stage][1]:8.0f} MiB", flush=True)
+        durations[minutes] = float(json.loads((run / "ingest" / "summary.json").read_text())["duration_s"])
+    mins = sorted(rows)
+    dur = [durations[m] for m in mins]
+    print("\n| stage | " + " | ".join(f"{durations[m] / 60:.1f} min: s, MiB" for m in mins) + " | time exponent | "
+          "RSS exponent |")  # fmt: skip
+    print("|---|" + "---|" * len(mins) + "---|---|")
+    for stage in STAGES:
+        t = [rows[m][stage][0] for m in mins]
+        r = [rows[m][stage][1] for m in mins]
+        cells = " | ".join(f"{a:.1f}, {b:.0f}" for a, b in zip(t, r, strict=True))
+        print(f"| {stage} | {cells} | {slope(dur, t):.2f} | {slope(dur, r):.2f} |")
+    total = [sum(rows[m][s][0] for s in STAGES) for m in mins]
+    peak = [max(rows[m][s][1] for s in STAGES) for m in mins]
+    print(f"| whole run | {' | '.join(f'{a:.1f}, {b:.0f}' for a, b in zip(total, peak, strict=True))} | "
+          f"{slope(dur, total):.2f} | {slope(dur, peak):.2f} |")  # fmt: skip
+    print("\nwhole run / recording duration: " + ", ".join(f"{t / d:.3f}x" for t, d in zip(total, dur, strict=True)))
+    e = slope(dur, peak)
+    if math.isfinite(e):
+        hour = peak[-1] * (3600.0 / dur[-1]) ** e
+        print(f"peak RSS extrapolated to one hour (exponent {e:.2f} from the longest): {hour:.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()
