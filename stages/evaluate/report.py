@@ -138,7 +138,7 @@ def _save(fig: Any, out_dir: Path, name: str) -> str:
 
 def _maps_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_sigma: float) -> str:
     """maps.png: each case's landmark map with its ellipses, collision-focused landmarks in red."""
-    from matplotlib.patches import Ellipse
+    from matplotlib.collections import EllipseCollection
 
     plt = _pyplot()
     geo = inputs.landmarks.geometry
@@ -150,14 +150,26 @@ def _maps_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Pat
         _walls(ax, inputs)
         ax.plot(geo.poses[:, 0], geo.poses[:, 1], color="tab:blue", lw=0.6)
         lm = r.reduced.landmark_map
-        for t, p, c in zip(lm.tag_ids.tolist(), lm.positions, lm.covariances, strict=True):
-            vals, vecs = np.linalg.eigh(0.5 * (c + c.T))
+        if len(lm.tag_ids):
+            covs = 0.5 * (lm.covariances + lm.covariances.transpose(0, 2, 1))
+            vals, vecs = np.linalg.eigh(covs)
             vals = np.clip(vals, 0, None)
-            ang = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
-            col = "tab:red" if t in focus else "tab:green"
-            width, height = 2 * n_sigma * math.sqrt(vals[1]), 2 * n_sigma * math.sqrt(vals[0])
-            ax.add_patch(Ellipse(p, width, height, angle=ang, fill=False, color=col, lw=0.8))
-            ax.plot(p[0], p[1], ".", color=col, ms=2)
+            angles = np.degrees(np.arctan2(vecs[:, 1, 1], vecs[:, 0, 1]))
+            colors = ["tab:red" if int(t) in focus else "tab:green" for t in lm.tag_ids]
+            ax.add_collection(
+                EllipseCollection(
+                    2 * n_sigma * np.sqrt(vals[:, 1]),
+                    2 * n_sigma * np.sqrt(vals[:, 0]),
+                    angles,
+                    units="xy",
+                    offsets=lm.positions,
+                    offset_transform=ax.transData,
+                    facecolors="none",
+                    edgecolors=colors,
+                    linewidths=0.8,
+                )
+            )
+            ax.scatter(lm.positions[:, 0], lm.positions[:, 1], s=2, c=colors)
         ax.set_title(f"{r.row['label']}: H={r.row['focused_entropy']:.1f}, {r.row['measurements']} meas.", fontsize=9)
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
@@ -168,16 +180,17 @@ def _maps_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Pat
 
 
 def _risk_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path) -> str:
-    """risk.png: the collision probability along the path, one line per case."""
+    """risk.png: the risk model's margin to the obstacle in σ along the path (P = Φ(−z)), one line per case."""
     geo = inputs.landmarks.geometry
     fig, ax = _pyplot().subplots(figsize=(10, 3.8))
     t = (geo.stamps_ns - geo.stamps_ns[0]) / 1e9
     for r in results:
-        p = np.clip(np.nan_to_num(r.risk.p_collision, nan=0.0), 1e-300, 1.0)
-        ax.semilogy(t, p, lw=0.9, label=r.row["label"])
+        z = r.risk.z if r.risk.z is not None else np.full(len(t), np.nan)
+        ax.plot(t, np.where(np.isfinite(z), z, np.nan), lw=0.9, label=r.row["label"])
+    ax.axhline(3.0, color="0.5", lw=0.6, ls="--")
+    ax.set_yscale("log")
     ax.set_xlabel("time along the path (s)")
-    ax.set_ylabel("P(collision), half-plane with Σ*")
-    ax.set_ylim(1e-40, 1.0)
+    ax.set_ylabel("margin to the obstacle (σ of the belief)")
     ax.legend(fontsize=7, ncol=3)
     return _save(fig, out_dir, "risk.png")
 
