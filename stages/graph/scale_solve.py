@@ -30,7 +30,8 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from stages.graph.factors import FactorRow, build_graph, scaled_measurement
+from stages.geometry import pose3_from_vector
+from stages.graph.factors import FactorRow, build_graph, noise_model, scaled_measurement
 
 SCALED_TYPES = ("BearingRangeFactor2D", "BetweenFactorPose3")
 """Row types that carry the scale as a third key."""
@@ -73,20 +74,58 @@ def _scale_priors(rows: Sequence[FactorRow], key: int) -> list[tuple[float, floa
     ]
 
 
-class NativeScaleGraph:
-    """The native graph of ``rows`` at one scale, the scale's priors, and the joint linear system around it."""
+class _ScaledParts:
+    """What does not change with the scale: the native graph of the other rows (built once), the tag rows' numbers
+    and the scale's priors. Rebuilding the graph at a new scale then constructs only the tag factors."""
 
-    def __init__(self, rows: Sequence[FactorRow], s: float) -> None:
+    def __init__(self, rows: Sequence[FactorRow]) -> None:
         key = scale_key_of(rows)
         if key is None:
             raise ValueError("the rows carry no tag scale")
         self.key = key
-        self.s = float(s)
-        native, origin = native_rows(rows, self.s)
-        self.rows = native
-        self.graph = build_graph(native)
-        self.scaled = [j for j, i in enumerate(origin) if is_scaled(rows[i])]
+        fixed = [r for r in rows if not is_scaled(r) and r.type != "PriorFactorDouble"]
+        self.fixed = build_graph(fixed)
+        self.tags = [r for r in rows if is_scaled(r)]
+        self.covs = [np.asarray(r.covariance, dtype=float).reshape(r.dim, r.dim) for r in self.tags]
         self.priors = _scale_priors(rows, key)
+
+    def graph_at(self, s: float) -> gtsam.NonlinearFactorGraph:
+        """The native graph at scale ``s``: the other rows' factors, then one native factor per tag row."""
+        graph = gtsam.NonlinearFactorGraph(self.fixed)  # shares the fixed factors
+        d2 = np.array([1.0, s])
+        d6 = np.array([1.0] * 3 + [s] * 3)
+        for row, cov in zip(self.tags, self.covs, strict=True):
+            m = row.measurement
+            if row.type == "BearingRangeFactor2D":
+                noise = noise_model(cov * np.outer(d2, d2), row.robust, row.robust_k)
+                graph.add(gtsam.BearingRangeFactor2D(row.keys[0], row.keys[1], gtsam.Rot2(m[0]), s * m[1], noise))
+            else:
+                noise = noise_model(cov * np.outer(d6, d6), row.robust, row.robust_k)
+                graph.add(
+                    gtsam.BetweenFactorPose3(
+                        row.keys[0], row.keys[1], pose3_from_vector(scaled_measurement(row, s)), noise
+                    )
+                )
+        return graph
+
+
+class NativeScaleGraph:
+    """The native graph of ``rows`` at one scale, the scale's priors, and the joint linear system around it."""
+
+    def __init__(self, rows: Sequence[FactorRow] | _ScaledParts, s: float) -> None:
+        parts = rows if isinstance(rows, _ScaledParts) else _ScaledParts(rows)
+        self.parts = parts
+        self.key = parts.key
+        self.s = float(s)
+        self.graph = parts.graph_at(self.s)
+        n_fixed = int(parts.fixed.size())
+        self.scaled = list(range(n_fixed, n_fixed + len(parts.tags)))
+        self.types = {i: r.type for i, r in zip(self.scaled, parts.tags, strict=True)}
+        self.priors = parts.priors
+
+    def at(self, s: float) -> NativeScaleGraph:
+        """The same rows at another scale."""
+        return NativeScaleGraph(self.parts, s)
 
     def prior_error(self, s: float) -> float:
         """GTSAM's error (half the whitened square) of the scale's priors at ``s``."""
@@ -110,7 +149,7 @@ class NativeScaleGraph:
                 continue
             A, b = f.jacobian()
             ka, kl = (int(k) for k in f.keys())  # noqa: SIM118 (a gtsam KeyVector)
-            if self.rows[i].type == "BearingRangeFactor2D":
+            if self.types[i] == "BearingRangeFactor2D":
                 pose, point = values.atPose2(ka), values.atPoint2(kl)
                 w = np.array([point[0] - pose.x(), point[1] - pose.y()])
                 Aa, Al = A[:, :3], A[:, 3:]
@@ -188,7 +227,7 @@ def optimise_with_scale(
         rounds += 1
         delta = native.joint_system(theta).optimize()
         ds = float(delta.at(key)[0])
-        cand_theta, cand = theta.retract(delta), NativeScaleGraph(rows, s + ds)  # retract skips the scale's entry
+        cand_theta, cand = theta.retract(delta), native.at(s + ds)  # retract skips the scale's entry
         cand_error = cand.error(cand_theta)
         if not cand_error <= error:  # the joint step overshot: optimise the native graph at the new scale
             cand_theta, more = inner(cand.graph, theta)  # type: ignore[operator]
