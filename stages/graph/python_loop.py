@@ -1,5 +1,9 @@
 """Levenberg-Marquardt and Gauss-Newton driven from Python, for graphs with Python factors.
 
+The stage no longer uses it: graphs with the shared tag scale are solved with native factors
+(:mod:`stages.graph.scale_solve`); this loop solves the ``CustomFactor`` model directly and is the reference
+the tests check that solve against.
+
 GTSAM's own optimisers call a ``gtsam.CustomFactor``'s Python error function with the optimiser's
 internal ``Values``. pybind11 cannot hand that C++ object to Python by reference (it is not a
 registered Python instance), so it copies the whole ``Values`` for every factor on every

@@ -17,7 +17,7 @@ import numpy as np
 from pipeline.errors import StageError
 from stages.graph.factors import build_graph, has_python_factors
 from stages.graph.problem import GraphProblem
-from stages.graph.python_loop import optimise_in_python
+from stages.graph.scale_solve import joint_marginals, optimise_with_scale
 from stages.graph.variables import SCALE
 
 
@@ -197,33 +197,39 @@ def optimise(
 ) -> Solution:
     """Optimise the problem with Levenberg-Marquardt (``lm``), Gauss-Newton (``gn``) or Dogleg (``dogleg``).
 
-    A graph with Python factors (the shared tag scale) is optimised by the loop in
-    :mod:`stages.graph.python_loop` (GTSAM's optimisers copy every variable for each Python factor call);
-    Dogleg is not in that loop, so such a graph uses Levenberg-Marquardt and :attr:`Solution.optimizer` says so.
+    A graph with the shared tag scale is solved with native factors only (:mod:`stages.graph.scale_solve`): the
+    chosen optimiser on the native graph at a fixed scale, and joint Gauss-Newton steps on the poses, landmarks and
+    scale together; ``graph`` (its ``CustomFactor`` form) is then not used. :attr:`Solution.iterations` counts the
+    inner optimiser's iterations plus the joint steps.
     """
-    graph = graph if graph is not None else build_graph(problem.rows)
+    scaled_rows = has_python_factors(problem.rows)
+    if graph is None and not scaled_rows:
+        graph = build_graph(problem.rows)
     start = time.perf_counter()
     if optimizer not in ("lm", "gn", "dogleg"):
         raise StageError(f"unknown optimizer {optimizer!r}; use lm, gn or dogleg")
-    initial_error = float(graph.error(problem.initial))
     try:
-        if has_python_factors(problem.rows):
-            method = "gn" if optimizer == "gn" else "lm"
-            dims = {k: problem.kind(k).dim for k in problem.var_types}
-            loop = optimise_in_python(
-                graph, problem.initial, dims, method, max_iterations, relative_error_tol, absolute_tol=1e-9
+        if scaled_rows:
+            scaled = optimise_with_scale(
+                problem.rows,
+                problem.initial,
+                lambda g, v: _run(_gtsam_optimizer(g, v, optimizer, max_iterations, relative_error_tol)),
+                max_rounds=max_iterations,
+                relative_tol=relative_error_tol,
             )
-            values, iterations = loop.values, loop.iterations
-            optimizer = method if method == optimizer else f"{method} (dogleg has no loop for Python factors)"
+            values, iterations = scaled.values, scaled.iterations
+            initial_error, final_error = scaled.initial_error, scaled.final_error
         else:
-            opt = _gtsam_optimizer(graph, problem.initial, optimizer, max_iterations, relative_error_tol)
-            values = opt.optimize()
-            iterations = int(opt.iterations())
+            assert graph is not None
+            initial_error = float(graph.error(problem.initial))
+            values, iterations = _run(
+                _gtsam_optimizer(graph, problem.initial, optimizer, max_iterations, relative_error_tol)
+            )
+            final_error = float(graph.error(values))
     except RuntimeError as err:
         if _is_indeterminant(err):
             raise StageError(indeterminant_message(problem, err, "optimising")) from err
         raise
-    final_error = float(graph.error(values))
     if not np.isfinite(final_error):
         raise StageError("the optimised graph has a non-finite error; check the inputs for NaNs or zero covariances")
     return Solution(values, initial_error, final_error, iterations, optimizer, time.perf_counter() - start)
@@ -232,17 +238,27 @@ def optimise(
 def marginal_covariances(
     problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]
 ) -> dict[int, np.ndarray]:
-    """Marginal covariance of each key, from one ``gtsam.Marginals`` (one factorisation, per-key queries).
+    """Marginal covariance of each key, from one ``gtsam.Marginals`` (one factorisation, per-key queries); with the
+    shared tag scale, of the joint linear system of native factors plus the scale's column
+    (:func:`stages.graph.scale_solve.joint_marginals`), so every covariance holds the scale's uncertainty.
 
     Covariances are in each variable's tangent space (Pose3: (rx, ry, rz, tx, ty, tz), body frame).
     """
     try:
+        if has_python_factors(problem.rows):
+            return joint_marginals(problem.rows, values, keys)
         marginals = gtsam.Marginals(graph, values)
         return {k: np.asarray(marginals.marginalCovariance(k), dtype=float) for k in keys}
     except RuntimeError as err:
         if _is_indeterminant(err):
             raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
         raise
+
+
+def _run(opt: gtsam.NonlinearOptimizer) -> tuple[gtsam.Values, int]:
+    """Run a GTSAM optimiser: its values and iterations."""
+    values = opt.optimize()
+    return values, int(opt.iterations())
 
 
 def _gtsam_optimizer(

@@ -1,4 +1,5 @@
-"""The Python-driven LM / GN loop (graphs with the shared tag scale) against GTSAM's own optimisers."""
+"""The Python-driven LM / GN loop (the reference solver of graphs with the shared tag scale) against GTSAM's own
+optimisers, and the stage's native solve against it."""
 
 from __future__ import annotations
 
@@ -72,10 +73,15 @@ def test_iteration_limit_is_respected(scaled) -> None:
     assert optimise_in_python(graph, problem.initial, dims, "lm", max_iterations=1).iterations == 1
 
 
-def test_stage_optimise_uses_the_loop_and_says_so_for_dogleg(scaled) -> None:
-    problem, graph, _ = scaled
+def test_stage_optimise_with_the_scale_runs_each_optimizer_natively(scaled) -> None:
+    """The stage no longer needs this loop: with the scale it runs the chosen GTSAM optimiser on native factors
+    (stages/graph/scale_solve.py), dogleg included, and reaches the minimum this loop reaches."""
+    problem, graph, dims = scaled
     lm = optimise(problem, graph, "lm")
     dogleg = optimise(problem, graph, "dogleg")
-    assert lm.optimizer == "lm" and dogleg.optimizer.startswith("lm (dogleg")
-    np.testing.assert_allclose(lm.final_error, dogleg.final_error, rtol=1e-9)
+    assert lm.optimizer == "lm" and dogleg.optimizer == "dogleg"
+    np.testing.assert_allclose(lm.final_error, dogleg.final_error, rtol=1e-7)
     assert lm.final_error < lm.initial_error
+    loop = optimise_in_python(graph, problem.initial, dims, "lm", relative_tol=1e-12, absolute_tol=1e-12)
+    np.testing.assert_allclose(lm.final_error, graph.error(loop.values), rtol=1e-7)
+    np.testing.assert_allclose(lm.final_error, graph.error(lm.values), rtol=1e-12)  # the error of the model itself
