@@ -171,14 +171,21 @@ class _Evaluation:
     J: Array
     cost: Array
     uv: Array
+    S: Array | None = None
 
 
-def _evaluate(proj: Projection, R: Array, t: Array, obj: Array, corners: Array) -> _Evaluation:
+def _evaluate(
+    proj: Projection, R: Array, t: Array, obj: Array, corners: Array, second_order: bool = False
+) -> _Evaluation:
     """Reprojection residuals of poses ``R, t`` ((..., M, 3, 3), (..., M, 3)) of the tags ``obj`` (M, 4, 3) seen at
     ``corners`` (M, 4, 2), and their Jacobian by ``xi`` of ``T Exp(xi)``.
 
     ``d P / d omega = -R [p]x`` and ``d P / d v = R`` for the camera-frame corner ``P = R p + t``. A pose that puts
-    a corner at or behind the camera costs infinity.
+    a corner at or behind the camera costs infinity. With ``second_order`` (poses (M, 3, 3)), also Newton's
+    second-order term ``S = sum_i r_i d2 r_i / d xi2`` (M, 6, 6), so that ``J^T J + S`` is the Hessian of half the
+    cost in the coordinates ``(w, v) -> (R Exp(w), t + R v)`` that :func:`_refine_batch` steps in: with
+    ``g = R^T Jp^T r`` and ``Hr = sum_c r_c d2 pixel_c / dP2`` per corner, ``S = sum_corners L^T R^T Hr R L`` plus
+    ``sym(g p^T) - (g . p) I`` in the rotation block (from ``d2 Exp(w) p / dw2``), with ``L = [-[p]x | I]``.
     """
     # The tag is planar (z = 0 in its frame): P = x R e_x + y R e_y + t, and B [p]x = [-y B_z, x B_z, y B_x - x B_y].
     x, y = obj[..., 0, None], obj[..., 1, None]  # (M, 4, 1)
@@ -194,7 +201,20 @@ def _evaluate(proj: Projection, R: Array, t: Array, obj: Array, corners: Array) 
     res = (uv - corners).reshape(*R.shape[:-2], 8)
     cost = np.einsum("...i,...i->...", res, res)
     cost[~(P[..., 2] > 0).all(axis=-1) | ~np.isfinite(cost)] = np.inf
-    return _Evaluation(res, J, cost, uv)
+    if not second_order:
+        return _Evaluation(res, J, cost, uv)
+    r = res.reshape(*uv.shape)  # (M, 4, 2)
+    Rt = R.transpose(0, 2, 1)
+    Hr = Rt[:, None] @ proj.weighted_hessian(P, r) @ R[:, None]  # tag frame, (M, 4, 3, 3)
+    g = (B.swapaxes(-1, -2) @ r[..., None])[..., 0]  # R^T Jp^T r, (M, 4, 3)
+    L = np.zeros((*obj.shape[:2], 3, 6))
+    L[..., :3] = -_skew_batch(obj)
+    L[..., 0, 3], L[..., 1, 4], L[..., 2, 5] = 1.0, 1.0, 1.0
+    S = (L.swapaxes(-1, -2) @ Hr @ L).sum(axis=1)
+    gp = np.einsum("mki,mki->m", g, obj)
+    outer = np.einsum("mki,mkj->mij", obj, g)
+    S[:, :3, :3] += 0.5 * (outer + outer.transpose(0, 2, 1)) - gp[:, None, None] * np.eye(3)
+    return _Evaluation(res, J, cost, uv, S)
 
 
 def corner_jacobian(camera: pycolmap.Camera, T: Array, obj: Array) -> Array:
@@ -215,49 +235,42 @@ class _Refined:
     ok: Array
 
 
-def _evaluate_newton(proj: Projection, R: Array, t: Array, obj: Array, corners: Array) -> tuple[_Evaluation, Array]:
-    """:func:`_evaluate` and the exact Hessian of half the cost, ``d(J^T r)/d xi`` (M, 6, 6): forward differences
-    of the analytic gradient over steps of 1e-6 (rad, and of the distance). Its error is O(1e-6) of the Hessian
-    plus terms proportional to the gradient, so it steers Newton's steps without moving their fixed point."""
-    m = len(R)
-    dist = np.linalg.norm(t, axis=1)
-    Rs = np.empty((7, m, 3, 3))
-    ts = np.empty((7, m, 3))
-    Rs[0], Rs[1:4], Rs[4:] = R, R @ _FD_ROTATIONS[:, None], R
-    ts[0], ts[1:4] = t, t
-    ts[4:] = t + _FD_STEP * dist[:, None] * np.moveaxis(R, 2, 0)  # t + h R e_k
-    big = _evaluate(proj, Rs, ts, obj, corners)
-    G = np.einsum("knij,kni->knj", big.J, big.res)
-    h = np.empty((6, m))
-    h[:3], h[3:] = _FD_STEP, _FD_STEP * dist
-    H = ((G[1:] - G[0]) / h[:, :, None]).transpose(1, 2, 0)
-    ev = _Evaluation(big.res[0], big.J[0], big.cost[0], big.uv[0])
-    return ev, 0.5 * (H + H.transpose(0, 2, 1))
-
-
-_FD_STEP = 1e-6
-_FD_ROTATIONS = np.stack([so3_exp(_FD_STEP * e) for e in np.eye(3)])
+def _positive_definite(H: Array) -> Array:
+    """Which of the symmetric matrices ``H`` (M, n, n) are positive definite: Gaussian elimination without pivoting,
+    every pivot positive (Sylvester's criterion). A few vector operations per column, against LAPACK's eigenvalues
+    per matrix (``eigvalsh`` cost a fifth of the solver on the sample)."""
+    A = H.copy()
+    n = A.shape[-1]
+    ok = np.ones(len(A), dtype=bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for j in range(n):
+            d = A[:, j, j]
+            ok &= d > 0
+            if j + 1 < n:
+                A[:, j + 1 :, j + 1 :] -= A[:, j + 1 :, j, None] * (A[:, None, j, j + 1 :] / d[:, None, None])
+    return ok
 
 
 def _refine_batch(proj: Projection, corners: Array, obj: Array, R: Array, t: Array) -> _Refined:
     """Least-squares poses of the corners (M, 4, 2) of tags ``obj`` (M, 4, 3) from the starts ``R, t``.
 
     Damped Newton on the right perturbation, all problems at once; every problem takes its own steps and
-    damping. The Hessian is the exact one (:func:`_evaluate_newton`) where it is positive definite, else Gauss-
-    Newton's ``J^T J``: Gauss-Newton alone converges only linearly on these problems (the tags' flat, curved
-    valleys of the planar ambiguity), often taking 20-100 steps. A problem stops once its step is below 1e-10
-    (rad, and relative to the distance): at the optimum to near machine precision (pycolmap's Ceres stopped
-    at a relative cost change of 1e-6, short of it). The covariance is ``(J^T J)^-1`` at the optimum (what
-    ``pycolmap.refine_absolute_pose`` reports, in GTSAM's tangent).
+    damping. The Hessian is the exact one (``J^T J`` and the analytic second-order term of :func:`_evaluate`) where
+    it is positive definite, else Gauss-Newton's ``J^T J``: Gauss-Newton alone converges only linearly on these
+    problems (the tags' flat, curved valleys of the planar ambiguity), often taking 20-100 steps. A problem stops
+    once its step is below 1e-10 (rad, and relative to the distance): at the optimum to near machine precision
+    (pycolmap's Ceres stopped at a relative cost change of 1e-6, short of it). The covariance is ``(J^T J)^-1`` at
+    the optimum (what ``pycolmap.refine_absolute_pose`` reports, in GTSAM's tangent). Starts: :func:`_ippe_starts`.
     """
     m = len(R)
     R, t = R.copy(), t.copy()
-    ev, Hn = _evaluate_newton(proj, R, t, obj, corners)
-    S = Hn - ev.J.transpose(0, 2, 1) @ ev.J  # the second-order term sum_i r_i d2 r_i
+    ev = _evaluate(proj, R, t, obj, corners, second_order=True)
+    assert ev.S is not None
+    S = ev.S  # the second-order term sum_i r_i d2 r_i
     lam = np.full(m, _LAMBDA0)
     active = np.flatnonzero(np.isfinite(ev.cost))
     eye = np.eye(6)
-    for it in range(1, _MAX_ITERATIONS + 1):
+    for _ in range(_MAX_ITERATIONS):
         if len(active) == 0:
             break
         a = active
@@ -266,7 +279,7 @@ def _refine_batch(proj: Projection, corners: Array, obj: Array, R: Array, t: Arr
         g = np.einsum("mij,mj->mi", Jt, ev.res[a])
         JtJ = Jt @ Ja
         H = JtJ + S[a]
-        newton = np.linalg.eigvalsh(H)[:, 0] > 0
+        newton = _positive_definite(H)
         H = np.where(newton[:, None, None], H, JtJ)
         damped = H + la[:, None, None] * (H * eye)
         try:
@@ -275,23 +288,21 @@ def _refine_batch(proj: Projection, corners: Array, obj: Array, R: Array, t: Arr
             step = -np.stack([np.linalg.lstsq(k, v, rcond=None)[0] for k, v in zip(damped, g, strict=True)])
         R_new = Ra @ _so3_exp_batch(step[:, :3])
         t_new = ta + np.einsum("mij,mj->mi", Ra, step[:, 3:])
-        if it % _NEWTON_EVERY == 0:
-            trial, H_new = _evaluate_newton(proj, R_new, t_new, obj[a], corners[a])
-        else:
-            trial, H_new = _evaluate(proj, R_new, t_new, obj[a], corners[a]), None
+        trial = _evaluate(proj, R_new, t_new, obj[a], corners[a], second_order=True)
         accept = trial.cost < ev.cost[a]
         acc = a[accept]
         R[acc], t[acc] = R_new[accept], t_new[accept]
-        if H_new is not None:
-            Jn = trial.J[accept]
-            S[acc] = H_new[accept] - Jn.transpose(0, 2, 1) @ Jn
+        assert trial.S is not None
+        S[acc] = trial.S[accept]
         ev.res[acc], ev.J[acc], ev.cost[acc], ev.uv[acc] = (
             trial.res[accept],
             trial.J[accept],
             trial.cost[accept],
             trial.uv[accept],
         )
-        lam[a] = np.where(accept, np.maximum(la * 0.1, 1e-12), la * 10.0)
+        # A rejected step raises the damping to at least _LAMBDA_REJECTED at once: after a run of accepted steps it is
+        # near 1e-12, and ten rejections in a row (x10 each) were the slowest problems' most common iterations.
+        lam[a] = np.where(accept, np.maximum(la * _LAMBDA_ACCEPTED, 1e-12), np.maximum(la * 10.0, _LAMBDA_REJECTED))
         size = np.maximum(np.abs(step[:, :3]).max(axis=1), np.abs(step[:, 3:]).max(axis=1) / np.linalg.norm(ta, axis=1))
         # Done: a step below 1e-10, or one below 1e-7 that rounding made no better (the cost is flat to double
         # precision there; Newton's next step would be ~1e-14), or no step that lowers the cost at all.
@@ -310,33 +321,84 @@ def _refine_batch(proj: Projection, corners: Array, obj: Array, R: Array, t: Arr
 
 
 _LAMBDA0 = 1e-6
+_LAMBDA_REJECTED = 1e-2
+_LAMBDA_ACCEPTED = 0.1
 _MAX_ITERATIONS = 100
-_NEWTON_EVERY = 3  # iterations between updates of the second-order term (it changes slowly near the optimum)
 
 
-def _ippe_starts(normalized: Array, obj: Array) -> list[list[tuple[Array, Array]]]:
-    """Both planar (IPPE) solutions ``(R, t)`` of every tag from its undistorted corners (none if degenerate)."""
-    import cv2
+def _ippe_starts(normalized: Array, half: Array) -> tuple[Array, Array, Array]:
+    """Both planar (IPPE) solutions of every tag from its undistorted corners (N, 4, 2), tags of half-edge ``half``
+    (N,): rotations (N, 2, 3, 3), translations (N, 2, 3) and which tags have them (N,), the solution with the
+    smaller reprojection error in the normalised image first (the order of OpenCV's ``SOLVEPNP_IPPE_SQUARE``).
 
-    out: list[list[tuple[Array, Array]]] = []
-    for xy, o in zip(normalized, obj, strict=True):
-        if not np.all(np.isfinite(xy)):
-            out.append([])
-            continue
-        try:
-            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-                o, xy.reshape(4, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE_SQUARE
-            )
-        except cv2.error:
-            out.append([])
-            continue
-        out.append(
-            [
-                (np.asarray(cv2.Rodrigues(r)[0], float), np.asarray(tv, float).ravel())
-                for r, tv in zip(rvecs[:n], tvecs[:n], strict=True)
-            ]
-        )
-    return out
+    Infinitesimal plane-based pose (Collins and Bartoli 2014), for all tags at once. With ``H`` the homography from
+    the tag's plane (corners at +-1) to the normalised image, ``v = (p, q, 1)`` the image ray of the tag's centre
+    and ``J`` the homography's 2x2 Jacobian there (per metre of the plane), a rotation ``Rz`` taking ``v`` to the
+    optical axis gives ``J = B R'[:2, :2] / s`` with ``B = [[1, 0, -p], [0, 1, -q]] Rz^T[:, :2]``, ``R = Rz^T R'``
+    and ``s`` the centre's depth. ``B^-1 J`` has largest singular value ``1 / s``, because a 2x2 block of a
+    rotation has largest singular value 1; its third row ``(b0, b1)`` follows from unit columns up to one common
+    sign, the two solutions. The translation is then the linear least-squares one (image-plane cross product).
+    """
+    n = len(normalized)
+    x, y = _TAG_UNIT[:, 0] / 2.0, _TAG_UNIT[:, 1] / 2.0  # +-1
+
+    def dlt(uv: Array) -> Array:
+        A = np.zeros((len(uv), 8, 8))
+        A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
+        A[:, 1::2, 3], A[:, 1::2, 4], A[:, 1::2, 5] = x, y, 1.0
+        A[:, 0::2, 6], A[:, 0::2, 7] = -uv[..., 0] * x, -uv[..., 0] * y
+        A[:, 1::2, 6], A[:, 1::2, 7] = -uv[..., 1] * x, -uv[..., 1] * y
+        return A
+
+    # Corners that are not finite or give no homography (coincident, collinear) are swapped for a frontal square
+    # before any solve and reported without solutions.
+    with np.errstate(all="ignore"):
+        ok = np.asarray(np.isfinite(normalized).all(axis=(1, 2)), dtype=bool)
+        ok[ok] = np.abs(np.linalg.det(dlt(normalized[ok]))) > 1e-300
+    normalized = np.where(ok[:, None, None], normalized, _TAG_UNIT[None, :, :2])
+    u, v = normalized[..., 0], normalized[..., 1]  # (N, 4)
+    with np.errstate(all="ignore"):
+        h = np.linalg.solve(dlt(normalized), normalized.reshape(n, 8, 1))[..., 0]
+        p, q = h[:, 2], h[:, 5]
+        J = np.stack([h[:, 0] - p * h[:, 6], h[:, 1] - p * h[:, 7], h[:, 3] - q * h[:, 6], h[:, 4] - q * h[:, 7]], 1)
+        J = J.reshape(n, 2, 2) / half[:, None, None]
+        ray = np.stack([p, q, np.ones(n)], axis=1)
+        nrm = ray / np.linalg.norm(ray, axis=1, keepdims=True)
+        # Rz: the rotation about n x e_z taking n to e_z (n_z > 0 here): I + K + K^2 / (1 + n_z).
+        K = _skew_batch(np.stack([nrm[:, 1], -nrm[:, 0], np.zeros(n)], axis=1))
+        Rz = np.eye(3) + K + (K @ K) / (1.0 + nrm[:, 2])[:, None, None]
+        RzT2 = Rz.transpose(0, 2, 1)[:, :, :2]  # (N, 3, 2)
+        B = RzT2[:, :2] - ray[:, :2, None] * RzT2[:, 2:3]
+        Ahat = np.linalg.solve(B, J)
+        ata = Ahat.transpose(0, 2, 1) @ Ahat
+        tr, dd = ata[:, 0, 0] + ata[:, 1, 1], ata[:, 0, 0] - ata[:, 1, 1]
+        gamma = np.sqrt(0.5 * (tr + np.sqrt(dd * dd + 4.0 * ata[:, 0, 1] ** 2)))
+        Rt = Ahat / gamma[:, None, None]
+        b0 = np.sqrt(np.maximum(0.0, 1.0 - Rt[:, 0, 0] ** 2 - Rt[:, 1, 0] ** 2))
+        b1 = np.sqrt(np.maximum(0.0, 1.0 - Rt[:, 0, 1] ** 2 - Rt[:, 1, 1] ** 2))
+        b1 = np.where(Rt[:, 0, 0] * Rt[:, 0, 1] + Rt[:, 1, 0] * Rt[:, 1, 1] > 0, -b1, b1)
+        Rp = np.zeros((n, 2, 3, 3))
+        for k, sign in enumerate((1.0, -1.0)):
+            c0 = np.stack([Rt[:, 0, 0], Rt[:, 1, 0], sign * b0], axis=1)
+            c1 = np.stack([Rt[:, 0, 1], Rt[:, 1, 1], sign * b1], axis=1)
+            Rp[:, k] = np.stack([c0, c1, np.cross(c0, c1)], axis=2)
+        R = Rz.transpose(0, 2, 1)[:, None] @ Rp
+        # t minimising sum_k |[m_k]x (R P_k + t)|^2 over the first two rows, m_k = (u_k, v_k, 1): linear in t.
+        obj = _TAG_UNIT[None] * half[:, None, None]  # (N, 4, 3)
+        RP = np.einsum("nsij,nkj->nski", R, obj)  # (N, 2, 4, 3)
+        M = np.zeros((n, 4, 2, 3))
+        M[:, :, 0, 0], M[:, :, 0, 2] = 1.0, -u
+        M[:, :, 1, 1], M[:, :, 1, 2] = 1.0, -v
+        r = -np.einsum("nkij,nskj->nski", M, RP)  # (N, 2, 4, 2)
+        MtM = np.einsum("nkij,nkil->njl", M, M)
+        Mtr = np.einsum("nkij,nski->nsj", M, r)
+        t = np.linalg.solve(MtM[:, None], Mtr[..., None])[..., 0]
+        P = RP + t[:, :, None, :]
+        err = np.sum((P[..., :2] / P[..., 2:] - normalized[:, None]) ** 2, axis=(2, 3))
+    swap = err[:, 1] < err[:, 0]
+    R[swap], t[swap] = R[swap][:, ::-1], t[swap][:, ::-1]
+    ok &= np.isfinite(R).all(axis=(1, 2, 3)) & np.isfinite(t).all(axis=(1, 2)) & (gamma > 1e-300)
+    return R, t, ok
 
 
 def estimate_tag_poses(
@@ -356,12 +418,11 @@ def estimate_tag_poses(
     half = np.asarray(sizes_m, float).reshape(n) / 2.0
     obj = _TAG_UNIT[None] * half[:, None, None]
     normalized = np.asarray(camera.cam_from_img(corners.reshape(-1, 2))).reshape(n, 4, 2)
-    starts = _ippe_starts(normalized, obj)
-    owner = [i for i, s in enumerate(starts) for _ in s]
+    R_ippe, t_ippe, has = _ippe_starts(normalized, half)
+    owner = [i for i in np.flatnonzero(has).tolist() for _ in range(2)]
     if not owner:
         return [None] * n
-    R0 = np.stack([r for s in starts for r, _ in s])
-    t0 = np.stack([t for s in starts for _, t in s])
+    R0, t0 = R_ippe[has].reshape(-1, 3, 3), t_ippe[has].reshape(-1, 3)
     ref = _refine_batch(_projection(camera), corners[owner], obj[owner], R0, t0)
     usable = np.logical_and(ref.ok, np.isfinite(ref.cov).all(axis=(1, 2)))
     by_tag: list[list[int]] = [[] for _ in range(n)]

@@ -134,3 +134,92 @@ def test_batch_equals_one_tag_at_a_time_and_keeps_the_order() -> None:
         assert np.allclose(pose.T_camera_tag, one.T_camera_tag, rtol=0, atol=1e-12)
         assert np.allclose(pose.cov_unit, one.cov_unit, rtol=1e-10, atol=0)
         assert np.linalg.norm(pose.T_camera_tag[:3, 3] - T[:3, 3]) < 0.05 * np.linalg.norm(T[:3, 3])
+
+
+@pytest.mark.parametrize("model", list(LENSES))
+def test_weighted_projection_hessian_equals_finite_differences_of_the_jacobian(model: str) -> None:
+    proj = Projection.of(colmap_camera(_camera(model)))
+    rng = np.random.default_rng(1)
+    P = np.c_[rng.uniform(-1.0, 1.0, (200, 2)), rng.uniform(0.5, 4.0, 200)]
+    w = rng.normal(size=(200, 2))
+    H = proj.weighted_hessian(P, w)
+    h = 1e-6
+    fd = np.stack(
+        [
+            np.einsum("mc,mci->mi", w, (proj.project(P + h * e, True)[1] - proj.project(P - h * e, True)[1]) / (2 * h))  # type: ignore[operator]
+            for e in np.eye(3)
+        ],
+        axis=-1,
+    )
+    assert np.allclose(H, H.transpose(0, 2, 1))
+    assert np.allclose(H, fd, rtol=0, atol=1e-6 * np.abs(H).max())
+
+
+@pytest.mark.parametrize("model", list(LENSES))
+def test_newton_hessian_equals_finite_differences_of_the_cost(model: str) -> None:
+    """``J^T J + S`` of the solver is the Hessian of half the squared corner error in the coordinates it steps in,
+    ``(w, v) -> (R Exp(w), t + R v)``, away from the optimum (noisy corners), where ``S`` matters."""
+    from stages.detect.pose import _evaluate, _projection, _so3_exp_batch
+
+    cam = colmap_camera(_camera(model))
+    proj = _projection(cam)
+    views = _views(cam, 12, seed=5)
+    R = np.stack([T[:3, :3] for _, _, T in views])
+    t = np.stack([T[:3, 3] for _, _, T in views])
+    obj = np.stack([tag_object_points(s) for _, s, _ in views])
+    rng = np.random.default_rng(2)
+    corners = np.stack([c for c, _, _ in views]) + rng.normal(0, 3.0, (12, 4, 2))
+    ev = _evaluate(proj, R, t, obj, corners, second_order=True)
+    assert ev.S is not None
+    H = ev.J.transpose(0, 2, 1) @ ev.J + ev.S
+
+    def half_cost(xi: np.ndarray) -> np.ndarray:
+        Rn = R @ _so3_exp_batch(xi[:, :3])
+        return 0.5 * _evaluate(proj, Rn, t + np.einsum("mij,mj->mi", R, xi[:, 3:]), obj, corners).cost
+
+    h = 1e-4
+    fd = np.zeros_like(H)
+    for i in range(6):
+        for j in range(6):
+            d = [np.zeros((12, 6)) for _ in range(4)]
+            for k, (si, sj) in enumerate(((1, 1), (1, -1), (-1, 1), (-1, -1))):
+                d[k][:, i] += si * h
+                d[k][:, j] += sj * h
+            f = [half_cost(x) for x in d]
+            fd[:, i, j] = (f[0] - f[1] - f[2] + f[3]) / (4 * h * h)
+    scale = np.abs(fd).max(axis=(1, 2), keepdims=True)
+    assert np.abs(ev.S).max() > 1e-3 * np.abs(H).max()  # the second-order term is not negligible here
+    assert np.all(np.abs(H - fd) <= 1e-6 * scale)
+
+
+def test_batched_ippe_equals_opencv_ippe_square() -> None:
+    """The numpy IPPE starts are OpenCV's ``SOLVEPNP_IPPE_SQUARE`` solutions, in its order; corners that give no
+    homography (non-finite, coincident, collinear) give none, without raising."""
+    import cv2
+
+    from stages.detect.pose import _ippe_starts, so3_exp
+
+    rng = np.random.default_rng(3)
+    xy, halves, ref = [], [], []
+    while len(xy) < 300:
+        R = so3_exp(rng.normal(size=3) * rng.uniform(0, 1.4))
+        t = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.4, 8.0)])
+        half = rng.uniform(0.02, 0.2)
+        P = tag_object_points(2 * half) @ R.T + t
+        if np.any(P[:, 2] < 0.1):
+            continue
+        c = P[:, :2] / P[:, 2:] + rng.normal(0, 1e-3, (4, 2)) * rng.uniform(0, 2)
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            tag_object_points(2 * half), c.reshape(4, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
+        assert n == 2
+        xy.append(c)
+        halves.append(half)
+        ref.append([(cv2.Rodrigues(r)[0], tv.ravel()) for r, tv in zip(rvecs, tvecs, strict=True)])
+    bad = [np.full((4, 2), np.nan), np.zeros((4, 2)), np.c_[np.arange(4) * 0.01, np.zeros(4)]]
+    R_all, t_all, ok = _ippe_starts(np.array(xy + bad), np.array(halves + [0.1] * 3))
+    assert ok[:300].all() and not ok[300:].any()
+    for k, sols in enumerate(ref):
+        for s, (Rr, tr) in enumerate(sols):
+            assert np.allclose(R_all[k, s], Rr, rtol=0, atol=1e-6)
+            assert np.allclose(t_all[k, s], tr, rtol=1e-6, atol=0)
