@@ -70,7 +70,7 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
         s_stamps = scans.column(STAMP_NS).to_numpy()
         meta = {c: scans.column(c).to_numpy() for c in (ANGLE_MIN, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX)}
         ranges = scans.column(RANGES)
-        cloud = []
+        cloud, logged, times = [], [], []
         for i in range(0, scans.num_rows, rr_cfg.scan_stride):
             with np.errstate(invalid="ignore"):  # signalling NaNs from damaged bytes are NaN ranges
                 r = ranges[i].values.to_numpy(zero_copy_only=False).astype(float)
@@ -79,9 +79,19 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
             pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
             j = int(np.clip(np.searchsorted(stamps, s_stamps[i]), 0, len(stamps) - 1))
             world = (poses[j] @ T_base_laser @ pts.T).T[:, :3]
-            set_stamp(rec, int(s_stamps[i]))
-            rec.log("/ingest/world/scan", rr.Points3D(world, colors=[[255, 120, 60]], radii=0.02))
+            logged.append(world)
+            times.append(s_stamps[i])
             cloud.append(world[::2])
+        # one call for every logged scan (a scan each at its stamp), as many rows as separate logs would make
+        n = len(logged)
+        rec.send_columns(
+            "/ingest/world/scan",
+            indexes=[rr.TimeColumn("time", timestamp=np.asarray(times, dtype=np.int64).astype("datetime64[ns]"))],
+            columns=[
+                *rr.Points3D.columns(positions=np.concatenate(logged)).partition([len(w) for w in logged]),
+                *rr.Points3D.columns(colors=np.tile([[255, 120, 60]], (n, 1)), radii=np.full(n, 0.02)),
+            ],
+        )
         # every logged scan at once, in the odometry frame: the walls as odometry (with its drift) sees them
         rec.log(
             "/ingest/world/scan_map",
@@ -93,11 +103,12 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
     rec.log("/ingest/camera", rr.Pinhole(image_from_camera=K, resolution=[camera.width, camera.height]), static=True)
     k = 0
     for batch in FRAMES.batches(written, batch_size=64):
-        for row in batch.to_pylist():
-            if k % rr_cfg.image_stride == 0:
-                set_stamp(rec, row[STAMP_NS])
-                rec.log("/ingest/camera/image", image_archetype(row))
-            k += 1
+        # only the frames drawn leave Arrow (each batch's bytes are read and decompressed anyway)
+        drawn = [i for i in range(batch.num_rows) if (k + i) % rr_cfg.image_stride == 0]
+        k += batch.num_rows
+        for row in batch.take(drawn).to_pylist():
+            set_stamp(rec, row[STAMP_NS])
+            rec.log("/ingest/camera/image", image_archetype(row))
 
 
 def image_archetype(row: dict[str, Any]) -> Any:
