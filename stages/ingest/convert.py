@@ -34,7 +34,7 @@ from stages.ingest.artifacts import (
     WIDTH,
     CameraModel,
 )
-from stages.ingest.fast import ImageRecord, OdometryRecord, ScanRecord
+from stages.ingest.fast import CameraInfoRecord, ImageRecord, OdometryRecord, ScanRecord, TransformRecord
 
 
 def get(msg: Any, *names: str, default: Any = None) -> Any:
@@ -75,15 +75,33 @@ def image_row(msg: Any, compressed: bool) -> dict[str, Any]:
     return image_record_row(image_record(msg, 0, compressed), compressed)
 
 
+def camera_info_record(msg: Any) -> CameraInfoRecord:
+    """The fields of a decoded CameraInfo that the camera model is made of."""
+    header = get(msg, "header")
+    return CameraInfoRecord(
+        frame_id=str(get(header, "frame_id", default="") or ""),
+        width=int(msg.width),
+        height=int(msg.height),
+        distortion_model=str(get(msg, "distortion_model", default="") or ""),
+        d=np.asarray(get(msg, "d", "D", default=[]), dtype=float).ravel(),
+        k=np.asarray(get(msg, "k", "K"), dtype=float).ravel(),
+    )
+
+
 def camera_from_info(msg: Any, topic: str) -> CameraModel:
-    """The camera model (``camera.json``) of a CameraInfo message.
+    """The camera model (``camera.json``) of a CameraInfo message (see :func:`camera_from_record`)."""
+    return camera_from_record(camera_info_record(msg), topic)
+
+
+def camera_from_record(info: CameraInfoRecord, topic: str) -> CameraModel:
+    """The camera model (``camera.json``) of a CameraInfo message's fields.
 
     Raises:
         InputError: when the message holds no calibration (zero focal length or image size).
     """
-    K = [float(v) for v in np.asarray(get(msg, "k", "K"), dtype=float).ravel()]
-    D = [float(v) for v in np.asarray(get(msg, "d", "D", default=[]), dtype=float).ravel()]
-    width, height = int(msg.width), int(msg.height)
+    K = [float(v) for v in info.k]
+    D = [float(v) for v in info.d]
+    width, height = info.width, info.height
     if len(K) != 9 or K[0] <= 0 or K[4] <= 0:
         raise InputError(
             f"CameraInfo on {topic} has zero focal length (K = {K[:1] + K[4:5]}): the camera is not calibrated; "
@@ -93,7 +111,7 @@ def camera_from_info(msg: Any, topic: str) -> CameraModel:
         raise InputError(
             f"CameraInfo on {topic} has image size {width}x{height}; pass a calibration with --camera FILE"
         )
-    model = str(get(msg, "distortion_model", default="") or ("plumb_bob" if D else "none"))
+    model = info.distortion_model or ("plumb_bob" if D else "none")
     if not any(D):
         model = "none" if not D else model
     return CameraModel(
@@ -102,7 +120,7 @@ def camera_from_info(msg: Any, topic: str) -> CameraModel:
         K=K,
         distortion_model=model,
         D=D,
-        frame_id=frame_id(msg),
+        frame_id=info.frame_id.lstrip("/"),
         topic=topic,
         source="camera_info",
     )
@@ -158,16 +176,32 @@ def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     )
 
 
-def transform_edges(msg: Any) -> list[tuple[str, str, np.ndarray]]:
-    """(parent, child, T_parent_child) of every transform in a TFMessage."""
+def transform_records(msg: Any) -> list[TransformRecord]:
+    """The transforms of a decoded TFMessage."""
     out = []
     for tf in msg.transforms:
         t = tf.transform.translation
         r = tf.transform.rotation
+        parent = str(get(get(tf, "header"), "frame_id", default="") or "")
+        values = tuple(float(v) for v in (t.x, t.y, t.z, r.x, r.y, r.z, r.w))
+        out.append(TransformRecord(parent, str(tf.child_frame_id), values))
+    return out
+
+
+def transform_edges(msg: Any) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child) of every transform in a TFMessage."""
+    return edges_of(transform_records(msg))
+
+
+def edges_of(transforms: list[TransformRecord]) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child) of every transform, frame names without a leading slash."""
+    out = []
+    for tf in transforms:
+        tx, ty, tz, qx, qy, qz, qw = tf.values
         T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(r.x, r.y, r.z, r.w)
-        T[:3, 3] = [t.x, t.y, t.z]
-        out.append((frame_id(tf), str(tf.child_frame_id).lstrip("/"), T))
+        T[:3, :3] = quat_to_matrix(qx, qy, qz, qw)
+        T[:3, 3] = [tx, ty, tz]
+        out.append((tf.parent.lstrip("/"), tf.child.lstrip("/"), T))
     return out
 
 

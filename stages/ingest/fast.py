@@ -65,6 +65,24 @@ def _layouts(ros1: bool) -> dict[str, list[str]]:
             "intensities:float32[]",
         ],
         "sensor_msgs/msg/CompressedImage": [*header, "format:string", "data:uint8[]"],
+        "tf2_msgs/msg/TFMessage": [
+            "transforms:[]",
+            *(f"transforms[].{f}" for f in header),
+            "transforms[].child_frame_id:string",
+            *_xyz("transforms[].transform.translation"),
+            *_xyz("transforms[].transform.rotation", "xyzw"),
+        ],
+        "sensor_msgs/msg/CameraInfo": [
+            *header,
+            "height:uint32",
+            "width:uint32",
+            "distortion_model:string",
+            *(f"{m.upper() if ros1 else m}:float64[{n}]" for m, n in (("d", ""), ("k", 9), ("r", 9), ("p", 12))),
+            "binning_x:uint32",
+            "binning_y:uint32",
+            *(f"roi.{f}:uint32" for f in ("x_offset", "y_offset", "height", "width")),
+            "roi.do_rectify:bool",
+        ],
         "sensor_msgs/msg/Image": [
             *header,
             "height:uint32",
@@ -93,9 +111,12 @@ def layout(typestore: Any, typename: str, prefix: str = "") -> list[str]:
             out.append(f"{path}:{rest[0]}" + (f"<={rest[1]}" if rest[1] else ""))
         else:
             (sub_kind, sub), n = rest
-            item = sub[0] if sub_kind == Nodetype.BASE else f"({sub})"
             size = str(n) if kind == Nodetype.ARRAY else (f"<={n}" if n else "")
-            out.append(f"{path}:{item}[{size}]")
+            if sub_kind == Nodetype.NAME:  # a list of messages: its length, then the fields of one
+                out.append(f"{path}:[{size}]")
+                out += layout(typestore, sub, f"{path}[].")
+            else:
+                out.append(f"{path}:{sub[0]}[{size}]")
     return out
 
 
@@ -173,20 +194,34 @@ def _align(pos: int, n: int) -> int:
     return 4 + (-(-(pos - 4) // n) * n)
 
 
-def _header(buf: bytes, cdr: bool, fallback_ns: int) -> tuple[int, str, int]:
-    """(stamp in ns, frame id without a leading slash, position after the header)."""
+def _start(buf: bytes, cdr: bool) -> int:
+    """Where the message's fields start: after CDR's encapsulation header (little-endian CDR only)."""
+    if not cdr:
+        return 0
+    if len(buf) < 4 or buf[:2] != _CDR_LE:
+        raise _LayoutError
+    return 4
+
+
+def _header_at(buf: bytes, pos: int, cdr: bool) -> tuple[int, int, str, int]:
+    """(sec, nanosec, frame id as recorded, position after) of a std_msgs/Header at ``pos``."""
     if cdr:
-        if len(buf) < 4 or buf[:2] != _CDR_LE:
+        pos = _align(pos, 4)
+        if pos + 8 > len(buf):
             raise _LayoutError
-        if len(buf) < 12:
-            raise _LayoutError
-        sec, nsec = _STAMP_CDR.unpack_from(buf, 4)
-        frame, pos = _string(buf, 12, cdr)
+        sec, nsec = _STAMP_CDR.unpack_from(buf, pos)
+        frame, pos = _string(buf, pos + 8, cdr)
     else:
-        if len(buf) < 12:
+        if pos + 12 > len(buf):
             raise _LayoutError
-        _, sec, nsec = _STAMP_ROS1.unpack_from(buf, 0)
-        frame, pos = _string(buf, 12, cdr)
+        _, sec, nsec = _STAMP_ROS1.unpack_from(buf, pos)
+        frame, pos = _string(buf, pos + 12, cdr)
+    return sec, nsec, frame, pos
+
+
+def _header(buf: bytes, cdr: bool, fallback_ns: int) -> tuple[int, str, int]:
+    """(stamp in ns, frame id without a leading slash, position after the header) of a message's header."""
+    sec, nsec, frame, pos = _header_at(buf, _start(buf, cdr), cdr)
     return _stamp(sec, nsec, fallback_ns), frame.lstrip("/"), pos
 
 
@@ -286,3 +321,82 @@ def image(buf: bytes, cdr: bool, fallback_ns: int) -> ImageRecord | None:
     except _LayoutError:
         return None
     return ImageRecord(stamp, frame, encoding, width, height, step, bytes(buf[start : start + n]))
+
+
+class TransformRecord(NamedTuple):
+    parent: str
+    """The header's frame id, as recorded."""
+    child: str
+    values: tuple[float, ...]
+    """tx, ty, tz, qx, qy, qz, qw."""
+
+
+_TRANSFORM = struct.Struct("<7d")
+
+
+def tf_message(buf: bytes, cdr: bool, fallback_ns: int) -> list[TransformRecord] | None:
+    """The transforms of a tf2_msgs/TFMessage, or None when the generic decoder is to read it."""
+    del fallback_ns  # the transforms' stamps are not kept
+    try:
+        n, pos = _sequence(buf, _start(buf, cdr), cdr, 1 if cdr else 0)
+        out = []
+        for _ in range(n):
+            _, _, parent, pos = _header_at(buf, pos, cdr)
+            if cdr:
+                pos = _align(pos, 4)
+            child, pos = _string(buf, pos, cdr)
+            if cdr:
+                pos = _align(pos, 8)
+            if pos + _TRANSFORM.size > len(buf):
+                raise _LayoutError
+            out.append(TransformRecord(parent, child, _TRANSFORM.unpack_from(buf, pos)))
+            pos += _TRANSFORM.size
+        _ends(buf, pos, cdr)
+    except _LayoutError:
+        return None
+    return out
+
+
+class CameraInfoRecord(NamedTuple):
+    """The fields of a CameraInfo that ingest keeps, by the names :func:`stages.ingest.convert.camera_from_info`
+    reads (ROS 2's)."""
+
+    frame_id: str
+    """As recorded."""
+    width: int
+    height: int
+    distortion_model: str
+    d: np.ndarray
+    k: np.ndarray
+
+
+def camera_info(buf: bytes, cdr: bool, fallback_ns: int) -> CameraInfoRecord | None:
+    """A sensor_msgs/CameraInfo message's calibration, or None when the generic decoder is to read it (also for an
+    empty distortion vector, after which decoders differ on CDR's alignment)."""
+    del fallback_ns
+    try:
+        _, _, frame, pos = _header_at(buf, _start(buf, cdr), cdr)
+        if cdr:
+            pos = _align(pos, 4)
+        if pos + 8 > len(buf):
+            raise _LayoutError
+        height, width = _IMAGE_SIZE.unpack_from(buf, pos)
+        model, pos = _string(buf, pos + 8, cdr)
+        n, pos = _sequence(buf, pos, cdr, 8)
+        if n == 0:
+            raise _LayoutError
+        if cdr:
+            pos = _align(pos, 8)
+        d_at, pos = pos, pos + 8 * n
+        if cdr:
+            pos = _align(pos, 8)
+        k_at, pos = pos, pos + 8 * (9 + 9 + 12)  # K, R, P
+        if cdr:
+            pos = _align(pos, 4)
+        pos += 4 * 6 + 1  # binning x and y, the region of interest (4 x uint32, bool)
+        _ends(buf, pos, cdr)
+    except _LayoutError:
+        return None
+    d = np.frombuffer(buf, dtype="<f8", count=n, offset=d_at).astype(np.float64)
+    k = np.frombuffer(buf, dtype="<f8", count=9, offset=k_at).astype(np.float64)
+    return CameraInfoRecord(frame, width, height, model, d, k)

@@ -44,7 +44,7 @@ from stages.ingest.topics import ROLES, resolve_camera_topics, resolve_topic
 from stages.tag_families import bag_family
 from stages.tags_file import TagsFile
 
-R = TypeVar("R", fast.OdometryRecord, fast.ScanRecord, fast.ImageRecord)
+R = TypeVar("R")
 
 
 def _same_floats(a: np.ndarray, b: np.ndarray) -> bool:
@@ -62,6 +62,16 @@ def _same_scan(a: fast.ScanRecord, b: fast.ScanRecord) -> bool:
 
 def _same_image(a: fast.ImageRecord, b: fast.ImageRecord) -> bool:
     return a == b
+
+
+def _same_transforms(a: list[fast.TransformRecord], b: list[fast.TransformRecord]) -> bool:
+    return len(a) == len(b) and all(
+        x[:2] == y[:2] and _same_floats(np.array(x.values), np.array(y.values)) for x, y in zip(a, b, strict=True)
+    )
+
+
+def _same_camera(a: fast.CameraInfoRecord, b: fast.CameraInfoRecord) -> bool:
+    return a[:4] == b[:4] and _same_floats(a.d, b.d) and _same_floats(a.k, b.k)
 
 
 def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[str, Any]]:
@@ -313,9 +323,9 @@ class _Reading:
         """Take one message: a static transform, a camera frame (or its detections), or a sensor message."""
         topics = self.plan.topics
         if raw.topic == topics["tf_static"]:
-            tf = self._decode(raw)
+            tf = self._record(raw, fast.tf_message, lambda m, _t: convert.transform_records(m), _same_transforms)
             if tf is not None:
-                self.edges.extend(convert.transform_edges(tf))
+                self.edges.extend(convert.edges_of(tf))
         elif raw.topic in self.camera_topics:
             self._frame(raw)
         elif self.plan.in_window(raw.log_time_ns):
@@ -380,9 +390,9 @@ class _Reading:
         if raw.topic == topics["camera_info"] and self.camera is not None:
             return  # the first calibration in the window is the one used
         if raw.topic == topics["camera_info"]:
-            msg = self._decode(raw)
-            if msg is not None:
-                self.camera = convert.camera_from_info(msg, raw.topic)
+            info = self._record(raw, fast.camera_info, lambda m, _t: convert.camera_info_record(m), _same_camera)
+            if info is not None:
+                self.camera = convert.camera_from_record(info, raw.topic)
         elif raw.topic == topics["odometry"]:
             odom = self._record(raw, fast.odometry, convert.odometry_record, _same_odometry)
             if odom is None or self._bad(raw, convert.odometry_record_problem(odom)):
