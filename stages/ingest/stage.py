@@ -24,6 +24,7 @@ from stages.ingest import convert, fast
 from stages.ingest.artifacts import (
     CAMERA,
     CAMERAS,
+    DATA,
     EXTRINSICS,
     FRAMES,
     ODOMETRY,
@@ -154,7 +155,8 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         if cfg.tags_file:
             ctx.outside_file(cfg.tags_file)
         plan = _plan(rec, cfg)
-        reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage, cdr=rec.format != "ros1")
+        compressed = all(rec.topics[t].type.endswith("CompressedImage") for t in plan.image_topics)
+        reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage, rec.format != "ros1", compressed)
         for topic in plan.wanted:  # the parsers of stages.ingest.fast read a topic whose type has the standard layout
             trusted = fast.standard(rec.typestore, rec.topics[topic].type, ros1=not reading.cdr)
             if trusted is not None:
@@ -271,14 +273,23 @@ class _Reading:
     """The messages as they stream by: table writers, the static transforms, the camera and frame names."""
 
     def __init__(
-        self, out: StageOutput, plan: _Plan, frame_stride: int = 1, salvage: bool = False, cdr: bool = False
+        self,
+        out: StageOutput,
+        plan: _Plan,
+        frame_stride: int = 1,
+        salvage: bool = False,
+        cdr: bool = False,
+        compressed: bool = False,
     ) -> None:
         self.out, self.plan, self.frame_stride, self.salvage = out, plan, frame_stride, salvage
         self.cdr = cdr
         """Whether the messages are CDR (ROS 2) rather than ROS 1 serialized, for :mod:`stages.ingest.fast`."""
         self.dropped: dict[str, Counter[str]] = {}
         """Per topic, the messages dropped (--salvage) for each reason: values out of range, or no decoding."""
-        self.frames: TableWriter[dict[str, Any]] = TableWriter(out, FRAMES, batch=256)
+        self.frames: TableWriter[dict[str, Any]] = TableWriter(
+            out, FRAMES, batch=256, stored=(DATA,) if compressed else ()
+        )
+        """Frames; when every image topic is a CompressedImage, their bytes are stored as they are."""
         self.odom = TableWriter(out, ODOMETRY, batch=4096, table=odometry_table)
         self.scans = TableWriter(out, SCANS, batch=1024, table=scan_table)
         self.dets: TableWriter[dict[str, Any]] | None = (
