@@ -69,16 +69,20 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
         T_base_laser = np.asarray(laser.T_base_sensor) if laser is not None else np.eye(4)
         s_stamps = scans.column(STAMP_NS).to_numpy()
         meta = {c: scans.column(c).to_numpy() for c in (ANGLE_MIN, ANGLE_INCREMENT, RANGE_MIN, RANGE_MAX)}
-        ranges = scans.column(RANGES)
+        ranges: Any = scans.column(RANGES).combine_chunks()  # a ListArray
+        lengths = ranges.value_lengths().to_numpy(zero_copy_only=False)
+        ends = np.cumsum(lengths)
+        starts = ends - lengths
+        with np.errstate(invalid="ignore"):  # signalling NaNs from damaged bytes are NaN ranges
+            values = ranges.flatten().to_numpy(zero_copy_only=False).astype(float)
+        nearest = np.clip(np.searchsorted(stamps, s_stamps), 0, len(stamps) - 1)  # the odometry pose of each scan
         cloud, logged, times = [], [], []
         for i in range(0, scans.num_rows, rr_cfg.scan_stride):
-            with np.errstate(invalid="ignore"):  # signalling NaNs from damaged bytes are NaN ranges
-                r = ranges[i].values.to_numpy(zero_copy_only=False).astype(float)
+            r = values[starts[i] : ends[i]]
             a = meta[ANGLE_MIN][i] + meta[ANGLE_INCREMENT][i] * np.arange(len(r))
             ok = np.isfinite(r) & (r >= meta[RANGE_MIN][i]) & (r <= meta[RANGE_MAX][i])
             pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
-            j = int(np.clip(np.searchsorted(stamps, s_stamps[i]), 0, len(stamps) - 1))
-            world = (poses[j] @ T_base_laser @ pts.T).T[:, :3]
+            world = (poses[nearest[i]] @ T_base_laser @ pts.T).T[:, :3]
             logged.append(world)
             times.append(s_stamps[i])
             cloud.append(world[::2])
@@ -106,16 +110,31 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
         # only the frames drawn leave Arrow (each batch's bytes are read and decompressed anyway)
         drawn = [i for i in range(batch.num_rows) if (k + i) % rr_cfg.image_stride == 0]
         k += batch.num_rows
+        encoded: list[dict[str, Any]] = []
         for row in batch.take(drawn).to_pylist():
+            if row[FORMAT] in ("jpeg", "png"):
+                encoded.append(row)
+                continue
             set_stamp(rec, row[STAMP_NS])
             rec.log("/ingest/camera/image", image_archetype(row))
+        if encoded:  # JPEG/PNG frames: a row each, as image_archetype's, in one call per batch
+            rec.send_columns(
+                "/ingest/camera/image",
+                indexes=[rr.TimeColumn("time", timestamp=np.array([r[STAMP_NS] for r in encoded], "datetime64[ns]"))],
+                columns=rr.EncodedImage.columns(
+                    blob=[r[DATA] for r in encoded], media_type=[_MEDIA_TYPES[r[FORMAT]] for r in encoded]
+                ),
+            )
+
+
+_MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 
 
 def image_archetype(row: dict[str, Any]) -> Any:
     """A Rerun image for a frames.parquet row: compressed bytes as they are, raw pixels with their layout."""
     fmt = row[FORMAT]
     if fmt in ("jpeg", "png"):
-        return rr.EncodedImage(contents=row[DATA], media_type="image/jpeg" if fmt == "jpeg" else "image/png")
+        return rr.EncodedImage(contents=row[DATA], media_type=_MEDIA_TYPES[fmt])
     h, w, step = row[HEIGHT], row[WIDTH], row[STEP]
     buf = np.frombuffer(row[DATA], dtype=np.uint8)
     if fmt in ("mono8", "8UC1"):
