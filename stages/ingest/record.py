@@ -31,15 +31,35 @@ from stages.ingest.artifacts import (
 )
 
 
+def _rotation_matrices(quats: np.ndarray) -> np.ndarray:
+    """The rotation matrices of unit quaternions (x, y, z, w), with the arithmetic of scipy's
+    ``Rotation.from_quat(quats).as_matrix()`` (normalised once more, then the same products), so the same bits,
+    without the 0.27 s scipy's import adds to an ingest run on its own."""
+    q = quats / np.sqrt((quats * quats).sum(axis=1))[:, None]
+    x, y, z, w = q.T
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    rows = [
+        x2 - y2 - z2 + w2,
+        2 * (xy - zw),
+        2 * (xz + yw),
+        2 * (xy + zw),
+        -x2 + y2 - z2 + w2,
+        2 * (yz - xw),
+        2 * (xz - yw),
+        2 * (yz + xw),
+        -x2 - y2 + z2 + w2,
+    ]
+    return np.stack(rows, axis=-1).reshape(-1, 3, 3)
+
+
 def _pose_matrices(odom: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     """4x4 odometry poses and their unit quaternions (x, y, z, w, as ROS and Rerun order them), vectorised."""
-    from scipy.spatial.transform import Rotation
-
     quats = np.column_stack([odom.column(c).to_numpy() for c in QUATERNION])
     quats[np.linalg.norm(quats, axis=1) == 0] = [0.0, 0.0, 0.0, 1.0]
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     T = np.tile(np.eye(4), (odom.num_rows, 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(quats).as_matrix()
+    T[:, :3, :3] = _rotation_matrices(quats)
     T[:, :3, 3] = np.column_stack([odom.column(c).to_numpy() for c in POSITION])
     return T, quats
 
