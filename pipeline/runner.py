@@ -25,10 +25,28 @@ from pipeline.run_folder import RunFolder, SourceEntry, outside_identity, source
 from pipeline.stage import AnyStage, Summary
 
 
+def _headers(name: str, field: str) -> list[str]:
+    """The values of ``field`` in the installed distribution's metadata headers, read as text (the email parser
+    ``importlib.metadata`` uses costs a few ms per package, and a stage records about twenty).
+
+    Raises:
+        metadata.PackageNotFoundError: ``name`` is not installed.
+    """
+    text = metadata.distribution(name).read_text("METADATA") or ""
+    values = []
+    for line in text.splitlines():
+        if not line:  # the headers end at the first empty line
+            break
+        key, sep, value = line.partition(":")
+        if sep and key == field:
+            values.append(value.strip())
+    return values
+
+
 def _runtime_requirements() -> list[str]:
     """Names of focusmap's installed runtime dependencies (its package metadata, extras left out)."""
     try:
-        requires = metadata.requires("focusmap") or []
+        requires = _headers("focusmap", "Requires-Dist")
     except metadata.PackageNotFoundError:
         return []
     names = (re.match(r"[A-Za-z0-9_.\-]+", r) for r in requires if "extra ==" not in r)
@@ -40,7 +58,8 @@ def library_versions() -> dict[str, str]:
     versions = {"python": platform.python_version(), "focusmap": __version__}
     for lib in _runtime_requirements():
         try:
-            versions[lib] = metadata.version(lib)
+            found = _headers(lib, "Version")
+            versions[lib] = found[0] if found else metadata.version(lib)
         except metadata.PackageNotFoundError:
             versions[lib] = "absent"
     return versions

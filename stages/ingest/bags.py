@@ -190,6 +190,11 @@ class Recording:
         """Messages on ``topics`` in log-time order."""
         return self._impl.messages(set(topics))
 
+    @property
+    def typestore(self) -> Any | None:
+        """The rosbags type store :meth:`RawMessage.decode` decodes with (None: another library decodes)."""
+        return self._impl.typestore()
+
     def close(self) -> None:
         """Release the files."""
         self._stack.close()
@@ -203,6 +208,9 @@ class Recording:
 
 class _Impl:
     topics: dict[str, TopicInfo]
+
+    def typestore(self) -> Any | None:
+        return None
 
     def messages(self, topics: set[str]) -> Iterator[RawMessage]:
         raise NotImplementedError
@@ -284,6 +292,9 @@ class _Ros1(_Impl):
             info.first_ns = first if info.first_ns is None else min(info.first_ns, first)
             info.last_ns = last if info.last_ns is None else max(info.last_ns, last)
 
+    def typestore(self) -> Any | None:
+        return self.reader.typestore if self.reader is not None else self.salvage.typestore
+
     def _iter(self, topics: set[str] | None) -> Iterator[RawMessage]:
         reader = self.reader
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
@@ -328,6 +339,9 @@ class _Rosbags2(_Impl):
             if name in self.topics:
                 info = self.topics[name]
                 info.count, info.first_ns, info.last_ns = n, first, last
+
+    def typestore(self) -> Any | None:
+        return self.reader.typestore
 
     def messages(self, topics: set[str]) -> Iterator[RawMessage]:
         reader = self.reader
@@ -559,7 +573,7 @@ class _Sqlite(_Impl):
 
         self.rec = rec
         self.files = files
-        self.typestore = get_typestore(Stores.LATEST)
+        self.store = get_typestore(Stores.LATEST)
         self.topics = {}
         self.rows: list[tuple[int, str, str, bytes]] | None = None
         for f in files:
@@ -655,8 +669,11 @@ class _Sqlite(_Impl):
                 skipped += 1
                 misses = min(misses + 1, 4096)
 
+    def typestore(self) -> Any | None:
+        return self.store
+
     def _decode(self, data: bytes, typ: str) -> Any:
-        return self.typestore.deserialize_cdr(data, typ)
+        return self.store.deserialize_cdr(data, typ)
 
     def messages(self, topics: set[str]) -> Iterator[RawMessage]:
         if self.rows is not None:

@@ -6,6 +6,7 @@ rosbags gives ROS 1 messages their ROS 1 field names (``K``, ``D``) and ROS 2 me
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Any
 
@@ -33,6 +34,7 @@ from stages.ingest.artifacts import (
     WIDTH,
     CameraModel,
 )
+from stages.ingest.fast import CameraInfoRecord, ImageRecord, OdometryRecord, ScanRecord, TransformRecord
 
 
 def get(msg: Any, *names: str, default: Any = None) -> Any:
@@ -69,30 +71,37 @@ def as_bytes(data: Any) -> bytes:
 
 
 def image_row(msg: Any, compressed: bool) -> dict[str, Any]:
-    """The stored form of an image (the image columns of ``frames.parquet``): compressed bytes as they are, raw
-    pixels with their encoding."""
-    if compressed:
-        fmt = str(get(msg, "format", default="")).lower()
-        kind = "png" if "png" in fmt else "jpeg" if ("jpeg" in fmt or "jpg" in fmt) else fmt or "jpeg"
-        return {FORMAT: kind, WIDTH: 0, HEIGHT: 0, STEP: 0, DATA: as_bytes(msg.data)}
-    return {
-        FORMAT: str(msg.encoding),
-        WIDTH: int(msg.width),
-        HEIGHT: int(msg.height),
-        STEP: int(msg.step),
-        DATA: as_bytes(msg.data),
-    }
+    """The stored form of a decoded image (see :func:`image_record_row`)."""
+    return image_record_row(image_record(msg, 0, compressed), compressed)
+
+
+def camera_info_record(msg: Any) -> CameraInfoRecord:
+    """The fields of a decoded CameraInfo that the camera model is made of."""
+    header = get(msg, "header")
+    return CameraInfoRecord(
+        frame_id=str(get(header, "frame_id", default="") or ""),
+        width=int(msg.width),
+        height=int(msg.height),
+        distortion_model=str(get(msg, "distortion_model", default="") or ""),
+        d=np.asarray(get(msg, "d", "D", default=[]), dtype=float).ravel(),
+        k=np.asarray(get(msg, "k", "K"), dtype=float).ravel(),
+    )
 
 
 def camera_from_info(msg: Any, topic: str) -> CameraModel:
-    """The camera model (``camera.json``) of a CameraInfo message.
+    """The camera model (``camera.json``) of a CameraInfo message (see :func:`camera_from_record`)."""
+    return camera_from_record(camera_info_record(msg), topic)
+
+
+def camera_from_record(info: CameraInfoRecord, topic: str) -> CameraModel:
+    """The camera model (``camera.json``) of a CameraInfo message's fields.
 
     Raises:
         InputError: when the message holds no calibration (zero focal length or image size).
     """
-    K = [float(v) for v in np.asarray(get(msg, "k", "K"), dtype=float).ravel()]
-    D = [float(v) for v in np.asarray(get(msg, "d", "D", default=[]), dtype=float).ravel()]
-    width, height = int(msg.width), int(msg.height)
+    K = [float(v) for v in info.k]
+    D = [float(v) for v in info.d]
+    width, height = info.width, info.height
     if len(K) != 9 or K[0] <= 0 or K[4] <= 0:
         raise InputError(
             f"CameraInfo on {topic} has zero focal length (K = {K[:1] + K[4:5]}): the camera is not calibrated; "
@@ -102,7 +111,7 @@ def camera_from_info(msg: Any, topic: str) -> CameraModel:
         raise InputError(
             f"CameraInfo on {topic} has image size {width}x{height}; pass a calibration with --camera FILE"
         )
-    model = str(get(msg, "distortion_model", default="") or ("plumb_bob" if D else "none"))
+    model = info.distortion_model or ("plumb_bob" if D else "none")
     if not any(D):
         model = "none" if not D else model
     return CameraModel(
@@ -111,7 +120,7 @@ def camera_from_info(msg: Any, topic: str) -> CameraModel:
         K=K,
         distortion_model=model,
         D=D,
-        frame_id=frame_id(msg),
+        frame_id=info.frame_id.lstrip("/"),
         topic=topic,
         source="camera_info",
     )
@@ -167,16 +176,32 @@ def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     )
 
 
-def transform_edges(msg: Any) -> list[tuple[str, str, np.ndarray]]:
-    """(parent, child, T_parent_child) of every transform in a TFMessage."""
+def transform_records(msg: Any) -> list[TransformRecord]:
+    """The transforms of a decoded TFMessage."""
     out = []
     for tf in msg.transforms:
         t = tf.transform.translation
         r = tf.transform.rotation
+        parent = str(get(get(tf, "header"), "frame_id", default="") or "")
+        values = tuple(float(v) for v in (t.x, t.y, t.z, r.x, r.y, r.z, r.w))
+        out.append(TransformRecord(parent, str(tf.child_frame_id), values))
+    return out
+
+
+def transform_edges(msg: Any) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child) of every transform in a TFMessage."""
+    return edges_of(transform_records(msg))
+
+
+def edges_of(transforms: list[TransformRecord]) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child) of every transform, frame names without a leading slash."""
+    out = []
+    for tf in transforms:
+        tx, ty, tz, qx, qy, qz, qw = tf.values
         T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(r.x, r.y, r.z, r.w)
-        T[:3, 3] = [t.x, t.y, t.z]
-        out.append((frame_id(tf), str(tf.child_frame_id).lstrip("/"), T))
+        T[:3, :3] = quat_to_matrix(qx, qy, qz, qw)
+        T[:3, 3] = [tx, ty, tz]
+        out.append((tf.parent.lstrip("/"), tf.child.lstrip("/"), T))
     return out
 
 
@@ -251,3 +276,102 @@ def image_problem(row: dict[str, Any]) -> str | None:
     if h < 0 or w <= 0 or step * h != n or (bpp is not None and step < w * bpp):
         return f"an image size that does not match its data ({w}x{h}, step {step}, {n} bytes)"
     return None
+
+
+# records: the form the table writers take, made from a decoded message here or from the bytes (fast.py) --------
+def odometry_record(msg: Any, fallback_ns: int) -> OdometryRecord:
+    """The record of a decoded odometry message (the same values :func:`odometry_row` gives).
+
+    Raises:
+        InputError: a covariance that is not 6x6 (a message type that is not nav_msgs/Odometry).
+    """
+    row = odometry_row(msg, stamp_ns(msg, fallback_ns))
+    if len(row[POSE_COV]) != 36 or len(row[TWIST_COV]) != 36:
+        raise InputError(
+            f"an odometry message has covariances of {len(row[POSE_COV])} and {len(row[TWIST_COV])} values, not 36"
+        )
+    values = np.array(
+        [
+            *(row[c] for c in (*POSITION, *QUATERNION)),
+            *row[POSE_COV],
+            *(row[c] for c in VELOCITY),
+            *row[TWIST_COV],
+        ],
+        dtype=np.float64,
+    )
+    return OdometryRecord(row[STAMP_NS], row[FRAME_ID], row[CHILD_FRAME_ID], values)
+
+
+def odometry_record_row(rec: OdometryRecord) -> dict[str, Any]:
+    """The ``odometry.parquet`` row of a record."""
+    v = [float(x) for x in rec.values]
+    return {
+        STAMP_NS: rec.stamp_ns,
+        **dict(zip((*POSITION, *QUATERNION), v[0:7], strict=True)),
+        POSE_COV: v[7:43],
+        **dict(zip(VELOCITY, v[43:49], strict=True)),
+        TWIST_COV: v[49:85],
+        FRAME_ID: rec.frame_id,
+        CHILD_FRAME_ID: rec.child_frame_id,
+    }
+
+
+def odometry_record_problem(rec: OdometryRecord) -> str | None:
+    """:func:`odometry_problem` of a record: a vectorised pass for the messages that are fine, the reason for
+    the others."""
+    a = np.abs(rec.values)
+    if (a < np.inf).all() and ((a >= _TINY) | (a == 0)).all():
+        return None
+    return odometry_problem(odometry_record_row(rec))
+
+
+_SCAN_LIMIT_COLUMNS = (ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, TIME_INCREMENT, SCAN_TIME, RANGE_MIN, RANGE_MAX)
+
+
+def scan_record(msg: Any, fallback_ns: int) -> ScanRecord:
+    """The record of a decoded laser scan (the same values :func:`scan_row` gives)."""
+    row = scan_row(msg, stamp_ns(msg, fallback_ns))
+    return ScanRecord(row[STAMP_NS], row[FRAME_ID], tuple(row[c] for c in _SCAN_LIMIT_COLUMNS), row[RANGES])
+
+
+def scan_record_row(rec: ScanRecord) -> dict[str, Any]:
+    """The ``scans.parquet`` row of a record."""
+    return {
+        STAMP_NS: rec.stamp_ns,
+        FRAME_ID: rec.frame_id,
+        **dict(zip(_SCAN_LIMIT_COLUMNS, (float(x) for x in rec.limits), strict=True)),
+        RANGES: rec.ranges,
+    }
+
+
+def scan_record_problem(rec: ScanRecord) -> str | None:
+    """:func:`scan_problem` of a record: a quick pass for the scans that are fine, the reason for the others."""
+    amin, amax, ainc, _, _, rmin, rmax = rec.limits
+    r = rec.ranges
+    if (
+        all(math.isfinite(x) for x in (amin, amax, ainc, rmin, rmax))
+        and rmin <= rmax
+        and (r.size == 0 or bool(r.min() >= 0))  # NaN or any negative range (-inf too): the full check
+    ):
+        return None
+    return scan_problem(scan_record_row(rec))
+
+
+def image_record(msg: Any, fallback_ns: int, compressed: bool) -> ImageRecord:
+    """The record of a decoded CompressedImage (``format`` is its format field) or Image (its encoding)."""
+    stamp, fid = stamp_ns(msg, fallback_ns), frame_id(msg)
+    if compressed:
+        return ImageRecord(stamp, fid, str(get(msg, "format", default="")), 0, 0, 0, as_bytes(msg.data))
+    return ImageRecord(
+        stamp, fid, str(msg.encoding), int(msg.width), int(msg.height), int(msg.step), as_bytes(msg.data)
+    )
+
+
+def image_record_row(rec: ImageRecord, compressed: bool) -> dict[str, Any]:
+    """The stored form of an image (the image columns of ``frames.parquet``): compressed bytes as they are, raw
+    pixels with their encoding."""
+    if compressed:
+        fmt = rec.format.lower()
+        kind = "png" if "png" in fmt else "jpeg" if ("jpeg" in fmt or "jpg" in fmt) else fmt or "jpeg"
+        return {FORMAT: kind, WIDTH: 0, HEIGHT: 0, STEP: 0, DATA: rec.data}
+    return {FORMAT: rec.format, WIDTH: rec.width, HEIGHT: rec.height, STEP: rec.step, DATA: rec.data}

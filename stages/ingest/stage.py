@@ -8,23 +8,23 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from pipeline.artifacts import StageOutput
 from pipeline.context import StageContext
-from pipeline.contracts import TableSpec
 from pipeline.errors import InputError
-from stages.columns import CORNERS, FAMILY, FRAME, FRAME_ID, STAMP_NS, TAG_ID, TOPIC
+from stages.columns import CORNERS, FAMILY, FRAME, STAMP_NS, TAG_ID, TOPIC
 from stages.extrinsics import ExtrinsicsFile
-from stages.ingest import convert
+from stages.ingest import convert, fast
 from stages.ingest.artifacts import (
     CAMERA,
     CAMERAS,
-    CHILD_FRAME_ID,
+    DATA,
     EXTRINSICS,
     FRAMES,
     ODOMETRY,
@@ -40,9 +40,39 @@ from stages.ingest.artifacts import (
 from stages.ingest.bags import RawMessage, Recording
 from stages.ingest.config import IngestConfig
 from stages.ingest.record import log_ingest
+from stages.ingest.tables import TableWriter, odometry_table, scan_table
 from stages.ingest.topics import ROLES, resolve_camera_topics, resolve_topic
 from stages.tag_families import bag_family
 from stages.tags_file import TagsFile
+
+R = TypeVar("R")
+
+
+def _same_floats(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=True))
+
+
+def _same_odometry(a: fast.OdometryRecord, b: fast.OdometryRecord) -> bool:
+    return a[:3] == b[:3] and _same_floats(a.values, b.values)
+
+
+def _same_scan(a: fast.ScanRecord, b: fast.ScanRecord) -> bool:
+    limits = _same_floats(np.array(a.limits), np.array(b.limits))
+    return a[:2] == b[:2] and limits and _same_floats(a.ranges, b.ranges)
+
+
+def _same_image(a: fast.ImageRecord, b: fast.ImageRecord) -> bool:
+    return a == b
+
+
+def _same_transforms(a: list[fast.TransformRecord], b: list[fast.TransformRecord]) -> bool:
+    return len(a) == len(b) and all(
+        x[:2] == y[:2] and _same_floats(np.array(x.values), np.array(y.values)) for x, y in zip(a, b, strict=True)
+    )
+
+
+def _same_camera(a: fast.CameraInfoRecord, b: fast.CameraInfoRecord) -> bool:
+    return a[:4] == b[:4] and _same_floats(a.d, b.d) and _same_floats(a.k, b.k)
 
 
 def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[str, Any]]:
@@ -55,31 +85,6 @@ def _detection_rows(msg: Any, frame: int, stamp: int, topic: str) -> list[dict[s
             {FRAME: frame, STAMP_NS: stamp, TOPIC: topic, TAG_ID: int(det.id), FAMILY: family, CORNERS: corners[:8]}
         )
     return rows
-
-
-class _TableWriter:
-    """Stream rows of a declared table to its file in row groups, so long recordings do not fill memory."""
-
-    def __init__(self, out: StageOutput, spec: TableSpec, batch: int = 256) -> None:
-        self.spec, self.batch = spec, batch
-        self.rows: list[dict[str, Any]] = []
-        self.count = 0
-        self.writer = spec.writer(out.file(spec.file))
-
-    def add(self, row: dict[str, Any]) -> None:
-        self.rows.append(row)
-        self.count += 1
-        if len(self.rows) >= self.batch:
-            self.flush()
-
-    def flush(self) -> None:
-        if self.rows:
-            self.writer.write_table(self.spec.table(self.rows))
-            self.rows = []
-
-    def close(self) -> None:
-        self.flush()
-        self.writer.close()
 
 
 def _calibrated_topics(path: str) -> list[set[str]]:
@@ -150,7 +155,12 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         if cfg.tags_file:
             ctx.outside_file(cfg.tags_file)
         plan = _plan(rec, cfg)
-        reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage)
+        compressed = all(rec.topics[t].type.endswith("CompressedImage") for t in plan.image_topics)
+        reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage, rec.format != "ros1", compressed)
+        for topic in plan.wanted:  # the parsers of stages.ingest.fast read a topic whose type has the standard layout
+            trusted = fast.standard(rec.typestore, rec.topics[topic].type, ros1=not reading.cdr)
+            if trusted is not None:
+                reading.fast_ok[topic] = trusted
         total = sum(rec.topics[t].count for t in plan.wanted)
         for raw in ctx.progress(rec.messages(plan.wanted), "ingest", total=total):
             reading.add(raw)
@@ -262,14 +272,32 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
 class _Reading:
     """The messages as they stream by: table writers, the static transforms, the camera and frame names."""
 
-    def __init__(self, out: StageOutput, plan: _Plan, frame_stride: int = 1, salvage: bool = False) -> None:
+    def __init__(
+        self,
+        out: StageOutput,
+        plan: _Plan,
+        frame_stride: int = 1,
+        salvage: bool = False,
+        cdr: bool = False,
+        compressed: bool = False,
+    ) -> None:
         self.out, self.plan, self.frame_stride, self.salvage = out, plan, frame_stride, salvage
+        self.cdr = cdr
+        """Whether the messages are CDR (ROS 2) rather than ROS 1 serialized, for :mod:`stages.ingest.fast`."""
         self.dropped: dict[str, Counter[str]] = {}
         """Per topic, the messages dropped (--salvage) for each reason: values out of range, or no decoding."""
-        self.frames = _TableWriter(out, FRAMES)
-        self.odom = _TableWriter(out, ODOMETRY, batch=4096)
-        self.scans = _TableWriter(out, SCANS, batch=1024)
-        self.dets = _TableWriter(out, TAG_DETECTIONS, batch=4096) if plan.use_detections else None
+        self.frames: TableWriter[dict[str, Any]] = TableWriter(
+            out, FRAMES, batch=256, stored=(DATA,) if compressed else ()
+        )
+        """Frames; when every image topic is a CompressedImage, their bytes are stored as they are."""
+        self.odom = TableWriter(out, ODOMETRY, batch=4096, table=odometry_table)
+        self.scans = TableWriter(out, SCANS, batch=1024, table=scan_table)
+        self.dets: TableWriter[dict[str, Any]] | None = (
+            TableWriter(out, TAG_DETECTIONS, batch=4096) if plan.use_detections else None
+        )
+        self.fast_ok: dict[str, bool] = {}
+        """Per topic, whether :mod:`stages.ingest.fast` reads its messages: the type has the standard layout in the
+        decoder's type store, or (without one) the first message read both ways agreed; absent: not known yet."""
         self.edges: list[tuple[str, str, np.ndarray]] = []
         self.frame_index: dict[str, int] = {}
         self.camera = next(iter(plan.cameras.values())) if plan.cameras else None
@@ -306,9 +334,9 @@ class _Reading:
         """Take one message: a static transform, a camera frame (or its detections), or a sensor message."""
         topics = self.plan.topics
         if raw.topic == topics["tf_static"]:
-            tf = self._decode(raw)
+            tf = self._record(raw, fast.tf_message, lambda m, _t: convert.transform_records(m), _same_transforms)
             if tf is not None:
-                self.edges.extend(convert.transform_edges(tf))
+                self.edges.extend(convert.edges_of(tf))
         elif raw.topic in self.camera_topics:
             self._frame(raw)
         elif self.plan.in_window(raw.log_time_ns):
@@ -320,49 +348,80 @@ class _Reading:
         self.frame_index[raw.topic] = index + 1
         if not self.plan.in_window(raw.log_time_ns) or index % self.frame_stride:
             return
+        if raw.topic in self.plan.image_topics:
+            compressed = raw.type.endswith("CompressedImage")
+            parse = fast.compressed_image if compressed else fast.image
+            image = self._record(raw, parse, lambda m, t: convert.image_record(m, t, compressed), _same_image)
+            if image is None:
+                return
+            row = convert.image_record_row(image, compressed)
+            if self._bad(raw, convert.image_problem(row)):
+                return
+            self.frame_ids.setdefault(raw.topic, image.frame_id)
+            self.frames.add({FRAME: index, STAMP_NS: image.stamp_ns, TOPIC: raw.topic, **row})
+            return
         msg = self._decode(raw)
         if msg is None:
             return
         stamp = convert.stamp_ns(msg, raw.log_time_ns)
-        if raw.topic in self.plan.image_topics:
-            row = convert.image_row(msg, compressed=raw.type.endswith("CompressedImage"))
-            if self._bad(raw, convert.image_problem(row)):
-                return
-            self.frame_ids.setdefault(raw.topic, convert.frame_id(msg))
-            self.frames.add({FRAME: index, STAMP_NS: stamp, TOPIC: raw.topic, **row})
-        else:
-            assert self.dets is not None
-            self.frame_ids.setdefault(raw.topic, convert.frame_id(msg))
-            for r in _detection_rows(msg, index, stamp, raw.topic):
-                self.dets.add(r)
+        assert self.dets is not None
+        self.frame_ids.setdefault(raw.topic, convert.frame_id(msg))
+        for r in _detection_rows(msg, index, stamp, raw.topic):
+            self.dets.add(r)
+
+    def _record(
+        self,
+        raw: RawMessage,
+        parse: Callable[[bytes, bool, int], R | None],
+        generic: Callable[[Any, int], R],
+        same: Callable[[R, R], bool],
+    ) -> R | None:
+        """The message's record: read from its bytes (:mod:`stages.ingest.fast`) once the topic's first message
+        read that way matched its generic decoding; else decoded (None when it does not decode and --salvage
+        drops it)."""
+        trusted = self.fast_ok.get(raw.topic)
+        if trusted is not False:
+            quick = parse(raw.data, self.cdr, raw.log_time_ns)
+            if quick is not None and trusted:
+                return quick
+            if quick is not None:  # the topic's first message: check the layout against the generic decoding
+                try:
+                    decoded = generic(raw.decode(), raw.log_time_ns)
+                except InputError:
+                    decoded = None
+                if decoded is not None:
+                    self.fast_ok[raw.topic] = same(quick, decoded)
+                    return decoded
+        msg = self._decode(raw)
+        return None if msg is None else generic(msg, raw.log_time_ns)
 
     def _sensor(self, raw: RawMessage) -> None:
         """The first CameraInfo in the window, odometry and laser scans."""
         topics = self.plan.topics
         if raw.topic == topics["camera_info"] and self.camera is not None:
             return  # the first calibration in the window is the one used
-        msg = self._decode(raw)
-        if msg is None:
-            return
         if raw.topic == topics["camera_info"]:
-            self.camera = convert.camera_from_info(msg, raw.topic)
+            info = self._record(raw, fast.camera_info, lambda m, _t: convert.camera_info_record(m), _same_camera)
+            if info is not None:
+                self.camera = convert.camera_from_record(info, raw.topic)
         elif raw.topic == topics["odometry"]:
-            row = convert.odometry_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
-            if self._bad(raw, convert.odometry_problem(row)):
+            odom = self._record(raw, fast.odometry, convert.odometry_record, _same_odometry)
+            if odom is None or self._bad(raw, convert.odometry_record_problem(odom)):
                 return
-            self.base_frame = self.base_frame or row[CHILD_FRAME_ID]
-            self.odom_frame = self.odom_frame or row[FRAME_ID]
-            self.odom.add(row)
+            self.base_frame = self.base_frame or odom.child_frame_id
+            self.odom_frame = self.odom_frame or odom.frame_id
+            self.odom.add(odom)
         elif raw.topic == topics["scan"]:
-            row = convert.scan_row(msg, convert.stamp_ns(msg, raw.log_time_ns))
-            if self._bad(raw, convert.scan_problem(row)):
+            scan = self._record(raw, fast.laser_scan, convert.scan_record, _same_scan)
+            if scan is None or self._bad(raw, convert.scan_record_problem(scan)):
                 return
             if self.scans.count == 0:
-                self.scan_frame = row[FRAME_ID]  # the laser's frame is that of the first scan
-            self.scans.add(row)
+                self.scan_frame = scan.frame_id  # the laser's frame is that of the first scan
+            self.scans.add(scan)
 
     def close(self) -> None:
-        for w in (self.frames, self.odom, self.scans, *([self.dets] if self.dets else [])):
+        writers: list[TableWriter[Any]] = [self.frames, self.odom, self.scans, *([self.dets] if self.dets else [])]
+        for w in writers:
             w.close()
 
 
