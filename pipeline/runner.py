@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
+from typing import Any
 
 from pipeline import __version__
 from pipeline.artifacts import StageOutput
@@ -203,10 +204,10 @@ def run_stage(
         return StageResult(stage.name, "skipped", 0.0, entry.get("summary", {}), warnings)
     fp = fingerprint(run, registry, name, settings)
     scratch, rrd = run.begin(stage.name)
+    parts: list[tuple[str, Any]] | None = None
     try:
-        blueprint = run_blueprint(
-            [(s.name, s.blueprint()) for s in registry if s.blueprint is not None], active=stage.name
-        )
+        parts = [(s.name, s.blueprint()) for s in registry if s.blueprint is not None]
+        blueprint = run_blueprint(parts, active=stage.name)
     except Exception:  # a layout problem must not stop a stage; the viewer then lays out itself
         blueprint = None
     rec = open_recording(run.run_id, rrd, blueprint)
@@ -261,7 +262,11 @@ def run_stage(
             raise
         raise failed from err
     try:
-        write_run_blueprint(run, registry)
+        finished = [s.name for s in registry if run.rrd_path(s.name).exists()]
+        if parts is not None and blueprint is not None and finished and finished[-1] == stage.name:
+            save_blueprint(blueprint, run.path / BLUEPRINT_FILE)  # the same layout: built once
+        else:
+            write_run_blueprint(run, registry)
     except Exception as err:  # a layout problem (or no room for it) must not fail a finished stage
         notes = summary.setdefault("notes", [])
         if isinstance(notes, list):
