@@ -63,11 +63,31 @@ def interrupts_held() -> Iterator[None]:
     from multiprocessing import resource_tracker
 
     resource_tracker.ensure_running()
+    # The mask holds SIGINT in this thread only; the kernel may hand it to another thread of the process, whose
+    # C handler then makes the main thread raise KeyboardInterrupt in the middle of starting a process (which then
+    # dies on a half-written pipe with a traceback). So, in the main thread, the Python handler is deferred too.
+    pending: list[int] = []
+    deferred = threading.current_thread() is threading.main_thread()
+    handler: Any = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum)) if deferred else None
     before = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
     try:
         yield
     finally:
+        if deferred:
+            signal.signal(signal.SIGINT, handler)
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        if pending:
+            _deliver(handler)
+
+
+def _deliver(handler: Any) -> None:
+    """Give a Ctrl-C that arrived while interrupts were held to the handler that was in place."""
+    if handler is signal.default_int_handler:
+        raise KeyboardInterrupt
+    if callable(handler):
+        handler(signal.SIGINT, None)
+    elif handler == signal.SIG_DFL:
+        os.kill(os.getpid(), signal.SIGINT)
 
 
 def die_with_parent() -> None:
