@@ -107,6 +107,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
             "- the run has no laser scans: collision probabilities are not available and the focused set is picked "
             "by mutual information instead of Alg. 2"
         )
+    notes += [f"- {line}" for line in inputs.skipped]
     study = _realisations(inputs, todo, cfg, read.detections)
     art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma) if cfg.plots else []
@@ -134,6 +135,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         "realisations": _realisations_summary(study),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
         **({"notes": inputs.truth.missing_notes()} if inputs.truth is not None and inputs.truth.missing else {}),
+        **({"warnings": list(inputs.skipped)} if inputs.skipped else {}),
     }
 
 
