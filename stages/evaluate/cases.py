@@ -145,6 +145,8 @@ class NavigationSetup:
         return self.world_path
 
 
+DENSE_STRATEGIES = ("mutual-information", "leverage")
+"""Landmark strategies on the dense trajectory information (quadratic memory in the recording's length)."""
 SEEDED = ("random", "leverage")
 """Strategies whose result depends on the seed (evaluate's ``seed`` against the upstream stage's)."""
 
@@ -370,6 +372,15 @@ def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
     reused = inputs.upstream_landmarks(strategy)
     if reused is not None:
         return reused
+    if strategy in DENSE_STRATEGIES:
+        loaded = inputs.loaded
+        dim = len(loaded.pose_keys) * loaded.graph_model.pose.dim
+        if dim > inputs.cfg.extra_max_trajectory_dim:
+            raise StageError(
+                f"{strategy} works on the dense trajectory information ({dim} dimensions here), above "
+                f"evaluate.extra_max_trajectory_dim={inputs.cfg.extra_max_trajectory_dim}; raise it to compare "
+                "anyway (time and memory grow with its square)"
+            )
     cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
     choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
     return list(choice.tag_ids), choice.seconds

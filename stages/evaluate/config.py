@@ -28,6 +28,14 @@ class EvaluateConfig(SettingsModel):
         description="Further cases as 'landmark_strategy+measurement_strategy' (select_landmarks and "
         "select_measurements strategy names); the six Table I cases always run.",
     )
+    extra_max_trajectory_dim: int = Field(
+        6000,
+        ge=0,
+        description="An extra pair whose landmark strategy works on the dense trajectory information "
+        "(mutual-information, leverage) is skipped, with a warning, above this many trajectory dimensions (poses x "
+        "pose dimension): its time and memory grow with the square of the recording's length (an 8-minute recording "
+        "took 190 s and 2.7 GB in evaluate with them).",
+    )
     focused_poses: int = Field(
         10,
         ge=0,

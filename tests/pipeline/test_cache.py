@@ -189,13 +189,14 @@ def test_lazy_and_relative_imports_are_followed(tmp_path: Path) -> None:
     assert set(reachable_modules(["proj.sub"], {"proj": pkg})) == {"proj.sub", "proj.sub.a", "proj.sub.b", "proj.c"}
 
 
-def test_an_extra_case_that_cannot_run_is_skipped_with_a_warning(make_run) -> None:
-    """Mutual information refuses a trajectory above select_landmarks.max_trajectory_dim (a long recording): the
-    extra case is left out with one warning line and the Table I cases still run."""
+@pytest.mark.parametrize("limit", ["select_landmarks.max_trajectory_dim", "evaluate.extra_max_trajectory_dim"])
+def test_an_extra_case_that_cannot_run_is_skipped_with_a_warning(make_run, limit: str) -> None:
+    """Mutual information on a trajectory above its limit (a long recording): the extra case is left out with one
+    warning line naming the setting, and the Table I cases still run."""
     run = make_run()
-    sets = ("select_landmarks.max_trajectory_dim=10", "evaluate.extra_pairs=[mutual-information+information]")
+    sets = (f"{limit}=10", "evaluate.extra_pairs=[mutual-information+information]")
     assert run_all(run, *sets)["evaluate"] == "done"
     ev = summary(run, "evaluate")
     assert "mutual-information+information" not in ev["cases"] and "focus_info" in ev["cases"]
-    assert len(ev["warnings"]) == 1 and "max_trajectory_dim" in ev["warnings"][0]
+    assert len(ev["warnings"]) == 1 and limit.split(".")[1] in ev["warnings"][0], ev["warnings"]
     assert "case mutual-information+information skipped" in (run.stage_dir("evaluate") / "report.md").read_text()
