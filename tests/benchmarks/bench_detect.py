@@ -18,6 +18,7 @@ import argparse
 import sys
 import time
 from collections import Counter
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -392,7 +393,7 @@ def bench_speed(sim_frames: list[np.ndarray], sim_camera: CameraModel, n: int, r
     )
 
 
-def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats: int, batch: int) -> None:
+def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats: int, batches: Sequence[int]) -> None:
     """Share of pose + covariance in the detect stage, one process: detection alone, detection + the former pose path
     (pycolmap per IPPE solution, :mod:`tests.oracles.tag_pose_colmap`), and detection + the batched solver per
     frame and per chunk of ``batch`` frames (the stage's ``batch_frames``), on the same frames, interleaved."""
@@ -414,7 +415,7 @@ def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats
     def run(mode: str) -> int:
         if mode == "detection alone":
             return sum(len(det.detect(f)) for f in frames)
-        chunk = batch if mode.endswith("chunks") else 1
+        chunk = int(mode.split(" in ")[1].split("-")[0]) if mode.endswith("chunks") else 1
         dropped: Any = Counter()
         rows = 0
         for lo in range(0, len(frames), chunk):
@@ -429,7 +430,7 @@ def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats
         "detection alone",
         "+ pose, former (pycolmap)",
         "+ pose, batched per frame",
-        f"+ pose, batched in {batch}-frame chunks",
+        *[f"+ pose, batched in {b}-frame chunks" for b in batches],
     ]
     times: dict[str, list[float]] = {m: [] for m in modes}
     batched = core.estimate_tag_poses
@@ -549,6 +550,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats per speed cell (median)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed", "posecov"])
     parser.add_argument("--posecov-frames", type=int, default=200, help="sample frames for the pose + covariance share")
+    parser.add_argument(
+        "--posecov-batches", type=int, nargs="*", default=[], help="chunk sizes to compare (default: batch_frames)"
+    )
     parser.add_argument("--corner-scale", action="store_true", help="also the exact-render corner scale check")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
@@ -563,7 +567,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.corner_scale:
         bench_corner_scale()
     if "posecov" not in args.skip:
-        bench_posecov(frames, camera, args.posecov_frames, args.repeats, DetectConfig().batch_frames)
+        batches = args.posecov_batches or [DetectConfig().batch_frames]
+        bench_posecov(frames, camera, args.posecov_frames, args.repeats, batches)
     if "speed" not in args.skip:
         bench_speed(frames, camera, args.speed_frames, args.repeats)
     print(f"\n(benchmark took {time.perf_counter() - t0:.0f} s)")
