@@ -63,6 +63,24 @@ def measurement_information(
 
 
 # ------------------------------------------------------------------ the belief along the path (eqs. 19, 26)
+def range_bearing_jacobians(poses: FloatArray, positions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Predicted (bearing, range) (…, 2) of landmarks at ``positions`` (…, 2) from ``poses`` (…, 3), and its
+    Jacobians w.r.t. the pose ``H`` (…, 2, 3) and the landmark position ``M`` (…, 2, 2), for any broadcast shape."""
+    poses = np.asarray(poses, dtype=float)
+    d = np.asarray(positions, dtype=float) - poses[..., :2]
+    q = np.maximum((d * d).sum(axis=-1), 1e-12)
+    r = np.sqrt(q)
+    dx, dy = d[..., 0], d[..., 1]
+    z = np.stack([np.arctan2(dy, dx) - poses[..., 2], r], axis=-1)
+    H = np.zeros((*q.shape, 2, 3))
+    H[..., 0, 0], H[..., 0, 1], H[..., 0, 2] = dy / q, -dx / q, -1.0
+    H[..., 1, 0], H[..., 1, 1] = -dx / r, -dy / r
+    M = np.zeros((*q.shape, 2, 2))
+    M[..., 0, 0], M[..., 0, 1] = -dy / q, dx / q
+    M[..., 1, 0], M[..., 1, 1] = dx / r, dy / r
+    return z, H, M
+
+
 def pair_information(
     poses: FloatArray, positions: FloatArray, covariances: FloatArray, sigmas: tuple[float, float]
 ) -> FloatArray:
@@ -71,16 +89,7 @@ def pair_information(
     ``poses`` (n, 3), ``positions`` (n, 2) and ``covariances`` (n, 2, 2) are paired row by row; the same as
     :func:`measurement_information` of each pair, vectorised.
     """
-    d = np.asarray(positions, dtype=float) - np.asarray(poses, dtype=float)[:, :2]
-    q = np.maximum((d * d).sum(axis=1), 1e-12)
-    r = np.sqrt(q)
-    n = len(d)
-    H = np.zeros((n, 2, 3))
-    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = d[:, 1] / q, -d[:, 0] / q, -1.0
-    H[:, 1, 0], H[:, 1, 1] = -d[:, 0] / r, -d[:, 1] / r
-    M = np.zeros((n, 2, 2))
-    M[:, 0, 0], M[:, 0, 1] = -d[:, 1] / q, d[:, 0] / q
-    M[:, 1, 0], M[:, 1, 1] = d[:, 0] / r, d[:, 1] / r
+    _, H, M = range_bearing_jacobians(poses, positions)
     Rbar = np.diag(np.square(sigmas)) + M @ np.asarray(covariances, dtype=float) @ np.swapaxes(M, 1, 2)
     J = np.swapaxes(H, 1, 2) @ np.linalg.solve(Rbar, H)
     return np.asarray(0.5 * (J + np.swapaxes(J, 1, 2)))

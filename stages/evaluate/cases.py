@@ -303,8 +303,8 @@ def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup
     world_path = nominal_path(stamps, poses, geo.robot.control_period_s)
     radius = inputs.risk_params.robot_radius_m
     robot = dataclasses.replace(geo.robot, robot_radius_m=radius)
-    params = NavigationParams.of(
-        robot,
+    params = NavigationParams(
+        robot=robot,
         trials=cfg.trials,
         lqr_position_weight=cfg.lqr_position_weight,
         lqr_heading_weight=cfg.lqr_heading_weight,

@@ -257,15 +257,16 @@ def markdown_report(
         "",
     ]
     if nav is not None:
-        p = nav.params
+        p = nav.params.robot
         world = (
             "the ground truth"
             if nav.world == "ground_truth"
             else "no ground truth: the full map stands in for it, its path, landmarks and laser grid"
         )
         lines += [
-            f"Navigation: {p.trials} seeded LQG trials per case. Each case's robot plans along its own trajectory "
-            f"estimate and localises against its own landmarks (its map frame); it moves in the world ({world}"
+            f"Navigation: {nav.params.trials} seeded LQG trials per case. Each case's robot plans along its own "
+            "trajectory estimate and localises against its own landmarks (its map frame); it moves in the world "
+            f"({world}"
             f"; {len(nav.path)} steps of {nav.path.dt_s} s), walls: {nav.obstacles.kind}, robot radius "
             f"{p.robot_radius_m} m (true path clearance {nav.min_clearance_m:.3f} m). The robot is the risk model's: "
             f"motion noise {p.speed_sigma_mps:.4f} m/s, {p.yaw_rate_sigma_radps:.4f} rad/s per control period, "

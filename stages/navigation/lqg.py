@@ -38,6 +38,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from stages.estimation.collision import range_bearing_jacobians
 from stages.estimation.robot import PathSteps, RobotModel, resample_path, unicycle_jacobians, unicycle_step
 from stages.geometry import wrap_angle
 from stages.navigation.stats import wilson_interval
@@ -107,18 +108,17 @@ class NavigationMap:
         return np.asarray(self.covariances[rows])
 
 
+def _default_robot() -> RobotModel:
+    return RobotModel(robot_radius_m=0.2)
+
+
 @dataclass(frozen=True)
 class NavigationParams:
-    """Settings of the Monte Carlo navigation (see ``EvaluateConfig`` for their meaning and defaults)."""
+    """Settings of the Monte Carlo navigation: the robot (radius, motion and sensor noise, start covariance) and
+    the trials and LQR settings (see ``EvaluateConfig``)."""
 
     trials: int = 100
-    robot_radius_m: float = 0.2
-    bearing_sigma_rad: float = 0.02
-    range_sigma_m: float = 0.05
-    speed_sigma_mps: float = 0.05
-    yaw_rate_sigma_radps: float = 0.05
-    initial_sigma_m: float = 0.02
-    initial_sigma_rad: float = 0.01
+    robot: RobotModel = field(default_factory=_default_robot)
     lqr_position_weight: float = 10.0
     lqr_heading_weight: float = 1.0
     lqr_speed_weight: float = 1.0
@@ -127,20 +127,10 @@ class NavigationParams:
     max_yaw_rate_radps: float = 1.5
     keep_paths: int = 5
 
-    @classmethod
-    def of(cls, robot: RobotModel, **settings: float | int) -> NavigationParams:
-        """The navigation of ``robot`` (its radius, noise and start covariance) with the given trial and LQR
-        settings."""
-        return cls(
-            robot_radius_m=robot.robot_radius_m,
-            bearing_sigma_rad=robot.bearing_sigma_rad,
-            range_sigma_m=robot.range_sigma_m,
-            speed_sigma_mps=robot.speed_sigma_mps,
-            yaw_rate_sigma_radps=robot.yaw_rate_sigma_radps,
-            initial_sigma_m=robot.initial_sigma_m,
-            initial_sigma_rad=robot.initial_sigma_rad,
-            **settings,  # type: ignore[arg-type]
-        )
+    @property
+    def robot_radius_m(self) -> float:
+        """The robot's collision radius."""
+        return self.robot.robot_radius_m
 
     @property
     def Wx(self) -> FloatArray:
@@ -233,9 +223,7 @@ def simulate(
     truth_path = path.poses if true_path is None else np.asarray(true_path, dtype=float)
     index = {int(i): j for j, i in enumerate(landmark_map.tag_ids)}
     truth = {int(i): np.asarray(p, dtype=float)[:2] for i, p in true_landmarks.items()}
-    R = np.diag([params.bearing_sigma_rad**2, params.range_sigma_m**2])
-    Qu = np.diag([params.speed_sigma_mps**2, params.yaw_rate_sigma_radps**2])
-    P0 = np.diag([params.initial_sigma_m**2] * 2 + [params.initial_sigma_rad**2])
+    R, Qu, P0 = params.robot.R, params.robot.Qu, params.robot.P0
     x = truth_path[0] + start_rng.standard_normal((N, 3)) * np.sqrt(np.diag(P0))
     xh = np.repeat(path.poses[:1], N, axis=0)
     P = np.repeat(P0[None], N, axis=0)
@@ -400,16 +388,8 @@ def schmidt_update(
     measurement it cannot explain.
     """
     N, m = z.shape[0], len(js)
-    d = np.asarray(lh, dtype=float)[None] - xh[:, None, :2]  # (N, m, 2)
-    q = np.maximum((d * d).sum(axis=2), 1e-12)
-    r = np.sqrt(q)
-    zh = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], r], axis=2)
-    H = np.zeros((N, m, 2, 3))
-    H[..., 0, 0], H[..., 0, 1], H[..., 0, 2] = d[..., 1] / q, -d[..., 0] / q, -1.0
-    H[..., 1, 0], H[..., 1, 1] = -d[..., 0] / r, -d[..., 1] / r
-    M = np.zeros((N, m, 2, 2))  # w.r.t. each landmark's own position
-    M[..., 0, 0], M[..., 0, 1] = -d[..., 1] / q, d[..., 0] / q
-    M[..., 1, 0], M[..., 1, 1] = d[..., 0] / r, d[..., 1] / r
+    # (N, m, ·): every trial's estimate against each measured landmark; M w.r.t. each landmark's own position
+    zh, H, M = range_bearing_jacobians(xh[:, None, :], np.asarray(lh, dtype=float)[None])
     cols = np.stack([2 * np.asarray(js), 2 * np.asarray(js) + 1], axis=1).ravel()
     Hs = H.reshape(N, 2 * m, 3)
     MLam = np.matmul(M, Lam[cols].reshape(1, m, 2, -1)).reshape(N, 2 * m, -1)  # M Λ_J·

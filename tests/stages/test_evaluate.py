@@ -8,37 +8,21 @@ import math
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.config import load_settings
-from pipeline.run_folder import RunFolder
-from pipeline.runner import run_stage
 from stages.evaluate.cases import TABLE_I
-from tests.fixtures.room import synthetic_scans, write_ground_truth
-from tests.fixtures.synthetic_runs import synthetic_run
-from tests.fixtures.upstream import seed_upstream, stand_in_registry
+from tests.fixtures.upstream import evaluated_synthetic_run
 
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("eval")
-    sim = synthetic_run(seed=7, loops=0.5)
-    reg = stand_in_registry()
-    source = tmp / "run.bag"
-    source.write_bytes(b"")
-    write_ground_truth(sim, tmp / "run.ground_truth.json")
-    run = RunFolder.create(tmp / "run", source)
-    seed_upstream(run, sim, synthetic_scans(sim))
-    settings = load_settings(
-        reg.models(),
-        overrides=[
+    return evaluated_synthetic_run(
+        tmp_path_factory.mktemp("eval"),
+        [
             "select_landmarks.budget=5",
             "select_measurements.budget=15",
             "evaluate.trials=6",
             "evaluate.extra_pairs=[random+random]",
         ],
     )
-    for name in ("graph", "select_landmarks", "select_measurements", "optimize", "evaluate"):
-        run_stage(run, reg, name, settings)
-    return run
 
 
 def test_every_case_is_in_the_table(evaluated) -> None:

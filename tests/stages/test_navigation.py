@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stages.estimation.robot import RobotModel
 from stages.navigation import (
     GroundTruth,
     NavigationMap,
@@ -56,8 +57,8 @@ def test_nominal_path_controls_reproduce_the_path(corridor) -> None:
 
 def test_lqg_tracks_a_straight_corridor_without_noise(corridor) -> None:
     path, gains, ids, xy, vis, walls, truth = corridor
-    params = NavigationParams(
-        trials=8,
+    robot = RobotModel(
+        robot_radius_m=0.2,
         speed_sigma_mps=0.0,
         yaw_rate_sigma_radps=0.0,
         bearing_sigma_rad=1e-9,
@@ -65,6 +66,7 @@ def test_lqg_tracks_a_straight_corridor_without_noise(corridor) -> None:
         initial_sigma_m=0.0,
         initial_sigma_rad=0.0,
     )
+    params = NavigationParams(trials=8, robot=robot)
     res = simulate(path, gains, _map(ids, xy, 1e-6), truth, vis, walls, params)
     assert res.collisions == 0 and res.collision_rate == 0.0
     assert res.rms_tracking_error_m < 1e-6 and res.rms_estimation_error_m < 1e-6
@@ -73,7 +75,8 @@ def test_lqg_tracks_a_straight_corridor_without_noise(corridor) -> None:
 
 def test_lqg_recovers_from_an_initial_offset(corridor) -> None:
     path, gains, ids, xy, vis, walls, truth = corridor
-    params = NavigationParams(trials=50, initial_sigma_m=0.1, initial_sigma_rad=0.05, keep_paths=50)
+    robot = RobotModel(robot_radius_m=0.2, initial_sigma_m=0.1, initial_sigma_rad=0.05)
+    params = NavigationParams(trials=50, robot=robot, keep_paths=50)
     res = simulate(path, gains, _map(ids, xy, 0.01), truth, vis, walls, params, seed=1)
     assert res.collisions == 0
     final = np.linalg.norm(res.sample_paths[:, -1] - path.poses[-1, :2], axis=1)
@@ -197,7 +200,7 @@ def test_the_robot_follows_its_own_map_so_a_displaced_map_is_harmless(corridor) 
     """Own-frame navigation: a map whose path and landmarks are displaced together (drift since the start) keeps
     the robot in the true corridor; the same landmarks displaced without the path push it into the wall."""
     path, gains, ids, xy, vis, walls, truth = corridor
-    params = NavigationParams(trials=40, robot_radius_m=0.3)
+    params = NavigationParams(trials=40, robot=RobotModel(robot_radius_m=0.3))
     shift = np.array([0.0, 0.45])  # beyond the 0.3 m the walls leave the robot
     ramp = np.clip(path.poses[:, 0] / 3.0, 0.0, 1.0)[:, None]  # the drift grows over the first 3 m
     moved_poses = path.poses.copy()
