@@ -316,13 +316,17 @@ def odometry_record_row(rec: OdometryRecord) -> dict[str, Any]:
     }
 
 
+def odometry_values_fine(values: np.ndarray) -> np.ndarray:
+    """Per row of odometry values (:attr:`OdometryRecord.values`, one row or many), whether
+    :func:`odometry_problem` has nothing to say: every value finite, and none denormal."""
+    a = np.abs(values)
+    return ((a < np.inf) & ((a >= _TINY) | (a == 0))).all(axis=-1)
+
+
 def odometry_record_problem(rec: OdometryRecord) -> str | None:
     """:func:`odometry_problem` of a record: a vectorised pass for the messages that are fine, the reason for
     the others."""
-    a = np.abs(rec.values)
-    if (a < np.inf).all() and ((a >= _TINY) | (a == 0)).all():
-        return None
-    return odometry_problem(odometry_record_row(rec))
+    return None if odometry_values_fine(rec.values) else odometry_problem(odometry_record_row(rec))
 
 
 _SCAN_LIMIT_COLUMNS = (ANGLE_MIN, ANGLE_MAX, ANGLE_INCREMENT, TIME_INCREMENT, SCAN_TIME, RANGE_MIN, RANGE_MAX)
@@ -342,6 +346,14 @@ def scan_record_row(rec: ScanRecord) -> dict[str, Any]:
         **dict(zip(_SCAN_LIMIT_COLUMNS, (float(x) for x in rec.limits), strict=True)),
         RANGES: rec.ranges,
     }
+
+
+def scan_values_fine(limits: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Per scan of many (limits (n, 7) as :attr:`ScanRecord.limits`, ranges (n, beams)), whether
+    :func:`scan_problem` has nothing to say; a scan with a NaN range is left to it."""
+    amin, amax, ainc, _, _, rmin, rmax = limits.T
+    finite = np.isfinite(np.column_stack([amin, amax, ainc, rmin, rmax])).all(axis=1)
+    return finite & (rmin <= rmax) & (ranges >= 0).all(axis=1)
 
 
 def scan_record_problem(rec: ScanRecord) -> str | None:

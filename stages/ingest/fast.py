@@ -244,39 +244,150 @@ def _sequence(buf: bytes, pos: int, cdr: bool, itemsize: int) -> tuple[int, int]
     return n, pos
 
 
+def _stamp_at(cdr: bool) -> int:
+    """Where a message's header stamp starts: after ROS 1's seq, or after CDR's encapsulation header."""
+    return 4
+
+
+def _odometry_layout(buf: bytes, cdr: bool) -> tuple[str, str, int]:
+    """(frame id, child frame id, position of the 85 doubles) of a nav_msgs/Odometry; raises ``_LayoutError``."""
+    _, _, frame, pos = _header_at(buf, _start(buf, cdr), cdr)
+    if cdr:
+        pos = _align(pos, 4)
+    child, pos = _string(buf, pos, cdr)
+    if cdr:
+        pos = _align(pos, 8)
+    _ends(buf, pos + 8 * _ODOM_DOUBLES, cdr)
+    return frame, child, pos
+
+
 def odometry(buf: bytes, cdr: bool, fallback_ns: int) -> OdometryRecord | None:
     """A nav_msgs/Odometry message's record, or None when the generic decoder is to read it."""
     try:
-        stamp, frame, pos = _header(buf, cdr, fallback_ns)
-        if cdr:
-            pos = _align(pos, 4)
-        child, pos = _string(buf, pos, cdr)
-        if cdr:
-            pos = _align(pos, 8)
-        end = pos + 8 * _ODOM_DOUBLES
-        _ends(buf, end, cdr)
+        frame, child, pos = _odometry_layout(buf, cdr)
     except _LayoutError:
         return None
+    sec, nsec = _STAMP_CDR.unpack_from(buf, _stamp_at(cdr))
     values = np.frombuffer(buf, dtype="<f8", count=_ODOM_DOUBLES, offset=pos).astype(np.float64)
-    return OdometryRecord(stamp, frame, child.lstrip("/"), values)
+    return OdometryRecord(_stamp(sec, nsec, fallback_ns), frame.lstrip("/"), child.lstrip("/"), values)
+
+
+def _scan_layout(buf: bytes, cdr: bool) -> tuple[str, int, int, int, int]:
+    """(frame id, position of the limits, number of ranges, position of the first range, position of the first
+    intensity) of a sensor_msgs/LaserScan; raises ``_LayoutError``."""
+    _, _, frame, pos = _header_at(buf, _start(buf, cdr), cdr)
+    if cdr:
+        pos = _align(pos, 4)
+    if pos + _SCAN_LIMITS.size > len(buf):
+        raise _LayoutError
+    n, start = _sequence(buf, pos + _SCAN_LIMITS.size, cdr, 4)
+    m, at = _sequence(buf, start + 4 * n, cdr, 4)  # intensities: read past, not kept
+    _ends(buf, at + 4 * m, cdr)
+    return frame, pos, n, start, at
 
 
 def laser_scan(buf: bytes, cdr: bool, fallback_ns: int) -> ScanRecord | None:
     """A sensor_msgs/LaserScan message's record, or None when the generic decoder is to read it."""
     try:
-        stamp, frame, pos = _header(buf, cdr, fallback_ns)
-        if cdr:
-            pos = _align(pos, 4)
-        if pos + _SCAN_LIMITS.size > len(buf):
-            raise _LayoutError
-        limits = _SCAN_LIMITS.unpack_from(buf, pos)
-        n, start = _sequence(buf, pos + _SCAN_LIMITS.size, cdr, 4)
-        m, at = _sequence(buf, start + 4 * n, cdr, 4)  # intensities: read past, not kept
-        _ends(buf, at + 4 * m, cdr)
+        frame, limits_at, n, start, _ = _scan_layout(buf, cdr)
     except _LayoutError:
         return None
+    sec, nsec = _STAMP_CDR.unpack_from(buf, _stamp_at(cdr))
+    limits = _SCAN_LIMITS.unpack_from(buf, limits_at)
     ranges = np.frombuffer(buf, dtype="<f4", count=n, offset=start).astype(np.float32)
-    return ScanRecord(stamp, frame, limits, ranges)
+    return ScanRecord(_stamp(sec, nsec, fallback_ns), frame.lstrip("/"), limits, ranges)
+
+
+class OdometryBatch(NamedTuple):
+    """Many nav_msgs/Odometry messages of one layout, as columns."""
+
+    stamps_ns: np.ndarray
+    frame_id: str
+    child_frame_id: str
+    values: np.ndarray
+    """float64 (n, 85), each row as :attr:`OdometryRecord.values`."""
+
+
+class ScanBatch(NamedTuple):
+    """Many sensor_msgs/LaserScan messages of one layout, as columns."""
+
+    stamps_ns: np.ndarray
+    frame_id: str
+    limits: np.ndarray
+    """float64 (n, 7), each row as :attr:`ScanRecord.limits`."""
+    ranges: np.ndarray
+    """float32 (n, beams), as recorded."""
+
+
+def _rows(bufs: list[bytes], same: list[tuple[int, int]]) -> np.ndarray | None:
+    """The messages as the rows of one byte matrix, when they are all as long as the first and equal to it on
+    the byte ranges ``same`` (the fields that place every other field: string and sequence lengths, the
+    strings, the padding); else None."""
+    size = len(bufs[0])
+    if any(len(b) != size for b in bufs):
+        return None
+    rows = np.frombuffer(b"".join(bufs), dtype=np.uint8).reshape(len(bufs), size)
+    for a, b in same:
+        if a < b and not (rows[:, a:b] == rows[0, a:b]).all():
+            return None
+    return rows
+
+
+def _column(rows: np.ndarray, at: int, count: int, dtype: str) -> np.ndarray:
+    """``count`` values of ``dtype`` at byte ``at`` of every row, as an (n, count) array."""
+    width = np.dtype(dtype).itemsize * count
+    return np.ascontiguousarray(rows[:, at : at + width]).view(dtype).reshape(len(rows), count)
+
+
+def _stamps(rows: np.ndarray, cdr: bool, fallback_ns: np.ndarray) -> np.ndarray:
+    """Every row's header stamp in ns, each as :func:`_stamp` gives it."""
+    at = _stamp_at(cdr)
+    sec = _column(rows, at, 1, "<i4")[:, 0].astype(np.int64)
+    nsec = _column(rows, at + 4, 1, "<u4")[:, 0].astype(np.int64)
+    value = sec * 1_000_000_000 + nsec
+    return np.where(value > 0, value, fallback_ns)
+
+
+def _constant(cdr: bool) -> list[tuple[int, int]]:
+    """The leading bytes every message of a batch shares: CDR's encapsulation header (ROS 1's seq varies)."""
+    return [(0, 4)] if cdr else []
+
+
+def odometry_batch(bufs: list[bytes], cdr: bool, fallback_ns: np.ndarray) -> OdometryBatch | None:
+    """Many nav_msgs/Odometry messages at once, each read as :func:`odometry` reads it, when they share the first
+    one's layout (its length, frame ids and padding); None when they do not (read them one at a time)."""
+    try:
+        frame, child, pos = _odometry_layout(bufs[0], cdr)
+    except _LayoutError:
+        return None
+    rows = _rows(bufs, [*_constant(cdr), (_stamp_at(cdr) + 8, pos)])
+    if rows is None:
+        return None
+    values = _column(rows, pos, _ODOM_DOUBLES, "<f8").astype(np.float64)
+    return OdometryBatch(_stamps(rows, cdr, fallback_ns), frame.lstrip("/"), child.lstrip("/"), values)
+
+
+def scan_batch(bufs: list[bytes], cdr: bool, fallback_ns: np.ndarray) -> ScanBatch | None:
+    """Many sensor_msgs/LaserScan messages at once, each read as :func:`laser_scan` reads it, when they share the
+    first one's layout (its length, frame id, numbers of ranges and intensities); None when they do not."""
+    try:
+        frame, limits_at, n, start, at = _scan_layout(bufs[0], cdr)
+    except _LayoutError:
+        return None
+    # the bytes that place the fields: the frame id, the ranges' count, the intensities' count (their values and
+    # CDR's padding after them may differ)
+    same = [
+        *_constant(cdr),
+        (_stamp_at(cdr) + 8, limits_at),
+        (limits_at + _SCAN_LIMITS.size, start),
+        (start + 4 * n, at),
+    ]
+    rows = _rows(bufs, same)
+    if rows is None:
+        return None
+    limits = _column(rows, limits_at, 7, "<f4").astype(np.float64)
+    ranges = _column(rows, start, n, "<f4").astype(np.float32)
+    return ScanBatch(_stamps(rows, cdr, fallback_ns), frame.lstrip("/"), limits, ranges)
 
 
 def compressed_image(buf: bytes, cdr: bool, fallback_ns: int) -> ImageRecord | None:

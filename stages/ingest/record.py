@@ -1,4 +1,5 @@
-"""What ingest draws in ``ingest.rrd``: the odometry path, laser scans in the odometry frame, camera frames."""
+"""What ingest draws in ``ingest.rrd``: the odometry path, laser scans in the odometry frame (read back from the
+stage's tables), and the camera frames (logged as they are read, :class:`FrameLog`)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ from stages.ingest.artifacts import (
     ANGLE_MIN,
     DATA,
     FORMAT,
-    FRAMES,
     HEIGHT,
     ODOMETRY,
     RANGE_MAX,
@@ -96,55 +96,96 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
         with np.errstate(invalid="ignore"):  # signalling NaNs from damaged bytes are NaN ranges
             values = ranges.flatten().to_numpy(zero_copy_only=False).astype(float)
         nearest = np.clip(np.searchsorted(stamps, s_stamps), 0, len(stamps) - 1)  # the odometry pose of each scan
-        cloud, logged, times = [], [], []
-        for i in range(0, scans.num_rows, rr_cfg.scan_stride):
-            r = values[starts[i] : ends[i]]
-            a = meta[ANGLE_MIN][i] + meta[ANGLE_INCREMENT][i] * np.arange(len(r))
-            ok = np.isfinite(r) & (r >= meta[RANGE_MIN][i]) & (r <= meta[RANGE_MAX][i])
-            pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
-            world = (poses[nearest[i]] @ T_base_laser @ pts.T).T[:, :3]
-            logged.append(world)
-            times.append(s_stamps[i])
-            cloud.append(world[::2])
+        drawn = np.arange(0, scans.num_rows, rr_cfg.scan_stride)
+        T_world_laser = poses[nearest[drawn]] @ T_base_laser  # per drawn scan
+        pieces = []
+        for rows in np.array_split(np.arange(drawn.size), -(-drawn.size // 512)):  # 512 scans at a time
+            block = drawn[rows]
+            limits = {c: v[block] for c, v in meta.items()}
+            pieces.append(_scan_points(values, starts[block], lengths[block], limits, T_world_laser[rows]))
+        world = np.concatenate([w for w, _ in pieces])
+        kept = np.concatenate([k for _, k in pieces])  # points per drawn scan
+        first = np.cumsum(kept) - kept
+        n = drawn.size
+        times = s_stamps[drawn]
         # one call for every logged scan (a scan each at its stamp), as many rows as separate logs would make
-        n = len(logged)
         rec.send_columns(
             "/ingest/world/scan",
-            indexes=[rr.TimeColumn("time", timestamp=np.asarray(times, dtype=np.int64).astype("datetime64[ns]"))],
+            indexes=[rr.TimeColumn("time", timestamp=times.astype(np.int64).astype("datetime64[ns]"))],
             columns=[
-                *rr.Points3D.columns(positions=np.concatenate(logged)).partition([len(w) for w in logged]),
+                *rr.Points3D.columns(positions=world).partition(kept.tolist()),
                 *rr.Points3D.columns(colors=np.tile([[255, 120, 60]], (n, 1)), radii=np.full(n, 0.02)),
             ],
         )
+        cloud = world[(np.arange(world.shape[0]) - np.repeat(first, kept)) % 2 == 0]  # every other point of each
         # every logged scan at once, in the odometry frame: the walls as odometry (with its drift) sees them
         rec.log(
             "/ingest/world/scan_map",
-            rr.Points3D(np.concatenate(cloud), colors=[[150, 150, 150]], radii=0.01),
+            rr.Points3D(cloud, colors=[[150, 150, 150]], radii=0.01),
             static=True,
         )
 
     K = np.asarray(camera.K, dtype=float).reshape(3, 3)
     rec.log("/ingest/camera", rr.Pinhole(image_from_camera=K, resolution=[camera.width, camera.height]), static=True)
-    k = 0
-    for batch in FRAMES.batches(written, batch_size=64):
-        # only the frames drawn leave Arrow (each batch's bytes are read and decompressed anyway)
-        drawn = [i for i in range(batch.num_rows) if (k + i) % rr_cfg.image_stride == 0]
-        k += batch.num_rows
-        encoded: list[dict[str, Any]] = []
-        for row in batch.take(drawn).to_pylist():
-            if row[FORMAT] in ("jpeg", "png"):
-                encoded.append(row)
-                continue
-            set_stamp(rec, row[STAMP_NS])
-            rec.log("/ingest/camera/image", image_archetype(row))
-        if encoded:  # JPEG/PNG frames: a row each, as image_archetype's, in one call per batch
-            rec.send_columns(
-                "/ingest/camera/image",
-                indexes=[rr.TimeColumn("time", timestamp=np.array([r[STAMP_NS] for r in encoded], "datetime64[ns]"))],
-                columns=rr.EncodedImage.columns(
-                    blob=[r[DATA] for r in encoded], media_type=[_MEDIA_TYPES[r[FORMAT]] for r in encoded]
-                ),
-            )
+
+
+def _scan_points(
+    values: np.ndarray, starts: np.ndarray, lengths: np.ndarray, meta: dict[str, np.ndarray], T_world_laser: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The valid returns of some scans in the world frame (every beam at once), and how many each scan has.
+
+    ``starts``/``lengths``: each scan's beams in ``values``; ``meta``: each scan's angle and range limits;
+    ``T_world_laser``: each scan's laser pose.
+    """
+    owner = np.repeat(np.arange(lengths.size), lengths)  # the scan each beam belongs to
+    beam = np.arange(owner.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)  # its index within the scan
+    r = values[starts[owner] + beam]
+    a = meta[ANGLE_MIN][owner] + meta[ANGLE_INCREMENT][owner] * beam
+    ok = np.isfinite(r) & (r >= meta[RANGE_MIN][owner]) & (r <= meta[RANGE_MAX][owner])
+    r, a, owner = r[ok], a[ok], owner[ok]
+    local = np.column_stack([r * np.cos(a), r * np.sin(a), np.zeros(r.size)])
+    R, t = T_world_laser[:, :3, :3], T_world_laser[:, :3, 3]
+    world = np.einsum("nij,nj->ni", R[owner], local) + t[owner]
+    return world, np.bincount(owner, minlength=lengths.size)
+
+
+class FrameLog:
+    """The camera frames drawn in ``ingest.rrd`` (every ``image_stride``-th), logged as ingest reads them.
+
+    Reading the frames back from ``frames.parquet`` once the stage has written it cost a quarter of the sample's
+    ingest; the rows are the same ones the table receives. JPEG/PNG frames go in one call per ``batch`` drawn
+    frames (a row each, as :func:`image_archetype`'s); raw pixels one at a time.
+    """
+
+    def __init__(self, rec: rr.RecordingStream, stride: int, batch: int = 64) -> None:
+        self.rec, self.stride, self.batch = rec, max(1, stride), batch
+        self.seen = 0
+        self.encoded: list[dict[str, Any]] = []
+
+    def add(self, row: dict[str, Any]) -> None:
+        """A row of ``frames.parquet`` as it is written."""
+        k, self.seen = self.seen, self.seen + 1
+        if k % self.stride:
+            return
+        if row[FORMAT] in _MEDIA_TYPES:
+            self.encoded.append(row)
+            if len(self.encoded) >= self.batch:
+                self.flush()
+            return
+        set_stamp(self.rec, row[STAMP_NS])
+        self.rec.log("/ingest/camera/image", image_archetype(row))
+
+    def flush(self) -> None:
+        if not self.encoded:
+            return
+        rows, self.encoded = self.encoded, []
+        self.rec.send_columns(
+            "/ingest/camera/image",
+            indexes=[rr.TimeColumn("time", timestamp=np.array([r[STAMP_NS] for r in rows], "datetime64[ns]"))],
+            columns=rr.EncodedImage.columns(
+                blob=[r[DATA] for r in rows], media_type=[_MEDIA_TYPES[r[FORMAT]] for r in rows]
+            ),
+        )
 
 
 _MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}

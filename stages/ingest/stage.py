@@ -39,8 +39,8 @@ from stages.ingest.artifacts import (
 )
 from stages.ingest.bags import RawMessage, Recording
 from stages.ingest.config import IngestConfig
-from stages.ingest.record import log_ingest
-from stages.ingest.tables import TableWriter, odometry_table, scan_table
+from stages.ingest.record import FrameLog, log_ingest
+from stages.ingest.tables import TableWriter, odometry_batch_table, odometry_table, scan_batch_table, scan_table
 from stages.ingest.topics import ROLES, resolve_camera_topics, resolve_topic
 from stages.tag_families import bag_family
 from stages.tags_file import TagsFile
@@ -144,6 +144,10 @@ def _tags_summary(tags: TagsFile) -> dict[str, Any]:
     }
 
 
+_BATCH = 1024
+"""Odometry and scan messages parsed at a time (:func:`stages.ingest.fast.odometry_batch`)."""
+
+
 def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
     """Read the recording into the run folder."""
     started = time.perf_counter()
@@ -157,6 +161,7 @@ def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
         plan = _plan(rec, cfg)
         compressed = all(rec.topics[t].type.endswith("CompressedImage") for t in plan.image_topics)
         reading = _Reading(ctx.output, plan, cfg.frame_stride, cfg.salvage, rec.format != "ros1", compressed)
+        reading.frame_log = FrameLog(ctx.rec, ctx.settings.rerun.image_stride)
         for topic in plan.wanted:  # the parsers of stages.ingest.fast read a topic whose type has the standard layout
             trusted = fast.standard(rec.typestore, rec.topics[topic].type, ros1=not reading.cdr)
             if trusted is not None:
@@ -307,6 +312,10 @@ class _Reading:
         self.base_frame = ""
         self.odom_frame = ""
         self.scan_frame = ""
+        self.pending: dict[str, list[RawMessage]] = {}
+        """Per odometry or scan topic read by :mod:`stages.ingest.fast`, the messages not yet parsed (in order)."""
+        self.frame_log: FrameLog | None = None
+        """Where the frames drawn in the recording go as they are read."""
 
     def _bad(self, raw: RawMessage, why: str | None) -> bool:
         """Whether the message is to be dropped for ``why``; without --salvage, stop with one line."""
@@ -358,7 +367,10 @@ class _Reading:
             if self._bad(raw, convert.image_problem(row)):
                 return
             self.frame_ids.setdefault(raw.topic, image.frame_id)
-            self.frames.add({FRAME: index, STAMP_NS: image.stamp_ns, TOPIC: raw.topic, **row})
+            full = {FRAME: index, STAMP_NS: image.stamp_ns, TOPIC: raw.topic, **row}
+            self.frames.add(full)
+            if self.frame_log is not None:
+                self.frame_log.add(full)
             return
         msg = self._decode(raw)
         if msg is None:
@@ -404,25 +416,68 @@ class _Reading:
             info = self._record(raw, fast.camera_info, lambda m, _t: convert.camera_info_record(m), _same_camera)
             if info is not None:
                 self.camera = convert.camera_from_record(info, raw.topic)
-        elif raw.topic == topics["odometry"]:
-            odom = self._record(raw, fast.odometry, convert.odometry_record, _same_odometry)
-            if odom is None or self._bad(raw, convert.odometry_record_problem(odom)):
+        elif raw.topic in (topics["odometry"], topics["scan"]):
+            if self.fast_ok.get(raw.topic):  # read in batches (stages.ingest.fast), in order
+                pending = self.pending.setdefault(raw.topic, [])
+                pending.append(raw)
+                if len(pending) >= _BATCH:
+                    self._flush(raw.topic)
+            elif raw.topic == topics["odometry"]:
+                self._odometry(raw)
+            else:
+                self._scan(raw)
+
+    def _odometry(self, raw: RawMessage) -> None:
+        odom = self._record(raw, fast.odometry, convert.odometry_record, _same_odometry)
+        if odom is None or self._bad(raw, convert.odometry_record_problem(odom)):
+            return
+        self.base_frame = self.base_frame or odom.child_frame_id
+        self.odom_frame = self.odom_frame or odom.frame_id
+        self.odom.add(odom)
+
+    def _scan(self, raw: RawMessage) -> None:
+        scan = self._record(raw, fast.laser_scan, convert.scan_record, _same_scan)
+        if scan is None or self._bad(raw, convert.scan_record_problem(scan)):
+            return
+        if self.scans.count == 0:
+            self.scan_frame = scan.frame_id  # the laser's frame is that of the first scan
+        self.scans.add(scan)
+
+    def _flush(self, topic: str) -> None:
+        """The odometry or scan messages waiting on ``topic``: as one batch when they share one layout and every
+        value is fine, else one at a time (the same records, and the same line or drop for a damaged one)."""
+        raws = self.pending.pop(topic, [])
+        if not raws:
+            return
+        data = [r.data for r in raws]
+        stamps = np.array([r.log_time_ns for r in raws], dtype=np.int64)
+        if topic == self.plan.topics["odometry"]:
+            odom = fast.odometry_batch(data, self.cdr, stamps)
+            if odom is not None and convert.odometry_values_fine(odom.values).all():
+                self.base_frame = self.base_frame or odom.child_frame_id
+                self.odom_frame = self.odom_frame or odom.frame_id
+                self.odom.add_table(odometry_batch_table(odom))
                 return
-            self.base_frame = self.base_frame or odom.child_frame_id
-            self.odom_frame = self.odom_frame or odom.frame_id
-            self.odom.add(odom)
-        elif raw.topic == topics["scan"]:
-            scan = self._record(raw, fast.laser_scan, convert.scan_record, _same_scan)
-            if scan is None or self._bad(raw, convert.scan_record_problem(scan)):
-                return
+            for r in raws:
+                self._odometry(r)
+            return
+        scans = fast.scan_batch(data, self.cdr, stamps)
+        if scans is not None and convert.scan_values_fine(scans.limits, scans.ranges).all():
             if self.scans.count == 0:
-                self.scan_frame = scan.frame_id  # the laser's frame is that of the first scan
-            self.scans.add(scan)
+                self.scan_frame = scans.frame_id
+            self.scans.add_table(scan_batch_table(scans))
+            return
+        for r in raws:
+            self._scan(r)
 
     def close(self) -> None:
+        for topic in list(self.pending):
+            self._flush(topic)
         writers: list[TableWriter[Any]] = [self.frames, self.odom, self.scans, *([self.dets] if self.dets else [])]
         for w in writers:
             w.close()
+        if self.frame_log is not None:
+            self.frame_log.flush()
 
 
 def _check_read(plan: _Plan, reading: _Reading, cfg: IngestConfig) -> CameraModel:

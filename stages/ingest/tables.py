@@ -34,7 +34,7 @@ from stages.ingest.artifacts import (
     TWIST_COV,
     VELOCITY,
 )
-from stages.ingest.fast import OdometryRecord, ScanRecord
+from stages.ingest.fast import OdometryBatch, OdometryRecord, ScanBatch, ScanRecord
 
 _ODOMETRY_SLICES: tuple[tuple[str, int], ...] = (
     *((c, i) for i, c in enumerate(POSITION)),
@@ -79,6 +79,12 @@ class TableWriter(Generic[T]):
         self.writer = parquet_writer(spec, out.file(spec.file), stored)
         self._table: Callable[[list[T]], pa.Table] = table or spec.table  # type: ignore[assignment]
 
+    def add_table(self, table: pa.Table) -> None:
+        """Rows already in a table of the declared schema, after the items added before them."""
+        self.flush()
+        self.writer.write_table(table)
+        self.count += table.num_rows
+
     def add(self, item: T) -> None:
         self.items.append(item)
         self.count += 1
@@ -101,13 +107,28 @@ def _fixed_lists(values: np.ndarray, size: int) -> pa.Array:
 
 def odometry_table(records: list[OdometryRecord]) -> pa.Table:
     """The rows of ``odometry.parquet`` for ``records``."""
-    v = np.stack([r.values for r in records])
-    columns: dict[str, Any] = {STAMP_NS: np.array([r.stamp_ns for r in records], dtype=np.int64)}
+    return odometry_columns(
+        np.array([r.stamp_ns for r in records], dtype=np.int64),
+        np.stack([r.values for r in records]),
+        [r.frame_id for r in records],
+        [r.child_frame_id for r in records],
+    )
+
+
+def odometry_batch_table(batch: OdometryBatch) -> pa.Table:
+    """The rows of ``odometry.parquet`` for a batch of messages of one layout."""
+    n = len(batch.stamps_ns)
+    return odometry_columns(batch.stamps_ns, batch.values, [batch.frame_id] * n, [batch.child_frame_id] * n)
+
+
+def odometry_columns(stamps: np.ndarray, v: np.ndarray, frames: list[str], children: list[str]) -> pa.Table:
+    """The rows of ``odometry.parquet``: stamps (ns), values (n, 85) as :attr:`OdometryRecord.values`, frame ids."""
+    columns: dict[str, Any] = {STAMP_NS: stamps.astype(np.int64, copy=False)}
     columns.update({c: v[:, i] for c, i in _ODOMETRY_SLICES})
     columns[POSE_COV] = _fixed_lists(v[:, 7:43], 36)
     columns[TWIST_COV] = _fixed_lists(v[:, 49:85], 36)
-    columns[FRAME_ID] = [r.frame_id for r in records]
-    columns[CHILD_FRAME_ID] = [r.child_frame_id for r in records]
+    columns[FRAME_ID] = frames
+    columns[CHILD_FRAME_ID] = children
     return ODOMETRY.table(columns)
 
 
@@ -117,9 +138,24 @@ def scan_table(records: list[ScanRecord]) -> pa.Table:
     offsets = np.zeros(len(records) + 1, dtype=np.int32)
     np.cumsum([len(r.ranges) for r in records], out=offsets[1:])
     values = np.concatenate([r.ranges for r in records]).astype(np.float32, copy=False)
+    return scan_columns([r.stamp_ns for r in records], [r.frame_id for r in records], limits, offsets, values)
+
+
+def scan_batch_table(batch: ScanBatch) -> pa.Table:
+    """The rows of ``scans.parquet`` for a batch of scans of one layout."""
+    n, beams = batch.ranges.shape
+    offsets = np.arange(n + 1, dtype=np.int32) * beams
+    return scan_columns(batch.stamps_ns, [batch.frame_id] * n, batch.limits, offsets, batch.ranges.ravel())
+
+
+def scan_columns(
+    stamps: Any, frames: list[str], limits: np.ndarray, offsets: np.ndarray, values: np.ndarray
+) -> pa.Table:
+    """The rows of ``scans.parquet``: stamps (ns), frame ids, limits (n, 7), and every scan's ranges as list
+    offsets into ``values`` (float32)."""
     columns: dict[str, Any] = {
-        STAMP_NS: np.array([r.stamp_ns for r in records], dtype=np.int64),
-        FRAME_ID: [r.frame_id for r in records],
+        STAMP_NS: np.asarray(stamps, dtype=np.int64),
+        FRAME_ID: frames,
         **{c: limits[:, i] for i, c in enumerate(_SCAN_LIMITS)},
         RANGES: pa.ListArray.from_arrays(cast(Any, pa.array(offsets)), cast(Any, pa.array(values))),
     }

@@ -115,6 +115,52 @@ def test_ingest_rrd_read_back(bags, recording, tmp_path: Path) -> None:
     assert rows["/ingest/world/odometry/base"] == len(_written(recording, "OdometryMsg"))
 
 
+def _logged(path: Path, entity: str, column: str) -> list:
+    """The values of one component column of an entity's temporal rows in a recording, row by row."""
+    from rerun.chunk import RrdReader
+
+    rows: list = []
+    for chunk in RrdReader(path).stream():
+        if str(chunk.entity_path) == entity and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            rows.extend(batch.column(batch.schema.get_field_index(column)).to_pylist())
+    return rows
+
+
+def test_ingest_rrd_values_are_the_tables(bags, recording, tmp_path: Path) -> None:
+    """The scans drawn in ingest.rrd are the table's valid returns placed at the nearest odometry pose (a plain
+    per-scan computation here), and the frames drawn are the table's bytes, every stride-th."""
+    run = _ingest(bags["ros1"], tmp_path, "rerun.image_stride=3", "rerun.scan_stride=2")
+    out = run.stage_dir("ingest")
+    scans = pq.read_table(out / "scans.parquet").to_pylist()
+    odom = pq.read_table(out / "odometry.parquet").to_pylist()
+    frames = pq.read_table(out / "frames.parquet").to_pylist()
+    T_base_laser = np.asarray(json.loads((out / "extrinsics.json").read_text())["sensors"]["laser"]["T_base_sensor"])
+    stamps = np.array([o["stamp_ns"] for o in odom])
+    logged = _logged(run.rrd_path("ingest"), "/ingest/world/scan", "Points3D:positions")
+    assert len(logged) == len(scans[::2]) > 5
+    for scan, points in zip(scans[::2], logged, strict=True):
+        o = odom[min(int(np.searchsorted(stamps, scan["stamp_ns"])), len(odom) - 1)]
+        x, y, z, w = (o[k] for k in ("qx", "qy", "qz", "qw"))
+        R = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, (o["x"], o["y"], o["z"])
+        r = np.asarray(scan["ranges"], dtype=float)
+        a = scan["angle_min"] + scan["angle_increment"] * np.arange(r.size)
+        ok = np.isfinite(r) & (r >= scan["range_min"]) & (r <= scan["range_max"])
+        local = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok]), np.zeros(ok.sum()), np.ones(ok.sum())])
+        expect = (T @ T_base_laser @ local.T).T[:, :3]
+        assert np.allclose(np.asarray(points, dtype=float), expect, atol=1e-5)  # Rerun stores float32
+    blobs = _logged(run.rrd_path("ingest"), "/ingest/camera/image", "EncodedImage:blob")
+    assert [bytes(b[0]) for b in blobs] == [f["data"] for f in frames[::3]]
+
+
 @pytest.mark.parametrize("compression", ["bz2", "lz4"])
 def test_compressed_ros1_chunks(compression: str, recording, tmp_path: Path) -> None:
     bag = write_bag(recording, tmp_path / f"{compression}.bag", "ros1", compression=compression)

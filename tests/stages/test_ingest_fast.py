@@ -160,9 +160,65 @@ def test_a_parser_is_not_trusted_where_the_layout_is_not_known_to_be_standard(
         rec = right(buf, cdr, fallback_ns)
         return None if rec is None else rec._replace(values=rec.values + 1.0)
 
+    right_batch = fast.odometry_batch
+
+    def wrong_batch(bufs: list[bytes], cdr: bool, fallback_ns: np.ndarray) -> fast.OdometryBatch | None:
+        batch = right_batch(bufs, cdr, fallback_ns)
+        return None if batch is None else batch._replace(values=batch.values + 1.0)
+
     monkeypatch.setattr(fast, "odometry", wrong)
+    monkeypatch.setattr(fast, "odometry_batch", wrong_batch)
     if fmt == "ros1":  # the trusted path: the parser is used as long as the layout is the standard one
         assert not _odometry_after_ingest(bag, tmp_path / "b").equals(expected)
         layouts = {**fast.LAYOUTS[True], "nav_msgs/msg/Odometry": [*fast.LAYOUTS[True]["nav_msgs/msg/Odometry"], "x"]}
         monkeypatch.setitem(fast.LAYOUTS, True, layouts)
     assert _odometry_after_ingest(bag, tmp_path / "c").equals(expected)
+
+
+BATCHES: dict[str, tuple[Callable[[list[bytes], bool, np.ndarray], Any], Callable[[bytes, bool, int], Any]]] = {
+    "nav_msgs/msg/Odometry": (fast.odometry_batch, fast.odometry),
+    "sensor_msgs/msg/LaserScan": (fast.scan_batch, fast.laser_scan),
+}
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-sqlite", "mcap"])
+def test_a_batch_reads_every_message_as_its_parser_does_or_declines(fmt: Format, tmp_path: Path) -> None:
+    """Every odometry and scan message of a recording read as one batch gives, row by row, the record the
+    one-message parser gives (stamps, frame ids, values bit for bit); a batch whose messages differ in length or
+    in the bytes that place the fields (a frame id) is declined, to be read one message at a time."""
+    recording = simulate(SimConfig(seed=5, path="corridor", duration_s=2.0, image_format="jpeg"))
+    suffix = {"ros1": ".bag", "mcap": ".mcap"}.get(fmt, "")
+    cdr = fmt != "ros1"
+    with Recording(write_bag(recording, tmp_path / f"b{suffix}", fmt)) as rec:
+        by_type: dict[str, list[RawMessage]] = {}
+        for raw in rec.messages(rec.topics):
+            if raw.type in BATCHES:
+                by_type.setdefault(raw.type, []).append(raw)
+    assert set(by_type) == set(BATCHES)
+    for typename, raws in by_type.items():
+        batch_of, one = BATCHES[typename]
+        data = [r.data for r in raws]
+        stamps = np.array([r.log_time_ns for r in raws], dtype=np.int64)
+        batch = batch_of(data, cdr, stamps)
+        assert batch is not None and len(batch.stamps_ns) == len(raws) > 10, typename
+        for i, raw in enumerate(raws):
+            record = one(raw.data, cdr, raw.log_time_ns)
+            assert batch.stamps_ns[i] == record.stamp_ns and batch.frame_id == record.frame_id
+            if typename == "nav_msgs/msg/Odometry":
+                assert batch.child_frame_id == record.child_frame_id
+                assert batch.values[i].tobytes() == record.values.tobytes()
+            else:
+                assert _canon(tuple(float(x) for x in batch.limits[i])) == _canon(record.limits)
+                assert batch.ranges[i].tobytes() == record.ranges.tobytes()
+        # a zero stamp falls back to the log time, as in the one-message parser
+        zeroed = bytearray(data[0])
+        zeroed[4:12] = bytes(8)
+        assert batch_of([bytes(zeroed), *data[1:]], cdr, stamps).stamps_ns[0] == stamps[0]
+        # the frame id's last letter changed in one message: same length, other field bytes: declined
+        frame = batch.frame_id.encode()
+        at = data[3].index(frame) + len(frame) - 1
+        renamed = bytearray(data[3])
+        renamed[at] = ord("Q")
+        assert batch_of([*data[:3], bytes(renamed), *data[4:]], cdr, stamps) is None
+        assert batch_of([*data[:3], data[3] + bytes(4), *data[4:]], cdr, stamps) is None  # another length
+        assert batch_of([data[0][:-8], *data[1:]], cdr, stamps) is None  # the first one cut: not its layout
