@@ -3,6 +3,7 @@ stage's tables), and the camera frames (logged as they are read, :class:`FrameLo
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -11,6 +12,7 @@ import rerun as rr
 
 from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
+from pipeline.contracts import Column
 from pipeline.recording import set_stamp
 from stages.columns import POSITION, QUATERNION, STAMP_NS
 from stages.ingest.artifacts import (
@@ -130,7 +132,11 @@ def log_ingest(ctx: StageContext, camera: CameraModel, extrinsics: Extrinsics) -
 
 
 def _scan_points(
-    values: np.ndarray, starts: np.ndarray, lengths: np.ndarray, meta: dict[str, np.ndarray], T_world_laser: np.ndarray
+    values: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    meta: Mapping[Column, np.ndarray],
+    T_world_laser: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The valid returns of some scans in the world frame (every beam at once), and how many each scan has.
 
