@@ -22,6 +22,7 @@ file ``<name>.g2o.json`` (:func:`g2o_metadata`), which :func:`read_graph_file` r
 
 from __future__ import annotations
 
+import functools
 import json
 from collections import Counter
 from collections.abc import Callable
@@ -50,14 +51,20 @@ from stages.graph.variables import POINT2, POINT3, POSE2, POSE3, VarKind, var_ki
 _PERM_G2O_TO_GTSAM = [3, 4, 5, 0, 1, 2]
 
 
+@functools.cache
+def _triu(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The upper triangle's indices of an n x n matrix, row by row (made once per size: a graph writes thousands)."""
+    return np.triu_indices(n)
+
+
 def _upper(values: list[float], n: int) -> np.ndarray:
     M = np.zeros((n, n))
-    M[np.triu_indices(n)] = values
+    M[_triu(n)] = values
     return M + np.triu(M, 1).T
 
 
 def _upper_list(M: np.ndarray) -> list[float]:
-    return [float(v) for v in M[np.triu_indices(M.shape[0])]]
+    return [float(v) for v in M[_triu(M.shape[0])].tolist()]
 
 
 def _info_to_cov(info: np.ndarray, where: str) -> np.ndarray:

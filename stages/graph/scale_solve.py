@@ -17,7 +17,7 @@ covariance ``D Σ D`` gives the same whitened residual as ``e`` with ``Σ``. So:
   row, that joint linear system is the Gauss-Newton system of the whole problem; its step updates ``θ`` and
   ``s`` together and is accepted when the error falls (else the inner optimiser runs again at the new ``s``), until
   the error falls by less than the tolerances: ``δs = 0`` with the inner gradient zero is the joint optimum.
-- *marginals*: :func:`joint_marginals` takes ``gtsam.Marginals`` of the same joint linear system at the solution,
+- *marginals*: :func:`joint_marginals` takes the marginals of the same joint linear system at the solution,
   i.e. exactly the covariances of the model with ``s`` a variable (every pose and landmark covariance contains the
   scale's uncertainty; the scale's own marginal is one of them).
 """
@@ -32,6 +32,7 @@ import numpy as np
 
 from stages.geometry import pose3_from_vector
 from stages.graph.factors import FactorRow, build_graph, noise_model, scaled_measurement
+from stages.graph.marginals import key_dims, tree_marginals
 
 SCALED_TYPES = ("BearingRangeFactor2D", "BetweenFactorPose3")
 """Row types that carry the scale as a third key."""
@@ -88,6 +89,8 @@ class _ScaledParts:
         self.tags = [r for r in rows if is_scaled(r)]
         self.covs = [np.asarray(r.covariance, dtype=float).reshape(r.dim, r.dim) for r in self.tags]
         self.priors = _scale_priors(rows, key)
+        self.ordering: gtsam.Ordering | None = None
+        """The elimination ordering of the native linear system (the same structure at every scale)."""
 
     def graph_at(self, s: float) -> gtsam.NonlinearFactorGraph:
         """The native graph at scale ``s``: the other rows' factors, then one native factor per tag row."""
@@ -135,39 +138,112 @@ class NativeScaleGraph:
         """The error of the model with the scale, at ``values`` (without ``s``) and :attr:`s`."""
         return float(self.graph.error(values)) + self.prior_error(self.s)
 
+    def _scale_columns(self, lin: gtsam.GaussianFactorGraph, values: gtsam.Values) -> list[_ScaledFactors]:
+        """The tag factors of the native linearisation ``lin``, by type, with their whitened ``∂e/∂s`` columns
+        (vectorised: one Jacobian read per factor, the rest in numpy)."""
+        out = []
+        for kind in sorted({self.types[i] for i in self.scaled}):
+            index = [i for i in self.scaled if self.types[i] == kind]
+            factors = [lin.at(i) for i in index]
+            keys = np.array([[int(k) for k in f.keys()] for f in factors], dtype=np.int64)  # noqa: SIM118
+            jac = [f.jacobian() for f in factors]
+            A = np.stack([j[0] for j in jac])
+            b = np.stack([j[1] for j in jac])
+            if kind == "BearingRangeFactor2D":
+                n_a = 3
+                poses = _positions(gtsam.utilities.allPose2s(values), gtsam.utilities.extractPose2, keys[:, 0], 2)
+                points = {k: values.atPoint2(k) for k in set(keys[:, 1].tolist())}
+                w = np.array([points[k] for k in keys[:, 1].tolist()]) - poses  # the landmark's offset, map frame
+                col = np.einsum("nij,nj->ni", A[:, :, n_a:], w)
+            else:  # w = R_lᵀ (t_l − t_a): the landmark's translation block of a⁻¹ l, in its own frame
+                n_a = 6
+                matrix = gtsam.utilities.extractPose3(values)
+                row = {k: i for i, k in enumerate(gtsam.utilities.allPose3s(values).keys())}
+                ra, rl = (np.array([row[k] for k in keys[:, j].tolist()]) for j in (0, 1))
+                R_l = matrix[rl, :9].reshape(-1, 3, 3)
+                w = np.einsum("nji,nj->ni", R_l, matrix[rl, 9:] - matrix[ra, 9:])
+                col = np.einsum("nij,nj->ni", A[:, :, n_a + 3 :], w)
+            out.append(_ScaledFactors(keys[:, 0], keys[:, 1], A[:, :, :n_a], A[:, :, n_a:], b, -col / self.s))
+        return out
+
     def joint_system(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
         """The model's Gauss-Newton system at ``values`` and :attr:`s`: the native linearisation with the scale's
         column in each tag factor and the priors' rows (see the module docstring)."""
         lin = self.graph.linearize(values)
         joint = gtsam.GaussianFactorGraph()
         scaled = set(self.scaled)
-        unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (2, 6)}
         for i in range(lin.size()):
-            f = lin.at(i)
             if i not in scaled:
-                joint.push_back(f)
-                continue
-            A, b = f.jacobian()
-            ka, kl = (int(k) for k in f.keys())  # noqa: SIM118 (a gtsam KeyVector)
-            if self.types[i] == "BearingRangeFactor2D":
-                pose, point = values.atPose2(ka), values.atPoint2(kl)
-                w = np.array([point[0] - pose.x(), point[1] - pose.y()])
-                Aa, Al = A[:, :3], A[:, 3:]
-                col = Al @ w
-            else:
-                rel = values.atPose3(ka).between(values.atPose3(kl))
-                w = np.asarray(rel.rotation().unrotate(rel.translation()))
-                Aa, Al = A[:, :6], A[:, 6:]
-                col = Al[:, 3:] @ w
-            joint.push_back(
-                gtsam.JacobianFactor(ka, Aa, kl, Al, self.key, (-col / self.s).reshape(-1, 1), b, unit[len(b)])
-            )
+                joint.push_back(lin.at(i))
+        for f in self._scale_columns(lin, values):
+            unit = gtsam.noiseModel.Unit.Create(f.b.shape[1])
+            for i in range(len(f.a)):
+                joint.push_back(
+                    gtsam.JacobianFactor(
+                        int(f.a[i]), f.A_a[i], int(f.l[i]), f.A_l[i], self.key, f.c[i].reshape(-1, 1), f.b[i], unit
+                    )
+                )
         one = gtsam.noiseModel.Unit.Create(1)
         for m, sig in self.priors:
             joint.push_back(
                 gtsam.JacobianFactor(self.key, np.array([[1.0 / sig]]), np.array([(m - self.s) / sig]), one)
             )
         return joint
+
+    def joint_step(self, values: gtsam.Values) -> tuple[gtsam.VectorValues, float]:
+        """The Gauss-Newton step of :meth:`joint_system`, ``(δθ, δs)``, by its Schur complement on the scale: with
+        the native system's ``H = AᵀA`` and ``g = Aᵀb``, the scale's column ``c`` and ``h = Aᵀc``,
+        ``δs = (cᵀb + Σ (m − s)/σ² − hᵀH⁻¹g) / (cᵀc + Σ 1/σ² − hᵀH⁻¹h)`` and ``δθ = H⁻¹g − H⁻¹h δs``. One
+        elimination of the native system (its ordering computed once for the rows) serves both solves, and no
+        factor is rebuilt (the same step as eliminating :meth:`joint_system`, to rounding)."""
+        lin = self.graph.linearize(values)
+        if self.parts.ordering is None:
+            self.parts.ordering = gtsam.Ordering.ColamdGaussianFactorGraph(lin)
+        net = lin.eliminateSequential(self.parts.ordering)
+        step = net.optimize()
+        h: dict[int, np.ndarray] = {}
+        ctb = ctc = 0.0
+        for f in self._scale_columns(lin, values):
+            for keys, A in ((f.a, f.A_a), (f.l, f.A_l)):
+                parts = np.einsum("nij,ni->nj", A, f.c)  # each factor's Aᵀc on that key
+                unique, at = np.unique(keys, return_inverse=True)
+                summed = np.zeros((len(unique), parts.shape[1]))
+                np.add.at(summed, at, parts)
+                for k, v in zip(unique.tolist(), summed, strict=True):
+                    h[k] = h[k] + v if k in h else v
+            ctb += float((f.c * f.b).sum())
+            ctc += float((f.c * f.c).sum())
+        given = gtsam.VectorValues()
+        for k, v in h.items():
+            given.insert(k, v)
+        h_values = gtsam.VectorValues.Zero(step)  # every key (the other keys' entries of h are 0)
+        h_values.update(given)
+        u = net.backSubstitute(net.backSubstituteTranspose(h_values))  # H⁻¹h
+        h_step = sum(float(v @ step.at(k)) for k, v in h.items())
+        h_u = sum(float(v @ u.at(k)) for k, v in h.items())
+        rhs = ctb + sum((m - self.s) / sig**2 for m, sig in self.priors) - h_step
+        ds = rhs / (ctc + sum(1.0 / sig**2 for _, sig in self.priors) - h_u)
+        return step.add(u.scale(-ds)), ds
+
+
+@dataclass(frozen=True)
+class _ScaledFactors:
+    """Tag factors of one type, whitened and linearised: ``A_a δa + A_l δl + c δs = b`` (pose ``a``, landmark
+    ``l``), stacked along the first axis."""
+
+    a: np.ndarray
+    l: np.ndarray  # noqa: E741
+    A_a: np.ndarray
+    A_l: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+
+
+def _positions(of_type: gtsam.Values, extract: object, keys: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` columns of ``extract(of_type)`` (one row per variable, in key order) for each of ``keys``."""
+    matrix = extract(of_type)  # type: ignore[operator]
+    row = {k: i for i, k in enumerate(of_type.keys())}
+    return np.asarray(matrix)[[row[k] for k in keys.tolist()], :n]
 
 
 def without_key(values: gtsam.Values, key: int) -> gtsam.Values:
@@ -225,9 +301,8 @@ def optimise_with_scale(
     rounds = 0
     while rounds < max_rounds:
         rounds += 1
-        delta = native.joint_system(theta).optimize()
-        ds = float(delta.at(key)[0])
-        cand_theta, cand = theta.retract(delta), native.at(s + ds)  # retract skips the scale's entry
+        step, ds = native.joint_step(theta)
+        cand_theta, cand = theta.retract(step), native.at(s + ds)
         cand_error = cand.error(cand_theta)
         if not cand_error <= error:  # the joint step overshot: optimise the native graph at the new scale
             cand_theta, more = inner(cand.graph, theta)  # type: ignore[operator]
@@ -244,11 +319,11 @@ def optimise_with_scale(
 
 def joint_marginals(rows: Sequence[FactorRow], values: gtsam.Values, keys: Sequence[int]) -> dict[int, np.ndarray]:
     """Marginal covariance of each key of the model with the shared scale at ``values`` (which hold ``s``), from one
-    ``gtsam.Marginals`` of its joint linear system: the same system GTSAM linearises the scaled factors to."""
+    elimination of its joint linear system (:func:`stages.graph.marginals.tree_marginals`): the same system GTSAM
+    linearises the scaled factors to."""
     key = scale_key_of(rows)
     if key is None:
         raise ValueError("the rows carry no tag scale")
     native = NativeScaleGraph(rows, float(values.atDouble(key)))
     joint = native.joint_system(without_key(values, key))
-    marginals = gtsam.Marginals(joint, values)
-    return {k: np.asarray(marginals.marginalCovariance(k), dtype=float) for k in keys}
+    return tree_marginals(joint, key_dims(values), keys)

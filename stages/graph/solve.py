@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.errors import StageError
 from stages.graph.factors import build_graph, has_python_factors
+from stages.graph.marginals import key_dims, tree_marginals
 from stages.graph.problem import GraphProblem
 from stages.graph.scale_solve import joint_marginals, optimise_with_scale
 from stages.graph.variables import SCALE
@@ -238,7 +239,7 @@ def optimise(
 def marginal_covariances(
     problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]
 ) -> dict[int, np.ndarray]:
-    """Marginal covariance of each key, from one ``gtsam.Marginals`` (one factorisation, per-key queries); with the
+    """Marginal covariance of each key, from one elimination (:func:`stages.graph.marginals.tree_marginals`); with the
     shared tag scale, of the joint linear system of native factors plus the scale's column
     (:func:`stages.graph.scale_solve.joint_marginals`), so every covariance holds the scale's uncertainty.
 
@@ -247,8 +248,7 @@ def marginal_covariances(
     try:
         if has_python_factors(problem.rows):
             return joint_marginals(problem.rows, values, keys)
-        marginals = gtsam.Marginals(graph, values)
-        return {k: np.asarray(marginals.marginalCovariance(k), dtype=float) for k in keys}
+        return tree_marginals(graph.linearize(values), key_dims(values), keys)
     except RuntimeError as err:
         if _is_indeterminant(err):
             raise StageError(indeterminant_message(problem, err, "computing marginals")) from err

@@ -32,6 +32,7 @@ from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
 from stages.estimation.linear_system import landmark_prior_sigmas
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
+from stages.graph.marginals import key_dims, tree_marginals
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
 from stages.graph.variables import var_kind
@@ -178,11 +179,11 @@ def _marginals(
 ) -> tuple[dict[int, FloatArray], FloatArray]:
     """Every variable's marginal covariance and the joint covariance of the observed focused landmarks."""
     try:
-        marg = gtsam.Marginals(graph, solution.values)
-        marginals = {k: np.asarray(marg.marginalCovariance(k), dtype=float) for k in problem.var_types}
+        values = solution.values
+        marginals = tree_marginals(graph.linearize(values), key_dims(values), problem.var_types)
         if focused_observed:
             kv = gtsam.KeyVector([problem.landmark_keys[t] for t in focused_observed])
-            joint = np.asarray(marg.jointMarginalCovariance(kv).fullMatrix(), dtype=float)
+            joint = np.asarray(gtsam.Marginals(graph, values).jointMarginalCovariance(kv).fullMatrix(), dtype=float)
         else:
             joint = np.zeros((0, 0))
     except RuntimeError as err:

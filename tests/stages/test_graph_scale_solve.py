@@ -64,6 +64,21 @@ def test_joint_system_is_the_linearisation_of_the_scaled_model(problem) -> None:
     assert np.abs(H_ref[:, -1]).max() > 0  # the scale's column is there (and is compared)
 
 
+def test_the_schur_step_is_the_joint_systems_step(problem) -> None:
+    """joint_step (one native elimination, the scale by its Schur complement) gives the Gauss-Newton step of the
+    joint system, poses, landmarks and scale, at a generic point (planar, 3d, with a robust kernel)."""
+    values = _perturbed(problem, 2)
+    native = NativeScaleGraph(problem.rows, values.atDouble(SCALE_KEY))
+    theta = without_key(values, SCALE_KEY)
+    ref = native.joint_system(theta).optimize()
+    for _ in range(2):  # the second time with the ordering kept from the first
+        step, ds = native.joint_step(theta)
+        assert ds == pytest.approx(float(ref.at(SCALE_KEY)[0]), rel=1e-8) and abs(ds) > 1e-6
+        for k in problem.var_types:
+            if k != SCALE_KEY:
+                np.testing.assert_allclose(step.at(k), ref.at(k), rtol=1e-7, atol=1e-10)
+
+
 def test_optimum_and_marginals_match_the_scaled_model(problem) -> None:
     graph = build_graph(problem.rows)
     dims = {k: VAR_DIMS[t] for k, t in problem.var_types.items()}
