@@ -13,6 +13,14 @@ What is read (TagSLAM's meaning, from its ``body.cpp``, ``tag.cpp`` and ``odomet
   (tag) frame, tangent order (rotation, translation). A body with both ``override_tag_position_noise`` and
   ``override_tag_rotation_noise`` above 0 gives all its tags those isotropic sigmas instead, as TagSLAM does.
   The body's own pose noise is carried into the tag frame (``Ad(T_tag_body) Σ_body Ad^T``) and added.
+- **Tag frame.** TagSLAM's tag frame (``tag.cpp``: object corners ``(-s/2, -s/2)``, ``(s/2, -s/2)``,
+  ``(s/2, s/2)``, ``(-s/2, s/2)`` for a detection's corners 0 to 3, z out of the printed face) is focusmap's
+  (detect's tag frame, with a bag's corners in the ``apriltag`` order, the default of ``detect.bag_corner_order``)
+  turned 180° about its z axis: the same corner sits at ``(x, y)`` in one and ``(-x, -y)`` in the other. A
+  surveyed pose is turned into focusmap's frame, ``T_world_tag = T_world_tag(TagSLAM) Rz(π)``, and its
+  covariance with it. (Read as it stands, each surveyed tag turned the whole map 180° about the tag's normal:
+  on TagSLAM's test_1, test_2 and test_21 the trajectory was 1.5 to 3.6 m from TagSLAM's in its world frame
+  and matched it only after a 180° rotation; with more than one surveyed tag, test_10, the priors fought.)
 - **Odometry mount.** ``T_body_odom`` of a body (``{position, rotation}``) is TagSLAM's transform from the
   frame the odometry is computed in to the body: TagSLAM turns consecutive odometry poses ``P`` (``T_world_odom``)
   into the body's motion ``T_body_odom P_prev⁻¹ P_next T_body_odom⁻¹``, i.e. ``T_world_body = P T_body_odom⁻¹``,
@@ -56,7 +64,7 @@ UNUSED_SECTIONS = (
 
 @dataclass
 class KnownTagPose:
-    """A surveyed tag: its pose in TagSLAM's world frame and the 6x6 covariance of its prior."""
+    """A surveyed tag: its pose (focusmap's tag frame) in TagSLAM's world frame and the 6x6 covariance of its prior."""
 
     tag_id: int
     body: str
@@ -151,6 +159,10 @@ def adjoint(T: FloatArray) -> FloatArray:
     A[3:, 3:] = R
     A[3:, :3] = tx @ R
     return A
+
+
+TAGSLAM_TAG_TO_FOCUSMAP_TAG = np.diag([-1.0, -1.0, 1.0, 1.0])
+"""``T_tagslamtag_tag``: focusmap's tag frame in TagSLAM's, a half turn about the tag's normal (module docstring)."""
 
 
 def _bodies(doc: dict[str, Any], name: str) -> list[tuple[str, dict[str, Any]]]:
@@ -262,7 +274,10 @@ def _known_tag(
     # T_world_body Exp(ξ_b) T_body_tag = T_world_tag Exp(Ad(T_tag_body) ξ_b)
     A = adjoint(np.asarray(np.linalg.inv(T_body_tag), dtype=np.float64))
     cov = np.diag(np.concatenate([rot, pos]) ** 2) + A @ body_cov @ A.T
-    return KnownTagPose(tag_id, body, T_world_body @ T_body_tag, cov, rot.tolist(), pos.tolist())
+    # TagSLAM's tag frame into focusmap's: T Exp(ξ) F = T F Exp(Ad(F⁻¹) ξ)
+    F = TAGSLAM_TAG_TO_FOCUSMAP_TAG
+    A = adjoint(np.asarray(np.linalg.inv(F), dtype=np.float64))
+    return KnownTagPose(tag_id, body, T_world_body @ T_body_tag @ F, A @ cov @ A.T, rot.tolist(), pos.tolist())
 
 
 def _seconds_ns(value: Any, where: str) -> int:

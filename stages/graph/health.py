@@ -10,9 +10,15 @@ gives its figures and, when it fails, one line that says what is wrong and which
 - ``tag_scale``: the shared tag scale more than :data:`SCALE_PRIOR_SIGMAS` prior sigmas from 1: the printed
   tags are not ``detect.tag_size_m``; the line names the size the data suggest (current size × scale).
 - ``iterations``: the optimiser stopped at its iteration cap before converging.
-- ``moved_tags``: tags whose measurements disagree with one position: their mean whitened χ² per measurement
-  dimension is above :data:`TAG_CHI2_PER_DIM_MAX` and above :data:`TAG_CHI2_OVER_TYPICAL` times the median tag's
-  (a tag that moved, a duplicated id, a tag on something that moves).
+- ``moved_tags``: tags whose measurements disagree with one position (a tag that moved, a duplicated id, a tag on
+  something that moves), judged twice: at the solution (the mean whitened χ² per measurement dimension of the tag's
+  factors) and against the odometry alone (the same figure after solving the tag with only its own sightings and the
+  odometry between them, see :func:`tag_dead_reckoning_chi2`). Either above its floor (:data:`TAG_CHI2_PER_DIM_MAX`,
+  :data:`TAG_DR_CHI2_PER_DIM_MAX`) and above :data:`TAG_CHI2_OVER_TYPICAL` times the median tag's flags the tag;
+  the tags the odometry flags are named first, by its figure, then those only the solution flags, by theirs. One
+  wrong tag can pull the whole solution with it (a duplicated id can shrink the map to a point through the tag
+  scale), and then the solution's residuals blame the innocent tags; the odometry figure does not depend on the
+  solution.
 - ``dead_reckoning``: the solved trajectory against the odometry alone (dead reckoning composed from the
   odometry factors from the first pose, its covariance propagated along them): the largest Mahalanobis distance
   per dimension over the keyframes, with both covariances added; above :data:`DEAD_RECKONING_D2_PER_DIM_MAX`
@@ -27,12 +33,13 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import replace
+from itertools import pairwise
 from typing import Any
 
 import gtsam
 import numpy as np
 
-from stages.graph.factors import FactorRow, make_factor
+from stages.graph.factors import FactorRow, build_graph, make_factor
 from stages.graph.problem import GraphProblem
 
 CHI2_PER_DOF_MAX = 5.0
@@ -47,6 +54,11 @@ TAG_CHI2_OVER_TYPICAL = 10.0
 """... and this many times the median tag's, did not stay in one place."""
 TAG_MIN_MEASUREMENTS = 3
 """Tags measured fewer times are not judged (one sighting always fits)."""
+TAG_DR_CHI2_PER_DIM_MAX = 9.0
+"""The same figure against the odometry alone (3 σ per dimension on average): the odometry between sightings
+absorbs part of a wrong tag's disagreement, so its figure stays lower than at a solution that holds every tag."""
+TAG_DR_MAX_TAGS = 400
+"""At most this many tags (the most measured) are judged against the odometry (one small solve each)."""
 DEAD_RECKONING_D2_PER_DIM_MAX = 25.0
 """Largest squared Mahalanobis distance per dimension between the trajectory and dead reckoning (5 σ)."""
 
@@ -193,7 +205,14 @@ def _moved_tags_check(problem: GraphProblem, chi2: np.ndarray) -> tuple[dict[str
         return {"tags_judged": 0}, None
     typical = float(np.median(list(judged.values())))
     limit = max(TAG_CHI2_PER_DIM_MAX, TAG_CHI2_OVER_TYPICAL * typical)
-    moved = sorted((t for t, v in judged.items() if v > limit), key=lambda t: -judged[t])
+    dr = tag_dead_reckoning_chi2(problem, list(judged))
+    dr_typical = float(np.median(list(dr.values()))) if dr else float("nan")
+    dr_limit = max(TAG_DR_CHI2_PER_DIM_MAX, TAG_CHI2_OVER_TYPICAL * dr_typical) if dr else float("inf")
+    by_odometry = sorted((t for t, v in dr.items() if v > dr_limit), key=lambda t: -dr[t])
+    by_solution = sorted((t for t, v in judged.items() if v > limit and t not in by_odometry), key=lambda t: -judged[t])
+    # the tags the odometry alone says moved first (its verdict does not depend on a solution the wrong tag may have
+    # dragged along), then those only the solution blames
+    moved = by_odometry + by_solution
     worst = max(judged, key=lambda t: judged[t])
     figures: dict[str, Any] = {
         "tags_judged": len(judged),
@@ -204,14 +223,81 @@ def _moved_tags_check(problem: GraphProblem, chi2: np.ndarray) -> tuple[dict[str
         "tags": moved,
         "chi2_per_dim": {str(t): round(judged[t], 3) for t in moved},
     }
+    if dr:
+        dr_worst = max(dr, key=lambda t: dr[t])
+        figures["odometry"] = {
+            "tags_judged": len(dr),
+            "median_chi2_per_dim": round(dr_typical, 4),
+            "worst_tag": dr_worst,
+            "worst_chi2_per_dim": round(dr[dr_worst], 4),
+            "limit": round(dr_limit, 4),
+            "chi2_per_dim": {str(t): round(dr[t], 3) for t in moved if t in dr},
+        }
     if not moved:
         return figures, None
-    shown = ", ".join(f"{t} ({judged[t]:.3g})" for t in moved[:10]) + (" ..." if len(moved) > 10 else "")
+
+    def shown_one(t: int) -> str:
+        return f"{t} ({judged[t]:.3g}" + (f", {dr[t]:.3g} against the odometry)" if t in dr else ")")
+
+    shown = ", ".join(shown_one(t) for t in moved[:10]) + (" ..." if len(moved) > 10 else "")
+    against = f"; against the odometry alone above {dr_limit:.3g}, the median's {dr_typical:.3g}" if dr else ""
     return figures, (
         f"{len(moved)} tag(s) look like they moved (their measurements disagree with one position; mean whitened "
-        f"chi2 per dimension above {limit:.3g}, the median tag's {typical:.3g}): {shown}; a tag that moved or a "
-        "duplicated id breaks the map: take it down or leave it out"
+        f"chi2 per dimension above {limit:.3g}, the median tag's {typical:.3g}{against}): {shown}; a tag that moved "
+        "or a duplicated id breaks the map: take it down or leave it out"
     )
+
+
+def tag_dead_reckoning_chi2(problem: GraphProblem, tags: Sequence[int]) -> dict[int, float]:
+    """Each tag's mean whitened χ² per measurement dimension when it is solved with the odometry alone.
+
+    For each tag (at most :data:`TAG_DR_MAX_TAGS`, the most measured): a small graph of the poses it is seen from,
+    the odometry composed between consecutive ones (its covariance propagated as in the dead-reckoning check), the
+    tag's own measurements at tag scale 1; the first pose is held at its initial value (dead reckoning) and the
+    first pose after a gap in the odometry is left nearly free. A tag that stayed put fits its sightings
+    as well as the odometry between them allows (about 1, less with conservative noise models); a tag that moved,
+    or two tags with one id, cannot. Empty without odometry between consecutive poses.
+    """
+    chain = _odometry_chain(problem)
+    if not chain or all(r is None for r in chain):
+        return {}
+    model = problem.graph_model
+    kind = model.pose
+    index = {k: i for i, k in enumerate(problem.pose_keys)}
+    by_tag: dict[int, list[FactorRow]] = {}
+    for row in problem.rows:
+        if row.kind == "tag" and row.tag_id is not None and int(row.tag_id) in tags and row.keys[0] in index:
+            by_tag.setdefault(int(row.tag_id), []).append(row)
+    reckoning = _Reckoning(kind, model.identity, chain)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(50)
+    out: dict[int, float] = {}
+    for tag in sorted(by_tag, key=lambda t: -len(by_tag[t]))[:TAG_DR_MAX_TAGS]:
+        # at scale 1 (the shared scale's key left out: native factors), without robust kernels
+        tag_rows = [replace(r, keys=r.keys[:2], robust="none") for r in by_tag[tag]]
+        seen = sorted({index[r.keys[0]] for r in tag_rows})
+        first = problem.pose_keys[seen[0]]
+        rows = [model.prior_row(first, kind.to_vector(kind.read(problem.initial, first)), 1e-6, 1e-6)]
+        for a, b in pairwise(seen):
+            motion = reckoning.motion(a, b)
+            key_b = problem.pose_keys[b]
+            if motion is None:  # a gap: this sighting's pose is held by the tag alone
+                rows.append(model.prior_row(key_b, kind.to_vector(kind.read(problem.initial, key_b)), 1e3, 1e2))
+                continue
+            rows.append(model.between_row("odometry", (problem.pose_keys[a], key_b), *motion, stamp_ns=0))
+        rows.extend(tag_rows)
+        initial = gtsam.Values()
+        for key in {k for r in rows for k in r.keys}:
+            var = problem.kind(key)
+            var.insert(initial, key, var.read(problem.initial, key))
+        graph = build_graph(rows)
+        try:
+            values = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+        except RuntimeError:  # a tag that cannot be solved alone is not judged
+            continue
+        chi2 = [2.0 * graph.at(i).error(values) for i in range(len(rows) - len(tag_rows), len(rows))]
+        out[tag] = float(np.sum(chi2)) / sum(r.dim for r in tag_rows)
+    return out
 
 
 def _odometry_chain(problem: GraphProblem) -> list[FactorRow | None]:
@@ -285,6 +371,44 @@ def _dead_reckoning_d2(
         except np.linalg.LinAlgError:
             d2.append(float("inf"))
     return np.asarray(d2)
+
+
+class _Reckoning:
+    """Dead reckoning along the odometry chain, for the motion between any two poses of one unbroken stretch.
+
+    ``P_i`` is the composition of the odometry from the start of pose i's stretch; ``C_i`` sums each step's
+    noise carried into the world frame of the stretch, ``Ad(P_{j+1}) Q_j Ad(P_{j+1})ᵀ`` for the steps before i. The
+    motion from a to b is ``P_a⁻¹ P_b`` and its covariance (frame b) ``Ad(P_b⁻¹) (C_b − C_a) Ad(P_b⁻¹)ᵀ``: the same
+    as composing the steps one by one and propagating ``Σ' = Ad(M⁻¹) Σ Ad(M⁻¹)ᵀ + Q``.
+    """
+
+    def __init__(self, kind: Any, identity_vector: np.ndarray, chain: Sequence[FactorRow | None]) -> None:
+        self.kind = kind
+        dim = kind.dim
+        identity = kind.from_vector(identity_vector)
+        self.poses = [identity]
+        self.cov = np.zeros((len(chain) + 1, dim, dim))
+        self.stretch = np.zeros(len(chain) + 1, dtype=int)
+        for i, row in enumerate(chain):
+            if row is None:
+                self.poses.append(identity)
+                self.stretch[i + 1] = self.stretch[i] + 1
+                continue
+            self.stretch[i + 1] = self.stretch[i]
+            step = kind.from_vector(np.asarray(row.measurement, dtype=float))
+            pose = self.poses[i].compose(step)
+            self.poses.append(pose)
+            Ad = np.asarray(pose.AdjointMap())
+            self.cov[i + 1] = self.cov[i] + Ad @ np.asarray(row.covariance, dtype=float).reshape(dim, dim) @ Ad.T
+
+    def motion(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The odometry from pose a to pose b (measurement vector, covariance); None across a gap."""
+        if self.stretch[a] != self.stretch[b]:
+            return None
+        Pb = self.poses[b]
+        Ad = np.asarray(Pb.inverse().AdjointMap())
+        cov = Ad @ (self.cov[b] - self.cov[a]) @ Ad.T
+        return np.asarray(self.kind.to_vector(self.poses[a].between(Pb)), dtype=float), 0.5 * (cov + cov.T)
 
 
 def strict_error(section: str, health: dict[str, Any]) -> str:

@@ -190,7 +190,8 @@ class KnownTag(BaseModel):
     id: int = Field(description="tag id")
     body: str = Field(description="the TagSLAM body it belongs to")
     T_world_tag: list[list[float]] = Field(
-        description="4x4, maps points in the tag frame into TagSLAM's world frame (`T_world_body T_body_tag`)"
+        description="4x4, maps points in focusmap's tag frame into TagSLAM's world frame (`T_world_body T_body_tag "
+        "Rz(π)`: TagSLAM's tag frame is focusmap's turned 180° about the tag's normal)"
     )
     covariance: list[list[float]] = Field(
         description="6x6 covariance of the prior, gtsam's Pose3 tangent order (rx, ry, rz, tx, ty, tz) in the tag "

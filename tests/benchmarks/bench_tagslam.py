@@ -13,8 +13,10 @@ The graph stage's ``trajectory.tum`` is then compared with TagSLAM's trajectory 
 does: poses matched by stamp (nearest within 10 ms), the positions aligned by Umeyama's method without scale
 (a rigid SE(3) alignment), and the RMSE of the position differences after it (absolute trajectory error).
 
-Printed per case: the command, its status (``solved`` or its error line), the ATE (m), the path length of
-TagSLAM's matched trajectory (m) and the target max(5 cm, 1 % of that path). When the ``evo`` package imports
+Printed per case: the command, its status (``solved`` or its error line), the ATE (m), the same RMSE without the
+alignment (``in frame``: the trajectory in TagSLAM's world frame, which the surveyed tags of --tags define; metres
+off when a tag frame convention is wrong), the path length of TagSLAM's matched trajectory (m) and the target
+max(5 cm, 1 % of that path). When the ``evo`` package imports
 (e.g. ``pip install --no-deps --target /tmp/evo_pkg evo`` and ``PYTHONPATH=$PYTHONPATH:/tmp/evo_pkg``), evo's
 own APE is printed beside ours as an oracle; evo is not a dependency of focusmap.
 """
@@ -167,6 +169,7 @@ class Row:
     status: str
     ate_m: float | None = None
     evo_m: float | None = None
+    unaligned_m: float | None = None
     path_m: float | None = None
     matched: int = 0
 
@@ -210,8 +213,9 @@ def run_case(case: Case, work: Path, until: str, timeout: float, with_tags: bool
         status,
         ate(xyz_est[i_est], xyz_ref[i_ref]),
         evo_ate(t_est, xyz_est, t_ref, xyz_ref),
-        path_length(xyz_ref[i_ref]),
-        len(i_est),
+        unaligned_m=float(np.sqrt(np.mean(np.sum((xyz_est[i_est] - xyz_ref[i_ref]) ** 2, axis=1)))),
+        path_m=path_length(xyz_ref[i_ref]),
+        matched=len(i_est),
     )
 
 
@@ -239,12 +243,13 @@ def main() -> None:
             row = run_case(case, work, args.until, args.timeout, not args.without_tags)
             rows.append(row)
             print(f"{row.case}: {row.status} ATE {_m(row.ate_m)} m", file=sys.stderr, flush=True)
-    print("| case | command | status | ATE m | evo APE m | path m | target m | within |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| case | command | status | ATE m | evo APE m | in frame m | path m | target m | within |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         within = "" if r.ate_m is None or r.target_m is None else ("yes" if r.ate_m <= r.target_m else "no")
         print(
-            f"| {r.case} | `{r.command}` | {r.status} | {_m(r.ate_m)} | {_m(r.evo_m)} | {_m(r.path_m)} | "
+            f"| {r.case} | `{r.command}` | {r.status} | {_m(r.ate_m)} | {_m(r.evo_m)} | {_m(r.unaligned_m)} | "
+            f"{_m(r.path_m)} | "
             f"{_m(r.target_m)} | {within} |"
         )
 

@@ -61,6 +61,7 @@ def test_a_world_with_correct_settings_passes_every_check(good: dict[str, Any]) 
     assert abs(checks["tag_scale"]["prior_sigmas_from_1"]) < 3 and checks["tag_scale"]["tag_size_m"] == SIZE
     assert checks["iterations"]["iterations"] < checks["iterations"]["max_iterations"]
     assert checks["moved_tags"]["tags"] == [] and checks["moved_tags"]["tags_judged"] > 10
+    assert checks["moved_tags"]["odometry"]["worst_chi2_per_dim"] < 3  # every tag agrees with the odometry alone
     assert checks["dead_reckoning"]["compared"] == good["poses"]
     assert checks["dead_reckoning"]["max_d2_per_dim"] < 25
     # a wheeled robot on a flat floor: auto picks the planar model and says why
@@ -113,6 +114,69 @@ def test_a_tag_that_moved_is_dropped_when_the_settings_say_so(tmp_path: Path) ->
 
     dropped_rms, kept_rms = rms_to_truth(run), rms_to_truth(flagged)
     assert dropped_rms < kept_rms + 0.005, (dropped_rms, kept_rms)
+
+
+@pytest.mark.parametrize(("seed", "dup"), [(3, (10, 24)), (3, (3, 17)), (1, (11, 25))])
+def test_a_duplicated_id_that_collapses_the_map_is_named_first(tmp_path: Path, seed: int, dup: tuple[int, int]) -> None:
+    """Tag ``dup[1]`` on the opposite wall is printed with id ``dup[0]``: the full graph collapses (the tag scale
+    shrinks the map towards a point, where every tag fits again), so the solution's residuals do not single out the
+    duplicated id (its figure is below the limit; before, no tag or the wrong ones were named). Solved with the
+    odometry alone, it is the one tag whose sightings disagree, and the check names it first."""
+    _, summary = _graph(tmp_path, synthetic_run(seed=seed, loops=2.0, duplicated_id=dup))
+    checks = summary["health"]["checks"]
+    assert checks["tag_scale"]["value"] < 0.5  # the collapse
+    moved = checks["moved_tags"]
+    assert not moved["ok"] and moved["tags"][0] == dup[0] and len(moved["tags"]) <= 2
+    assert moved["chi2_per_dim"][str(dup[0])] < moved["limit"]  # the solution alone would not name it
+    odometry = moved["odometry"]
+    assert odometry["worst_tag"] == dup[0] and odometry["chi2_per_dim"][str(dup[0])] > odometry["limit"]
+    assert odometry["median_chi2_per_dim"] < 2  # the other tags agree with the odometry
+    line = next(w for w in summary["health"]["warnings"] if "look like they moved" in w)
+    assert f"): {dup[0]} (" in line and "against the odometry" in line
+
+
+@pytest.mark.parametrize("model", ["planar", "3d"])
+def test_the_odometry_between_two_sightings_is_the_chain_composed_step_by_step(model: str) -> None:
+    """The moved-tag check's dead reckoning between two poses (prefix sums of the noise carried into the world
+    frame) equals composing the odometry steps one by one with ``Σ' = Ad(M⁻¹) Σ Ad(M⁻¹)ᵀ + Q``; across a gap there
+    is none."""
+    from stages.graph.factors import FactorRow
+    from stages.graph.health import _Reckoning
+    from stages.graph.models import graph_model
+
+    rng = np.random.default_rng(0)
+    m = graph_model(model)
+    kind, d = m.pose, m.pose.dim
+    rows: list[FactorRow | None] = []
+    for i in range(30):
+        step = kind.from_vector(m.identity).retract(rng.normal(size=d) * 0.3)
+        A = rng.normal(size=(d, d)) * 0.05
+        cov = A @ A.T + 1e-4 * np.eye(d)
+        rows.append(None if i == 17 else FactorRow("odometry", m.between_type, (i, i + 1), kind.to_vector(step), cov))
+    reckoning = _Reckoning(kind, m.identity, rows)
+    assert reckoning.motion(5, 25) is None  # across the gap after pose 17
+    for a, b in [(0, 10), (3, 17), (18, 30)]:
+        pose, cov = kind.from_vector(m.identity), np.zeros((d, d))
+        for row in rows[a:b]:
+            assert row is not None
+            step = kind.from_vector(row.measurement)
+            Ad = np.asarray(step.inverse().AdjointMap())
+            cov = Ad @ cov @ Ad.T + row.covariance
+            pose = pose.compose(step)
+        motion = reckoning.motion(a, b)
+        assert motion is not None
+        np.testing.assert_allclose(motion[0], kind.to_vector(pose), atol=1e-12)
+        np.testing.assert_allclose(motion[1], cov, rtol=1e-9, atol=1e-15)
+
+
+def test_a_duplicated_id_is_dropped_and_the_map_recovers(tmp_path: Path) -> None:
+    """graph.moved_tags=drop on the collapsed world: the duplicated id goes first, and the graph without it has
+    the tag scale back at 1 and a clean bill of health."""
+    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, duplicated_id=(10, 24)), "graph.moved_tags=drop")
+    assert summary["dropped_moved_tags"] == [10]
+    checks = summary["health"]["checks"]
+    assert abs(checks["tag_scale"]["prior_sigmas_from_1"]) < 3
+    assert "moved_tags" not in _failed(summary) and "tag_scale" not in _failed(summary)
 
 
 def test_an_optimiser_at_its_iteration_cap_is_not_converged(tmp_path: Path) -> None:
