@@ -8,7 +8,8 @@ own random stream). The graph is then built and solved in process for odometry v
 ``sample_data.simulate.simulate_odometry`` (the same draws): the world's own (``as recorded``), the same with the
 covariances 10x too small, all zero, or absent (no covariance column), and the same world without wheel errors
 (the control: calibration must not hurt it). Each is solved with the calibration off (``before``) and on
-(``after``: ``graph.odometry_calibration`` and ``graph.noise_estimate=odometry``).
+(``after``: ``graph.odometry_calibration`` and ``graph.noise_estimate=odometry``), and with the defaults
+(``default``: ``odometry_calibration: auto`` decides; the ``auto`` column says what it chose and its statistic).
 
 Figures per run: landmark RMSE after a rigid 2D alignment of the landmarks to the truth (Umeyama, no scale),
 landmark NEES / 2 in the map frame (the truth in the frame of the true first keyframe, where the marginals
@@ -121,29 +122,26 @@ def evaluate(problem: Any, values: Any, marginals: dict[int, np.ndarray], gt: di
 
 
 def solve(det: Any, odo: Any, extr: Any, overrides: dict[str, Any]) -> tuple[Any, Any, dict, dict, float]:
+    """Build and solve as the graph stage does (``stages.graph.solve_all``: with ``odometry_calibration: auto`` it
+    decides from the data)."""
     from stages.graph.build import build_problem
-    from stages.graph.calibration import applies, calibrate
     from stages.graph.config import GraphConfig
-    from stages.graph.factors import build_graph
-    from stages.graph.solve import marginal_covariances, optimise
+    from stages.graph.solve_all import _solve
 
     cfg = GraphConfig(**overrides)
     t = time.perf_counter()
     p = build_problem(det, odo, extr, cfg)
-    if applies(p, cfg):
-        r = calibrate(p, cfg)
-        return r.problem, r.solution.values, r.marginals, r.summary, time.perf_counter() - t
-    g = build_graph(p.rows)
-    sol = optimise(p, g, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
-    marg = marginal_covariances(p, g, sol.values, list(p.var_types))
-    return p, sol.values, marg, {}, time.perf_counter() - t
+    s = _solve(p, cfg)
+    return s.problem, s.solution.values, s.marginals, s.calibration or {}, time.perf_counter() - t
 
 
 BEFORE: dict[str, Any] = {"odometry_calibration": False, "noise_estimate": "off"}
 AFTER: dict[str, Any] = {"odometry_calibration": True, "noise_estimate": "odometry"}
 AFTER_YAW: dict[str, Any] = {"odometry_calibration": True, "odometry_scale_sigma": 0.0, "noise_estimate": "odometry"}
 """The yaw-rate scale and yaw bias only (the distance scale left to the tag scale)."""
-CONFIGS = {"before": BEFORE, "after": AFTER, "after_yaw": AFTER_YAW}
+DEFAULT: dict[str, Any] = {}
+"""The defaults: ``odometry_calibration: auto`` (on when the data reject uncalibrated odometry)."""
+CONFIGS = {"before": BEFORE, "after": AFTER, "after_yaw": AFTER_YAW, "default": DEFAULT}
 
 
 def main() -> None:
@@ -153,7 +151,7 @@ def main() -> None:
     ap.add_argument("--paths", nargs="+", default=["office", "corridor_return"])
     ap.add_argument("--corridor-length", type=float, default=16.0)
     ap.add_argument("--variants", nargs="+", default=["recorded", "small", "zero", "absent", "no_errors"])
-    ap.add_argument("--configs", nargs="+", default=["before", "after"], choices=sorted(CONFIGS))
+    ap.add_argument("--configs", nargs="+", default=["before", "after", "default"], choices=sorted(CONFIGS))
     ap.add_argument("--worlds-only", action="store_true", help="make the bags and run folders, then stop")
     args = ap.parse_args()
 
@@ -182,7 +180,10 @@ def main() -> None:
                     p, values, marg, summ, secs = solve(det, odo, extr, over)
                     res = {"world": name, "odometry": variant, "graph": label, **evaluate(p, values, marg, gt)}
                     res["seconds"] = round(secs, 1)
-                    if summ:
+                    if "decision" in summ:
+                        dec = summ["decision"]
+                        res["auto"] = f"{'on' if dec['applied'] else 'off'} ({dec['statistic']:.1f})"
+                    if "distance_scale" in summ:
                         for k in ("distance_scale", "yaw_rate_scale", "yaw_bias_rad_per_m"):
                             res[k] = f"{summ[k]['value']:.4f} ± {summ[k]['sigma']:.4f}"
                         res["odo_cov_scale"] = round(summ["odometry_covariance_scale"], 3)
@@ -203,6 +204,7 @@ def table(rows: list[dict[str, Any]]) -> None:
         "yaw_rate_scale",
         "yaw_bias_rad_per_m",
         "odo_cov_scale",
+        "auto",
     ]
     print("| " + " | ".join(cols) + " |")
     print("|" + " --- |" * len(cols))
