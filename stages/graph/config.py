@@ -80,8 +80,9 @@ class GraphConfig(SettingsModel):
         13.8,
         gt=0,
         description="odometry_calibration=auto turns the calibration on when the Wald statistic of the yaw-rate "
-        "scale and yaw bias (at the uncalibrated solution, divided by the odometry's chi-square per redundancy) "
-        "exceeds this (13.8: the 99.9 % point of chi-square with 2 degrees of freedom).",
+        "scale and yaw bias (one joint step from the uncalibrated solution, divided by the odometry's chi-square per "
+        "redundancy with the calibration free) exceeds this (13.8: the 99.9 % point of chi-square with 2 degrees "
+        "of freedom).",
     )
     calibration_max_iterations: int = Field(
         10, ge=1, description="Most outer iterations (solve, then update the calibration and noise scales)."
