@@ -50,11 +50,16 @@ STRICT: Final = Option(
 
 
 def remarks(summary: Summary) -> list[tuple[str, str]]:
-    """The notes, the model ``auto`` chose (and why), and one ``warning`` per failed health check."""
+    """The notes, the model ``auto`` chose (and why), the odometry calibration ``auto`` turned on (and why), and one
+    ``warning`` per failed health check."""
     out = summary_notes(summary)
     choice = summary.get("model_choice")
     if isinstance(choice, dict) and choice.get("setting") == "auto":
         out.append(("note", f"graph model {choice.get('model')} (graph.model=auto): {choice.get('reason')}"))
+    calibration = summary.get("odometry_calibration")
+    decision = calibration.get("decision") if isinstance(calibration, dict) else None
+    if isinstance(decision, dict) and decision.get("applied"):
+        out.append(("note", f"odometry calibration on (graph.odometry_calibration=auto): {decision.get('reason')}"))
     health = summary.get("health")
     warnings = health.get("warnings") if isinstance(health, dict) else None
     if isinstance(warnings, list):

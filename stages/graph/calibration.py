@@ -65,10 +65,90 @@ class CalibrationResult:
     summary: dict[str, Any]
 
 
+def _has_odometry(problem: GraphProblem) -> bool:
+    return problem.info.get("odometry_noise") in ("messages", "settings")
+
+
 def applies(problem: GraphProblem, cfg: GraphConfig) -> bool:
-    """Whether the stage calibrates this problem: built from a recording's odometry, and asked to."""
-    wanted = cfg.odometry_calibration or cfg.noise_estimate != "off"
-    return wanted and problem.info.get("odometry_noise") in ("messages", "settings")
+    """Whether the stage calibrates this problem unconditionally: built from a recording's odometry, and asked to
+    (``odometry_calibration: true`` or an explicit ``noise_estimate``)."""
+    wanted = cfg.odometry_calibration is True or cfg.noise_estimate in ("odometry", "odometry_and_tags")
+    return wanted and _has_odometry(problem)
+
+
+def tested(problem: GraphProblem, cfg: GraphConfig) -> bool:
+    """Whether the stage decides from the data (``odometry_calibration: auto``, see :func:`calibration_test`)."""
+    return cfg.odometry_calibration == "auto" and _has_odometry(problem) and not applies(problem, cfg)
+
+
+def resolved(cfg: GraphConfig, calibration: bool) -> GraphConfig:
+    """The settings with the calibration on or off and ``noise_estimate: auto`` made explicit (odometry when the
+    calibration runs, else off)."""
+    noise = cfg.noise_estimate
+    if noise == "auto":
+        noise = "odometry" if calibration else "off"
+    return cfg.model_copy(update={"odometry_calibration": calibration, "noise_estimate": noise})
+
+
+def calibration_test(
+    problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig
+) -> dict[str, Any]:
+    """Do the data reject uncalibrated odometry? The ``decision`` block of ``odometry_calibration: auto``.
+
+    At the uncalibrated solution the graph is linearised with the calibration as one more variable (its priors
+    as configured), exactly the first round of :func:`calibrate`. Its Gauss-Newton step ``δc`` and covariance
+    ``Σ_c`` give the Wald statistic ``W = δcᵀ Σ_c⁻¹ δc`` of the yaw-rate scale and the yaw bias: χ² with 2 degrees
+    of freedom when the odometry has no such error and its covariances are right. Covariances that are wrong by a
+    common factor scale ``W`` by its inverse, so ``W`` is divided by the odometry's own variance factor
+    ``χ²/redundancy`` with the calibration free (after the joint step, the larger model's residuals, as in the
+    F-test of added parameters; before it the systematic error itself would inflate the factor and hide itself).
+    The distance scale is left out of the test: it and the shared tag scale are one degree of freedom, so the data
+    cannot tell a long wheel from a small tag (the ``tag_scale`` health check reports that case); once the
+    calibration is on it is estimated with the rest.
+    """
+    t0 = time.perf_counter()
+    on = resolved(cfg, True)
+    base = list(problem.rows)
+    odo = [i for i, r in enumerate(base) if r.kind == "odometry"]
+    tags = [i for i, r in enumerate(base) if r.kind == "tag"]
+    prior_mean, prior_sigma = _prior(on)
+    state = _State(prior_mean.copy(), 1.0, 1.0)
+    joint, _ = _joint_system(problem, graph, values, odo, state, prior_mean, prior_sigma, base)
+    delta = joint.optimize()
+    dc = np.asarray(delta.at(CALIBRATION_KEY), dtype=float)
+    cov_c = np.asarray(gtsam.Marginals(joint, delta).marginalCovariance(CALIBRATION_KEY))
+    stats = _noise_statistics(problem, joint, odo, tags)
+    free = [i for i in (1, 2) if prior_sigma[i] > 1e-8]
+    wald = float(dc[free] @ np.linalg.solve(cov_c[np.ix_(free, free)], dc[free])) if free else 0.0
+    r_odo = float(stats["odometry_redundancy"])
+    ratio = float(stats["odometry_chi2_after_step"]) / r_odo if r_odo > 0 else 1.0
+    statistic = wald / max(ratio, 1e-12)
+    applied = statistic > cfg.calibration_test_threshold
+    sig = np.sqrt(np.diag(cov_c))
+    step = ", ".join(f"{PARAMETERS[i]} {prior_mean[i] + dc[i]:+.4f} ± {sig[i]:.4f}" for i in free)
+    if applied:
+        reason = (
+            f"the odometry has systematic errors: the yaw calibration's statistic is {statistic:.1f} "
+            f"(> {cfg.calibration_test_threshold:g}; {step}), so the distance scale, yaw-rate scale and yaw bias "
+            "were estimated with the map"
+        )
+    else:
+        reason = (
+            f"no systematic odometry error found: the yaw calibration's statistic is {statistic:.1f} "
+            f"(<= {cfg.calibration_test_threshold:g}; {step})"
+        )
+    return {
+        "setting": "auto",
+        "applied": bool(applied),
+        "reason": reason,
+        "statistic": statistic,
+        "wald": wald,
+        "odometry_chi2_per_redundancy": ratio,
+        "threshold": float(cfg.calibration_test_threshold),
+        "step": {PARAMETERS[i]: float(prior_mean[i] + dc[i]) for i in range(3)},
+        "sigma": {PARAMETERS[i]: float(sig[i]) for i in range(3)},
+        "seconds": round(time.perf_counter() - t0, 4),
+    }
 
 
 def corrected_increment(m: np.ndarray, c: np.ndarray, model: str) -> np.ndarray:
@@ -231,21 +311,23 @@ def _prior(cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
     return np.array([1.0, 1.0, 0.0]), np.where(sig > 0, sig, tiny)
 
 
-def calibrate(problem: GraphProblem, cfg: GraphConfig) -> CalibrationResult:
+def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | None = None) -> CalibrationResult:
     """Estimate the odometry calibration and noise level with the map (see the module docstring).
 
     The returned problem has the odometry rows at the corrected increments and the scaled covariances, so its
     ``factors.parquet`` rebuilds the final graph; the marginals come from the joint system and so include the
-    calibration's uncertainty.
+    calibration's uncertainty. ``odometry_calibration: auto`` counts as on here (the stage calls this for auto only
+    when :func:`calibration_test` says so); ``initial`` (default: the problem's) starts the first solve.
     """
     t0 = time.perf_counter()
+    cfg = resolved(cfg, cfg.odometry_calibration is not False)
     base = list(problem.rows)
     odo = [i for i, r in enumerate(base) if r.kind == "odometry"]
     tags = [i for i, r in enumerate(base) if r.kind == "tag"]
     prior_mean, prior_sigma = _prior(cfg)
     s = _State(prior_mean.copy(), 1.0, 1.0)
     estimate_noise = cfg.noise_estimate != "off"
-    initial = problem.initial
+    initial = problem.initial if initial is None else initial
     first_error: float | None = None
     iterations = inner_iterations = 0
     history: list[dict[str, Any]] = []
@@ -337,8 +419,11 @@ def _noise_statistics(
     r_odo = len(odo_rows) - tr_odo
     r_tag = len(tag_rows) - (n - tr_odo - tr_other)
     chi_odo, chi_tag = float(b[odo_rows] @ b[odo_rows]), float(b[tag_rows] @ b[tag_rows])
+    # the odometry's chi-square after the joint Gauss-Newton step (the linearised optimum with the calibration free)
+    after = J @ np.asarray(solver.solve(J.T @ b)).ravel() - b
     return {
         "odometry_chi2": chi_odo,
+        "odometry_chi2_after_step": float(after[odo_rows] @ after[odo_rows]),
         "odometry_redundancy": r_odo,
         "odometry_ratio": chi_odo / r_odo if r_odo > 0 else 1.0,
         "tag_chi2": chi_tag,
@@ -359,7 +444,7 @@ def _summary(
     history: list[dict[str, Any]],
     settled: bool,
 ) -> dict[str, Any]:
-    out: dict[str, Any] = {"estimated": bool(cfg.odometry_calibration)}
+    out: dict[str, Any] = {"estimated": cfg.odometry_calibration is True}
     for name, v, sg, ps in zip(PARAMETERS, s.c, sig_c, prior_sigma, strict=True):
         out[name] = {"value": float(v), "sigma": float(sg), "prior_sigma": float(ps) if ps > 1e-8 else 0.0}
     out["correlation"] = (cov_c / np.outer(np.maximum(sig_c, 1e-300), np.maximum(sig_c, 1e-300))).round(4).tolist()
@@ -384,6 +469,9 @@ __all__ = [
     "CalibrationResult",
     "applies",
     "calibrate",
+    "calibration_test",
     "corrected_increment",
     "correction_jacobian",
+    "resolved",
+    "tested",
 ]

@@ -53,10 +53,13 @@ class GraphConfig(SettingsModel):
         0.01, ge=0, description="Odometry heading noise growth per metre travelled, rad/m."
     )
     # self-calibrating odometry (stages/graph/calibration.py)
-    odometry_calibration: bool = Field(
-        False,
+    odometry_calibration: bool | Literal["auto"] = Field(
+        "auto",
         description="Estimate the odometry's systematic errors with the map: a distance scale, a yaw-rate scale and "
-        "a yaw bias per metre (priors below); the odometry factors are corrected by the estimate.",
+        "a yaw bias per metre (priors below); the odometry factors are corrected by the estimate. auto: solve "
+        "without, then turn it on when the data reject uncalibrated odometry (the yaw components' Wald statistic, "
+        "scaled by the odometry's own noise level, above calibration_test_threshold; the summary's "
+        "odometry_calibration.decision says which and why).",
     )
     odometry_scale_sigma: float = Field(
         0.05, ge=0, description="Prior sigma of the odometry distance scale (relative; 0: not estimated)."
@@ -67,10 +70,19 @@ class GraphConfig(SettingsModel):
     odometry_yaw_bias_sigma: float = Field(
         0.05, ge=0, description="Prior sigma of the odometry yaw bias per metre driven, rad/m (0: not estimated)."
     )
-    noise_estimate: Literal["off", "odometry", "odometry_and_tags"] = Field(
-        "off",
+    noise_estimate: Literal["auto", "off", "odometry", "odometry_and_tags"] = Field(
+        "auto",
         description="Scale the odometry (and tag) covariances until each group's whitened chi-square matches its "
-        "redundancy (variance component estimation), for messages whose covariances are wrong, zero or absent.",
+        "redundancy (variance component estimation), for messages whose covariances are wrong, zero or absent. "
+        "auto: odometry when the odometry calibration runs, else off.",
+    )
+    calibration_test_threshold: float = Field(
+        13.8,
+        gt=0,
+        description="odometry_calibration=auto turns the calibration on when the Wald statistic of the yaw-rate "
+        "scale and yaw bias (one joint step from the uncalibrated solution, divided by the odometry's chi-square per "
+        "redundancy with the calibration free) exceeds this (13.8: the 99.9 % point of chi-square with 2 degrees "
+        "of freedom).",
     )
     calibration_max_iterations: int = Field(
         10, ge=1, description="Most outer iterations (solve, then update the calibration and noise scales)."

@@ -13,7 +13,7 @@ import rerun as rr
 from pipeline.artifacts import StageOutput
 from pipeline.errors import StageError
 from stages.graph.calibration import applies as calibration_applies
-from stages.graph.calibration import calibrate
+from stages.graph.calibration import calibrate, calibration_test, tested
 from stages.graph.config import GraphConfig
 from stages.graph.factors import build_graph
 from stages.graph.health import graph_health, strict_error
@@ -89,7 +89,8 @@ class _Solved:
 
 
 def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
-    """Optimise (with the odometry calibration when it applies) and take every marginal."""
+    """Optimise (with the odometry calibration when asked, or when ``auto`` finds systematic errors) and take every
+    marginal."""
     t0 = time.perf_counter()
     if calibration_applies(problem, cfg):
         result = calibrate(problem, cfg)
@@ -97,9 +98,18 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
         return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
     graph = build_graph(problem.rows)
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+    decision: dict[str, Any] | None = None
+    if tested(problem, cfg):
+        decision = calibration_test(problem, graph, solution.values, cfg)
+        if decision["applied"]:
+            result = calibrate(problem, cfg, initial=solution.values)
+            result.summary["decision"] = decision
+            seconds = (time.perf_counter() - t0, 0.0)
+            return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
     t1 = time.perf_counter()
     marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
-    return _Solved(problem, graph, solution, marginals, None, (t1 - t0, time.perf_counter() - t1))
+    calibration = None if decision is None else {"estimated": False, "decision": decision}
+    return _Solved(problem, graph, solution, marginals, calibration, (t1 - t0, time.perf_counter() - t1))
 
 
 def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:

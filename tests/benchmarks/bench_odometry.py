@@ -8,7 +8,8 @@ own random stream). The graph is then built and solved in process for odometry v
 ``sample_data.simulate.simulate_odometry`` (the same draws): the world's own (``as recorded``), the same with the
 covariances 10x too small, all zero, or absent (no covariance column), and the same world without wheel errors
 (the control: calibration must not hurt it). Each is solved with the calibration off (``before``) and on
-(``after``: ``graph.odometry_calibration`` and ``graph.noise_estimate=odometry``).
+(``after``: ``graph.odometry_calibration`` and ``graph.noise_estimate=odometry``), and with the defaults
+(``default``: ``odometry_calibration: auto`` decides; the ``auto`` column says what it chose and its statistic).
 
 Figures per run: landmark RMSE after a rigid 2D alignment of the landmarks to the truth (Umeyama, no scale),
 landmark NEES / 2 in the map frame (the truth in the frame of the true first keyframe, where the marginals
@@ -121,29 +122,82 @@ def evaluate(problem: Any, values: Any, marginals: dict[int, np.ndarray], gt: di
 
 
 def solve(det: Any, odo: Any, extr: Any, overrides: dict[str, Any]) -> tuple[Any, Any, dict, dict, float]:
+    """Build and solve as the graph stage does (``stages.graph.solve_all``: with ``odometry_calibration: auto`` it
+    decides from the data)."""
     from stages.graph.build import build_problem
-    from stages.graph.calibration import applies, calibrate
     from stages.graph.config import GraphConfig
-    from stages.graph.factors import build_graph
-    from stages.graph.solve import marginal_covariances, optimise
+    from stages.graph.solve_all import _solve
 
     cfg = GraphConfig(**overrides)
     t = time.perf_counter()
     p = build_problem(det, odo, extr, cfg)
-    if applies(p, cfg):
-        r = calibrate(p, cfg)
-        return r.problem, r.solution.values, r.marginals, r.summary, time.perf_counter() - t
-    g = build_graph(p.rows)
-    sol = optimise(p, g, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
-    marg = marginal_covariances(p, g, sol.values, list(p.var_types))
-    return p, sol.values, marg, {}, time.perf_counter() - t
+    s = _solve(p, cfg)
+    return s.problem, s.solution.values, s.marginals, s.calibration or {}, time.perf_counter() - t
+
+
+def decompose(det: Any, odo: Any, extr: Any, calibrated: bool, gt: dict[str, Any]) -> dict[str, float]:
+    """Where the landmark NEES / 2 comes from: its radial part (along each landmark's direction from the first
+    keyframe, where the map's scale moves it) and tangential part (NEES / 1 each), and the NEES / 2 modulo the map's
+    scale: each landmark's covariance conditioned on the shared tag scale ``s``, and the estimate moved along its
+    regression on ``s`` by the one common step that fits the truth best (the scale error taken out of the error as
+    it is out of the covariance). From the joint system of the (calibrated or plain) solution with ``s`` and the
+    calibration ``c`` as variables."""
+    import gtsam
+
+    from stages.graph import calibration as cal
+    from stages.graph.build import build_problem
+    from stages.graph.config import GraphConfig
+
+    cfg = GraphConfig(**(AFTER if calibrated else BEFORE))
+    p0 = build_problem(det, odo, extr, cfg)
+    r = cal.calibrate(p0, cfg)
+    p, values, summ = r.problem, r.solution.values, r.summary
+    base = list(p0.rows)
+    odo_rows = [i for i, row in enumerate(base) if row.kind == "odometry"]
+    mean, sigma = cal._prior(cfg)
+    state = cal._State(
+        np.array([summ[k]["value"] for k in cal.PARAMETERS]),
+        summ["odometry_covariance_scale"],
+        summ["tag_covariance_scale"],
+    )
+    joint, _ = cal._joint_system(p, r.graph, values, odo_rows, state, mean, sigma, base)
+    marg = gtsam.Marginals(joint, joint.optimize())
+    st = np.array([q["stamp_ns"] for q in gt["poses"]], dtype=float)
+    xy = np.array([[q["x"], q["y"]] for q in gt["poses"]])
+    yaw = np.unwrap([q["yaw"] for q in gt["poses"]])
+    x0, y0, yaw0 = (float(np.interp(float(p.pose_stamps_ns[0]), st, a)) for a in (xy[:, 0], xy[:, 1], yaw))
+    R0 = np.array([[math.cos(yaw0), -math.sin(yaw0)], [math.sin(yaw0), math.cos(yaw0)]])
+    tags = {t["id"]: np.array(t["position"][:2]) for t in gt["tags"]}
+    rad, tan, parts = [], [], []
+    for tag, key in p.landmark_keys.items():
+        e = np.asarray(values.atPoint2(key))
+        d = e - (tags[tag] - [x0, y0]) @ R0
+        J = np.asarray(marg.jointMarginalCovariance(gtsam.KeyVector([key, p.scale_key])).fullMatrix())
+        S = J[:2, :2]
+        u = e / np.linalg.norm(e)
+        w = np.array([-u[1], u[0]])
+        rad.append(float((u @ d) ** 2 / (u @ S @ u)))
+        tan.append(float((w @ d) ** 2 / (w @ S @ w)))
+        parts.append((d, J[:2, 2] / J[2, 2], S - np.outer(J[:2, 2], J[:2, 2]) / J[2, 2]))
+    num = sum(g @ np.linalg.solve(Sc, d) for d, g, Sc in parts)
+    den = sum(g @ np.linalg.solve(Sc, g) for d, g, Sc in parts)
+    step = num / den
+    mod = [float((d - g * step) @ np.linalg.solve(Sc, d - g * step)) / 2 for d, g, Sc in parts]
+    return {
+        "nees_radial": float(np.mean(rad)),
+        "nees_tangential": float(np.mean(tan)),
+        "nees_modulo_scale": float(np.mean(mod)),
+        "scale_error": float(step),
+    }
 
 
 BEFORE: dict[str, Any] = {"odometry_calibration": False, "noise_estimate": "off"}
 AFTER: dict[str, Any] = {"odometry_calibration": True, "noise_estimate": "odometry"}
 AFTER_YAW: dict[str, Any] = {"odometry_calibration": True, "odometry_scale_sigma": 0.0, "noise_estimate": "odometry"}
 """The yaw-rate scale and yaw bias only (the distance scale left to the tag scale)."""
-CONFIGS = {"before": BEFORE, "after": AFTER, "after_yaw": AFTER_YAW}
+DEFAULT: dict[str, Any] = {}
+"""The defaults: ``odometry_calibration: auto`` (on when the data reject uncalibrated odometry)."""
+CONFIGS = {"before": BEFORE, "after": AFTER, "after_yaw": AFTER_YAW, "default": DEFAULT}
 
 
 def main() -> None:
@@ -153,8 +207,13 @@ def main() -> None:
     ap.add_argument("--paths", nargs="+", default=["office", "corridor_return"])
     ap.add_argument("--corridor-length", type=float, default=16.0)
     ap.add_argument("--variants", nargs="+", default=["recorded", "small", "zero", "absent", "no_errors"])
-    ap.add_argument("--configs", nargs="+", default=["before", "after"], choices=sorted(CONFIGS))
+    ap.add_argument("--configs", nargs="+", default=["before", "after", "default"], choices=sorted(CONFIGS))
     ap.add_argument("--worlds-only", action="store_true", help="make the bags and run folders, then stop")
+    ap.add_argument(
+        "--decompose",
+        action="store_true",
+        help="also split each NEES into its radial and tangential parts and give it modulo the map's scale",
+    )
     args = ap.parse_args()
 
     import pyarrow.parquet as pq
@@ -182,7 +241,13 @@ def main() -> None:
                     p, values, marg, summ, secs = solve(det, odo, extr, over)
                     res = {"world": name, "odometry": variant, "graph": label, **evaluate(p, values, marg, gt)}
                     res["seconds"] = round(secs, 1)
-                    if summ:
+                    if "decision" in summ:
+                        dec = summ["decision"]
+                        res["auto"] = f"{'on' if dec['applied'] else 'off'} ({dec['statistic']:.1f})"
+                    if args.decompose:
+                        parts = decompose(det, odo, extr, "distance_scale" in summ, gt)
+                        res.update({k: round(v, 4) for k, v in parts.items()})
+                    if "distance_scale" in summ:
                         for k in ("distance_scale", "yaw_rate_scale", "yaw_bias_rad_per_m"):
                             res[k] = f"{summ[k]['value']:.4f} ± {summ[k]['sigma']:.4f}"
                         res["odo_cov_scale"] = round(summ["odometry_covariance_scale"], 3)
@@ -203,6 +268,10 @@ def table(rows: list[dict[str, Any]]) -> None:
         "yaw_rate_scale",
         "yaw_bias_rad_per_m",
         "odo_cov_scale",
+        "auto",
+        "nees_radial",
+        "nees_tangential",
+        "nees_modulo_scale",
     ]
     print("| " + " | ".join(cols) + " |")
     print("|" + " --- |" * len(cols))

@@ -97,3 +97,59 @@ def test_noise_estimate_repairs_zero_covariances() -> None:
     for name, truth in zip(PARAMETERS, TRUE, strict=True):
         assert abs(summary[name]["value"] - truth) < 3 * summary[name]["sigma"], name
     assert 0.5 <= _landmark_nees(run, problem, values, marginals) <= 2.0
+
+
+def test_auto_turns_the_calibration_on_for_wheel_errors_only(wheel_run: SyntheticRun) -> None:
+    """The default (``odometry_calibration: auto``) solves without, tests the yaw calibration's step against its
+    covariance, and re-solves with the calibration and the noise estimate only when the data reject the
+    uncalibrated odometry; a clean run keeps the uncalibrated solution bit for bit."""
+    from stages.graph import remarks
+    from stages.graph.solve_all import _solve as stage_solve
+
+    cfg = GraphConfig(tag_scale_sigma=EXACT_TAG_SCALE)
+    assert cfg.odometry_calibration == "auto" and cfg.noise_estimate == "auto"
+    problem = build_problem(wheel_run.detections, wheel_run.odometry, wheel_run.extrinsics, cfg)
+    on = stage_solve(problem, cfg)
+    assert on.calibration is not None
+    decision = on.calibration["decision"]
+    assert decision["applied"] and decision["statistic"] > cfg.calibration_test_threshold
+    assert "systematic errors" in decision["reason"]
+    assert on.calibration["noise_estimate"] == "odometry"  # auto: the noise estimate runs with the calibration
+    for name, truth in zip(PARAMETERS, TRUE, strict=True):
+        assert abs(on.calibration[name]["value"] - truth) < 3 * on.calibration[name]["sigma"], name
+    assert 0.5 <= _landmark_nees(wheel_run, on.problem, on.solution.values, on.marginals) <= 2.0
+    notes = remarks({"odometry_calibration": on.calibration})
+    assert any(kind == "note" and "graph.odometry_calibration=auto" in text for kind, text in notes)
+
+    clean = synthetic_run(seed=0, loops=2.0)
+    problem = build_problem(clean.detections, clean.odometry, clean.extrinsics, cfg)
+    off = stage_solve(problem, cfg)
+    assert off.calibration is not None and off.calibration["estimated"] is False
+    assert not off.calibration["decision"]["applied"]
+    assert off.calibration["decision"]["statistic"] < cfg.calibration_test_threshold
+    assert not remarks({"odometry_calibration": off.calibration})
+    plain = stage_solve(problem, cfg.model_copy(update={"odometry_calibration": False}))
+    assert plain.calibration is None
+    for key in problem.var_types:
+        assert np.array_equal(off.marginals[key], plain.marginals[key])
+    assert off.solution.final_error == plain.solution.final_error
+
+
+def test_auto_is_not_fooled_by_overconfident_covariances() -> None:
+    """Clean odometry whose covariances are 10x too small: the plain Wald statistic of the yaw calibration is near
+    the threshold (every residual looks 3x too large), but divided by the odometry's own variance factor it is
+    the clean run's again, so the calibration stays off."""
+    from stages.graph.calibration import calibration_test
+
+    cfg = GraphConfig(tag_scale_sigma=EXACT_TAG_SCALE)
+    stats = []
+    for scale in (1.0, 0.1):
+        run = synthetic_run(seed=0, loops=2.0, odom_cov_scale=scale)
+        problem = build_problem(run.detections, run.odometry, run.extrinsics, cfg)
+        graph = build_graph(problem.rows)
+        sol = optimise(problem, graph)
+        stats.append(calibration_test(problem, graph, sol.values, cfg))
+    assert stats[1]["wald"] > 5 * stats[0]["wald"]
+    assert stats[1]["odometry_chi2_per_redundancy"] > 5
+    assert stats[1]["statistic"] < 0.25 * cfg.calibration_test_threshold
+    assert not any(s["applied"] for s in stats)

@@ -189,9 +189,15 @@ def test_odometry_with_a_yaw_bias_disagrees_with_the_trajectory(tmp_path: Path) 
     """The odometry turns 0.02 rad/s more than the robot (about 1.2 rad over the run); its covariances do not know it.
 
     (A distance scale error would not do: the shared tag scale takes it, as it should.)"""
-    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, odom_yaw_bias_radps=0.02))
+    sim = synthetic_run(seed=3, loops=2.0, odom_yaw_bias_radps=0.02)
+    _, summary = _graph(tmp_path, sim, "graph.odometry_calibration=false")
     assert "dead_reckoning" in _failed(summary)
     assert summary["health"]["checks"]["dead_reckoning"]["max_d2_per_dim"] > 25
+    # by default (auto) the yaw bias is found, calibrated away, and said
+    _, summary = _graph(tmp_path / "auto", sim)
+    decision = summary["odometry_calibration"]["decision"]
+    assert decision["applied"] and "systematic errors" in decision["reason"]
+    assert summary["odometry_calibration"]["yaw_bias_rad_per_m"]["value"] > 0.02  # 0.02 rad/s at about 0.4 m/s
 
 
 def test_strict_makes_a_failed_check_an_error_and_keeps_nothing(tmp_path: Path) -> None:
