@@ -123,10 +123,17 @@ def calibration_test(
     r_odo = float(stats["odometry_redundancy"])
     ratio = float(stats["odometry_chi2_after_step"]) / r_odo if r_odo > 0 else 1.0
     statistic = wald / max(ratio, 1e-12)
-    applied = statistic > cfg.calibration_test_threshold
     sig = np.sqrt(np.diag(cov_c))
     step = ", ".join(f"{PARAMETERS[i]} {prior_mean[i] + dc[i]:+.4f} ± {sig[i]:.4f}" for i in free)
-    if applied:
+    rejected = implausible(prior_mean + dc, on) if statistic > cfg.calibration_test_threshold else None
+    applied = statistic > cfg.calibration_test_threshold and rejected is None
+    if rejected is not None:
+        reason = (
+            f"the odometry and the tags disagree, but not as wheels do: the yaw calibration's statistic is "
+            f"{statistic:.1f} (> {cfg.calibration_test_threshold:g}) and {rejected}; the calibration was not applied "
+            "(a tag that moved or two tags with one id, or broken odometry, would do this: see the other checks)"
+        )
+    elif applied:
         reason = (
             f"the odometry has systematic errors: the yaw calibration's statistic is {statistic:.1f} "
             f"(> {cfg.calibration_test_threshold:g}; {step}), so the distance scale, yaw-rate scale and yaw bias "
@@ -140,6 +147,7 @@ def calibration_test(
     return {
         "setting": "auto",
         "applied": bool(applied),
+        "rejected": rejected is not None,
         "reason": reason,
         "statistic": statistic,
         "wald": wald,
@@ -149,6 +157,24 @@ def calibration_test(
         "sigma": {PARAMETERS[i]: float(sig[i]) for i in range(3)},
         "seconds": round(time.perf_counter() - t0, 4),
     }
+
+
+PLAUSIBLE_SIGMAS = 5.0
+"""A calibration further than this many prior sigmas from its prior mean is not a wheel's error."""
+
+
+def implausible(c: np.ndarray, cfg: GraphConfig) -> str | None:
+    """Why the calibration ``c = (k_d, k_w, b)`` is not a wheel's systematic error (None when it may be one): a
+    component further than :data:`PLAUSIBLE_SIGMAS` of its prior sigma (``graph.odometry_*_sigma``) from the prior
+    mean, or a scale that is not positive. Odometry that disagrees with the tags that much (a yaw-rate scale of −0.4)
+    is a fault elsewhere, which the calibration would hide by bending the odometry to fit it."""
+    mean, sigma = _prior(cfg)
+    far = []
+    for i in range(3):
+        z = abs(float(c[i]) - mean[i]) / sigma[i] if sigma[i] > 1e-8 else 0.0
+        if z > PLAUSIBLE_SIGMAS or (i < 2 and c[i] <= 0):
+            far.append(f"{PARAMETERS[i]} {float(c[i]):+.3f} is {z:.0f} prior sigmas from {mean[i]:g}")
+    return "; ".join(far) if far else None
 
 
 def corrected_increment(m: np.ndarray, c: np.ndarray, model: str) -> np.ndarray:

@@ -38,6 +38,7 @@ def solve_and_write(
     t1 = time.perf_counter()
     solved = _solve(problem, cfg)
     health = _health(solved, cfg)
+    _rejected_calibration(solved, health)
     dropped: list[int] = []
     while (
         cfg.moved_tags == "drop" and health["checks"]["moved_tags"].get("tags") and len(dropped) < cfg.max_dropped_tags
@@ -48,6 +49,7 @@ def solve_and_write(
         check_problem(problem)
         solved = _solve(problem, cfg)
         health = _health(solved, cfg)
+        _rejected_calibration(solved, health)
     if dropped:
         health["warnings"].insert(
             0,
@@ -123,6 +125,17 @@ def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:
         "graph",
         s.problem.info.get("tag_size_m"),
     )
+
+
+def _rejected_calibration(s: _Solved, health: dict[str, Any]) -> None:
+    """A failed ``odometry_calibration`` check when ``auto`` found odometry that disagrees with the tags in a way no
+    wheel calibration explains (:func:`stages.graph.calibration.implausible`)."""
+    decision = (s.calibration or {}).get("decision") or {}
+    if not decision.get("rejected"):
+        return
+    health["checks"]["odometry_calibration"] = {"ok": False, "reason": decision["reason"]}
+    health["warnings"].append(decision["reason"])
+    health["ok"] = False
 
 
 def _without_tag(problem: GraphProblem, tag_id: int) -> GraphProblem:

@@ -135,6 +135,22 @@ def test_a_duplicated_id_that_collapses_the_map_is_named_first(tmp_path: Path, s
     assert f"): {dup[0]} (" in line and "against the odometry" in line
 
 
+def test_auto_calibration_does_not_bend_the_odometry_to_a_duplicated_id(tmp_path: Path) -> None:
+    """A duplicated id makes the odometry disagree with the tags, and odometry_calibration=auto's test fires; but the
+    calibration that would explain it (a negative distance scale, tens of prior sigmas away) is no wheel's error, so
+    it is not applied: the map keeps the fault visible (the moved-tag check names the id) and a failed check says
+    why, instead of a quietly bent odometry and no moved tag (as before this guard)."""
+    _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, duplicated_id=(3, 17)))
+    calibration = summary["odometry_calibration"]
+    assert calibration["estimated"] is False
+    decision = calibration["decision"]
+    assert decision["rejected"] and not decision["applied"] and decision["statistic"] > decision["threshold"]
+    checks = summary["health"]["checks"]
+    assert checks["odometry_calibration"]["ok"] is False and not summary["health"]["ok"]
+    assert checks["moved_tags"]["tags"][0] == 3
+    assert any("not as wheels do" in w and "prior sigmas" in w for w in summary["health"]["warnings"])
+
+
 @pytest.mark.parametrize("model", ["planar", "3d"])
 def test_the_odometry_between_two_sightings_is_the_chain_composed_step_by_step(model: str) -> None:
     """The moved-tag check's dead reckoning between two poses (prefix sums of the noise carried into the world
