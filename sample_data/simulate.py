@@ -124,6 +124,16 @@ class SimConfig:
     """Standard deviation of the Gaussian pixel noise, in grey levels (0-255)."""
     supersample: int = 3
     """Tags are rendered at this many sub-pixels per pixel and box-filtered down."""
+    exposure_gain: float = 1.0
+    """Scene brightness times this before the pixel noise (< 1: an under-exposed, darker image; the noise stays)."""
+    contrast: float = 1.0
+    """After the exposure, grey levels are pulled towards mid grey 128 by this factor (< 1: a flat, hazy image)."""
+    vignetting: float = 0.0
+    """Brightness times 1 - vignetting * (r / r_corner)^2, r the distance to the principal point in the image
+    (the image corners get 1 - vignetting of the light)."""
+    motion_blur_px: float = 0.0
+    """Length of a linear blur kernel, px, centred (corners do not move), along the image motion of each frame's
+    principal ray (from the true camera motion; horizontal when the camera is at rest)."""
 
     camera_xyz_m: tuple[float, float, float] = (0.12, 0.0, 0.40)
     """Camera optical centre in base_link."""
@@ -611,8 +621,10 @@ class _Renderer:
         dirs = self._column_dirs(T_world_cam, u)
         return ray_segment_hits(T_world_cam[:2, 3], dirs, self.world.walls)
 
-    def render(self, T_world_cam: FloatArray, rng: np.random.Generator) -> npt.NDArray[np.uint8]:
-        """Distorted, noisy uint8 grey image seen from ``T_world_cam``."""
+    def render(
+        self, T_world_cam: FloatArray, rng: np.random.Generator, blur_dir: tuple[float, float] = (1.0, 0.0)
+    ) -> npt.NDArray[np.uint8]:
+        """Distorted, noisy uint8 grey image seen from ``T_world_cam`` (motion blur along ``blur_dir``, px)."""
         R = T_world_cam[:3, :3]
         if abs(R[2, 1] + 1.0) > 1e-9:
             msg = "the renderer needs a horizontal optical axis (camera y pointing down)"
@@ -621,8 +633,30 @@ class _Renderer:
         for tag in self.world.tags:
             self._draw_tag(canvas, T_world_cam, tag)
         img = cv2.remap(canvas, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        img = self._expose(img, blur_dir)
         img = img.astype(np.float64) + rng.normal(0.0, self.cfg.pixel_noise_sigma, img.shape)
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+    def _expose(self, img: npt.NDArray[np.float32], blur_dir: tuple[float, float]) -> npt.NDArray[np.float32]:
+        """Exposure gain, contrast, vignetting and motion blur (each skipped at its neutral value)."""
+        cfg = self.cfg
+        if cfg.exposure_gain != 1.0:
+            img = img * np.float32(cfg.exposure_gain)
+        if cfg.contrast != 1.0:
+            img = np.float32(128.0) + np.float32(cfg.contrast) * (img - np.float32(128.0))
+        if cfg.vignetting > 0.0:
+            img = img * self._vignette_map
+        if cfg.motion_blur_px > 0.0:
+            img = cv2.filter2D(img, -1, line_kernel(cfg.motion_blur_px, blur_dir), borderType=cv2.BORDER_REPLICATE)
+        return img
+
+    @functools.cached_property
+    def _vignette_map(self) -> npt.NDArray[np.float32]:
+        cam = self.cam
+        cx, cy = cam.K[0, 2], cam.K[1, 2]
+        u, v = np.meshgrid(np.arange(cam.width) - cx, np.arange(cam.height) - cy)
+        r_corner = max(np.hypot(x, y) for x in (-cx, cam.width - 1 - cx) for y in (-cy, cam.height - 1 - cy))
+        return (1.0 - self.cfg.vignetting * (u**2 + v**2) / r_corner**2).astype(np.float32)
 
     def _background(self, T_world_cam: FloatArray) -> npt.NDArray[np.float32]:
         c = T_world_cam[:3, 3]
@@ -709,6 +743,36 @@ class _Renderer:
         alpha_lo = alpha.reshape(h_lo, S, w_lo, S).mean(axis=(1, 3))
         roi = canvas[j0:j1, i0:i1]
         roi[...] = roi * (1.0 - alpha_lo) + col_lo
+
+
+def line_kernel(length_px: float, direction: tuple[float, float]) -> npt.NDArray[np.float32]:
+    """Normalised kernel of a centred line segment ``length_px`` long along ``direction`` (anti-aliased)."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d) if np.linalg.norm(d) > 0 else np.array([1.0, 0.0])
+    half = math.ceil(length_px / 2) + 1
+    size = 2 * half + 1
+    kernel = np.zeros((size, size), np.float64)
+    n = max(int(8 * length_px), 2)
+    for s in np.linspace(-length_px / 2, length_px / 2, n):
+        x, y = half + s * d[0], half + s * d[1]
+        x0, y0 = math.floor(x), math.floor(y)
+        fx_, fy_ = x - x0, y - y0
+        kernel[y0, x0] += (1 - fx_) * (1 - fy_)
+        kernel[y0, x0 + 1] += fx_ * (1 - fy_)
+        kernel[y0 + 1, x0] += (1 - fx_) * fy_
+        kernel[y0 + 1, x0 + 1] += fx_ * fy_
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def image_motion_direction(cam: CameraModel, T_wc_before: FloatArray, T_wc_after: FloatArray) -> tuple[float, float]:
+    """Direction (du, dv) in which the point 2 m along the optical axis moves in the image between two poses."""
+    p_world = T_wc_before @ np.array([0.0, 0.0, 2.0, 1.0])
+    p_after = inv_T(T_wc_after) @ p_world
+    if p_after[2] <= 0.1:
+        return (1.0, 0.0)
+    du = cam.K[0, 0] * p_after[0] / p_after[2]
+    dv = cam.K[1, 1] * p_after[1] / p_after[2]
+    return (float(du), float(dv)) if math.hypot(du, dv) > 1e-6 else (1.0, 0.0)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -887,6 +951,12 @@ def _validate(cfg: SimConfig) -> None:
             raise ValueError(msg)
     if cfg.pixel_noise_sigma < 0 or cfg.odom_v_sigma_mps < 0 or cfg.odom_yaw_rate_sigma_radps < 0:
         msg = "pixel and odometry noise must be >= 0"
+        raise ValueError(msg)
+    if cfg.exposure_gain <= 0 or cfg.contrast <= 0 or not 0 <= cfg.vignetting < 1 or cfg.motion_blur_px < 0:
+        msg = "exposure_gain and contrast must be > 0, vignetting in [0, 1) and motion_blur_px >= 0"
+        raise ValueError(msg)
+    if not 1 <= cfg.jpeg_quality <= 100 or cfg.tag_size_m <= 0:
+        msg = f"jpeg_quality must be in 1..100 and tag_size_m > 0 (got {cfg.jpeg_quality}, {cfg.tag_size_m})"
         raise ValueError(msg)
     if cfg.duration_s is not None and cfg.duration_s <= 0:
         msg = f"duration_s must be > 0 (or None for the whole path), got {cfg.duration_s}"
@@ -1084,7 +1154,11 @@ def simulate(cfg: SimConfig) -> Recording:
     for index, stamp in enumerate(cam_ns):
         x, y, yaw = true_pose(stamp)
         T_wc = planar_T(x, y, yaw) @ T_bc
-        grey = renderer.render(T_wc, rng_pix)
+        blur_dir = (1.0, 0.0)
+        if cfg.motion_blur_px > 0:
+            before, after = (true_pose(stamp + d) for d in (-10_000_000, 10_000_000))
+            blur_dir = image_motion_direction(cam, planar_T(*before) @ T_bc, planar_T(*after) @ T_bc)
+        grey = renderer.render(T_wc, rng_pix, blur_dir)
         add(1, topic_img, stamp, _encode_image(grey, cfg, Header(stamp, cfg.camera_frame)))
         add(
             2,
@@ -1181,6 +1255,10 @@ _NEW_FIELDS: Final = {
     "odom_cov_scale": 1.0,
     "corridor_length_m": 10.0,
     "laser_sweep": False,
+    "exposure_gain": 1.0,
+    "contrast": 1.0,
+    "vignetting": 0.0,
+    "motion_blur_px": 0.0,
 }
 """Fields added after the sample was made: left out of the ground truth's ``config`` at their defaults, so the
 ground truth of a run that does not use them stays byte-identical."""
@@ -1627,6 +1705,34 @@ def main(argv: list[str] | None = None) -> int:
         default=1.0,
         help="multiply the odometry's white speed and yaw-rate noise (and so its reported covariance) by this",
     )
+    look = parser.add_argument_group("rendering (default: the sample's)")
+    look.add_argument("--jpeg-quality", type=int, default=SimConfig.jpeg_quality, help="JPEG quality, 1-100")
+    look.add_argument(
+        "--distortion",
+        type=float,
+        nargs=5,
+        metavar=("K1", "K2", "P1", "P2", "K3"),
+        default=SimConfig.distortion,
+        help="plumb_bob lens distortion (e.g. -0.28 0.07 0 0 0: strong barrel)",
+    )
+    look.add_argument(
+        "--exposure", type=float, default=1.0, help="scene brightness gain before the pixel noise (< 1: darker)"
+    )
+    look.add_argument(
+        "--contrast", type=float, default=1.0, help="grey levels pulled towards 128 by this factor (< 1: flatter)"
+    )
+    look.add_argument(
+        "--vignetting", type=float, default=0.0, help="light lost in the image corners, 0-1 (quadratic in radius)"
+    )
+    look.add_argument(
+        "--motion-blur",
+        type=float,
+        default=0.0,
+        help="length of a linear blur per frame along the image motion, px (0: none)",
+    )
+    look.add_argument(
+        "--tag-size", type=float, default=SimConfig.tag_size_m, help="edge of every tag's black square, m"
+    )
     parser.add_argument(
         "--laser-sweep",
         action="store_true",
@@ -1650,6 +1756,13 @@ def main(argv: list[str] | None = None) -> int:
         odom_cov_scale=args.odom_cov_scale,
         laser_sweep=args.laser_sweep,
         pixel_noise_sigma=args.pixel_noise,
+        jpeg_quality=args.jpeg_quality,
+        distortion=tuple(args.distortion),
+        exposure_gain=args.exposure,
+        contrast=args.contrast,
+        vignetting=args.vignetting,
+        motion_blur_px=args.motion_blur,
+        tag_size_m=args.tag_size,
         odom_v_sigma_mps=SimConfig.odom_v_sigma_mps * args.odom_noise_scale,
         odom_yaw_rate_sigma_radps=SimConfig.odom_yaw_rate_sigma_radps * args.odom_noise_scale,
     )

@@ -394,3 +394,82 @@ def test_committed_sample_matches_its_ground_truth() -> None:
     assert image_stamps == [f["stamp_ns"] for f in gt["frames"]]
     assert gt["seed"] == 0 and len(gt["tags"]) == 76
     assert SAMPLE.stat().st_size + ground_truth_path(SAMPLE).stat().st_size < 20_000_000
+
+
+def _frames(rec: Recording) -> list[np.ndarray]:
+    return [decode_image(m.payload) for m in rec.messages if isinstance(m.payload, ImageMsg)]
+
+
+def _look(**kw: object) -> Recording:
+    """Two seconds of the office, lossless and noiseless so that the rendering options show alone."""
+    return simulate(
+        SimConfig(seed=4, duration_s=2.0, image_format="png", pixel_noise_sigma=0.0, **kw)  # type: ignore[arg-type]
+    )
+
+
+def test_exposure_contrast_and_vignetting_change_the_picture_as_stated() -> None:
+    base = np.stack(_frames(_look())).astype(float)
+    dark = np.stack(_frames(_look(exposure_gain=0.5))).astype(float)
+    flat = np.stack(_frames(_look(contrast=0.5))).astype(float)
+    vign = np.stack(_frames(_look(vignetting=0.6))).astype(float)
+    assert dark.mean() == pytest.approx(0.5 * base.mean(), rel=0.01)
+    assert flat.std() == pytest.approx(0.5 * base.std(), rel=0.02)
+    assert flat.mean() == pytest.approx(128 + 0.5 * (base.mean() - 128), rel=0.01)
+    # Vignetting: the centre keeps its light, the corners lose about 60 %.
+    h, w = base.shape[1:]
+    centre = (slice(None), slice(h // 2 - 10, h // 2 + 10), slice(w // 2 - 10, w // 2 + 10))
+    corner = (slice(None), slice(0, 8), slice(0, 8))
+    assert vign[centre].mean() == pytest.approx(base[centre].mean(), rel=0.01)
+    assert vign[corner].mean() / base[corner].mean() == pytest.approx(0.4, abs=0.05)
+
+
+def _edge_width(img: np.ndarray) -> float:
+    """Mean width (px) of the strong horizontal edges: summed |d/dx| over the peak |d/dx| along each edge."""
+    g = np.abs(np.diff(img.astype(float), axis=1))
+    rows = [r for r in g if r.max() > 15]
+    return float(np.mean([r[max(0, r.argmax() - 10) : r.argmax() + 11].sum() / r.max() for r in rows]))
+
+
+def test_motion_blur_widens_edges_and_keeps_the_ground_truth() -> None:
+    sharp, blurred = _look(), _look(motion_blur_px=6.0)
+    assert sharp.ground_truth["frames"] == blurred.ground_truth["frames"]
+    assert blurred.ground_truth["config"]["motion_blur_px"] == 6.0
+    assert "motion_blur_px" not in sharp.ground_truth["config"]  # neutral values stay out (sample unchanged)
+    w_sharp = np.median([_edge_width(f) for f in _frames(sharp)])
+    w_blur = np.median([_edge_width(f) for f in _frames(blurred)])
+    assert w_blur > w_sharp + 3.0
+    # The blur is centred: the tags' centres found by the detector do not move (a one-sided kernel moves them by 3 px).
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11))
+    errs = []
+    for img, frame in zip(_frames(blurred), blurred.ground_truth["frames"], strict=True):
+        corners, ids, _ = det.detectMarkers(img)
+        gt = {v["id"]: np.array(v["corners_px"]).reshape(4, 2) for v in frame["visible_tags"]}
+        for c, i in zip(corners, [] if ids is None else ids.ravel(), strict=True):
+            if int(i) in gt:
+                errs.append(c.reshape(4, 2).mean(axis=0) - gt[int(i)].mean(axis=0))
+    assert len(errs) >= 10 and np.abs(np.mean(errs, axis=0)).max() < 0.3
+
+
+def test_cli_rendering_options_reach_the_recording(tmp_path: Path) -> None:
+    args = ["--out", str(tmp_path), "--duration", "1.0", "--width", "320", "--height", "240", "--name", "look"]
+    extra = ["--jpeg-quality", "60", "--distortion", "-0.28", "0.07", "0", "0", "0", "--exposure", "0.4"]
+    extra += ["--contrast", "0.8", "--vignetting", "0.5", "--motion-blur", "3", "--tag-size", "0.1"]
+    assert main([*args, *extra]) == 0
+    gt = json.loads((tmp_path / "look.ground_truth.json").read_text())
+    cfg = gt["config"]
+    assert (cfg["jpeg_quality"], cfg["exposure_gain"], cfg["contrast"]) == (60, 0.4, 0.8)
+    assert (cfg["vignetting"], cfg["motion_blur_px"], cfg["tag_size_m"]) == (0.5, 3.0, 0.1)
+    assert gt["camera"]["D"] == [-0.28, 0.07, 0.0, 0.0, 0.0]
+    assert {t["size_m"] for t in gt["tags"]} == {0.1}
+    # The ground truth's corners are the projection of the 0.1 m tags through the distorted camera.
+    cam = CameraModel(320, 240, np.array(gt["camera"]["K"]).reshape(3, 3), np.array(gt["camera"]["D"]))
+    seen = [v for f in gt["frames"] for v in f["visible_tags"]]
+    assert seen
+    for v in seen:
+        T = np.array(v["T_camera_tag"])
+        pc = tag_corners_tag_frame(0.1) @ T[:3, :3].T + T[:3, 3]
+        xd, yd = cam.distort_normalized(pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2])
+        px = np.stack([xd * cam.K[0, 0] + cam.K[0, 2], yd * cam.K[1, 1] + cam.K[1, 2]], axis=1)
+        assert np.abs(px.ravel() - np.array(v["corners_px"])).max() < 0.01
+    assert main([*args, "--name", "bad", "--vignetting", "1.5"]) == 1
+    assert main([*args, "--name", "bad", "--jpeg-quality", "0"]) == 1

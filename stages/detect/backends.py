@@ -107,6 +107,26 @@ def _quad_thresh_params(detector: Any) -> Any:
     return ctypes.cast(detector.tag_detector_ptr, ctypes.POINTER(_Detector)).contents.qtp
 
 
+_K4 = np.ones((4, 4), np.uint8)
+_K3 = np.ones((3, 3), np.uint8)
+
+
+def median_tile_contrast(gray: npt.NDArray[np.uint8]) -> int:
+    """Median over the image of the grey range (max - min) of each 4x4 tile with its 8 neighbours: the quantity
+    the AprilTag 3 library compares with ``min_white_black_diff`` (approximately: tiles taken on a 4-px grid).
+
+    Pixel noise and fine texture set it (about 5 sigma for Gaussian noise of sigma); a tag's edge adds its own
+    contrast on top, and tags cover a small part of a frame, so they do not move the median.
+    """
+    import cv2
+
+    mx = np.ascontiguousarray(cv2.dilate(gray, _K4)[::4, ::4])
+    mn = np.ascontiguousarray(cv2.erode(gray, _K4)[::4, ::4])
+    rng = cv2.dilate(mx, _K3) - cv2.erode(mn, _K3)
+    hist = cv2.calcHist([rng], [0], None, [256], [0, 256]).ravel()
+    return int(np.searchsorted(np.cumsum(hist), rng.size / 2))
+
+
 class AprilTag3Detector:
     """The AprilTag 3 C library through pupil-apriltags."""
 
@@ -123,6 +143,8 @@ class AprilTag3Detector:
             cfg.refine_edges,
             cfg.decode_sharpening,
             cfg.min_white_black_diff,
+            cfg.adaptive_white_black_diff,
+            cfg.max_white_black_diff,
             cfg.min_cluster_pixels,
         )
         if key not in _AT3_DETECTORS:
@@ -139,11 +161,20 @@ class AprilTag3Detector:
             qtp.min_cluster_pixels = int(cfg.min_cluster_pixels)
             _AT3_DETECTORS[key] = det
         self._detector: Any = _AT3_DETECTORS[key]
+        self._qtp = _quad_thresh_params(self._detector) if cfg.adaptive_white_black_diff > 0 else None
+        self._wb = (cfg.min_white_black_diff, cfg.adaptive_white_black_diff, cfg.max_white_black_diff)
+        self.white_black_diff = cfg.min_white_black_diff
+        """The ``min_white_black_diff`` used on the last image."""
 
     def detect(self, gray: npt.NDArray[np.uint8]) -> list[TagObservation]:
         """Detect tags in one grayscale image."""
         out = []
-        for det in self._detector.detect(np.ascontiguousarray(gray, dtype=np.uint8)):
+        gray = np.ascontiguousarray(gray, dtype=np.uint8)
+        if self._qtp is not None:
+            lo, factor, hi = self._wb
+            self.white_black_diff = int(min(max(lo, round(factor * median_tile_contrast(gray))), max(hi, lo)))
+            self._qtp.min_white_black_diff = self.white_black_diff
+        for det in self._detector.detect(gray):
             corners = np.asarray(det.corners, float)[_AT3_TO_CV] + _AT3_PIXEL_OFFSET
             family = det.tag_family.decode() if isinstance(det.tag_family, bytes) else str(det.tag_family)
             out.append(TagObservation(int(det.tag_id), family, corners, float(det.decision_margin), int(det.hamming)))

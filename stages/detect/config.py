@@ -41,9 +41,21 @@ class DetectConfig(SettingsModel):
         ge=0,
         le=255,
         description="apriltag3: image tiles (4x4 px, with their 8 neighbours) whose grey range is below this are "
-        "not segmented (the library's default is 5). Flat noisy background then makes no candidate clusters: "
-        "3-25x faster at decimation 1 on the simulator and rendered frames, 2x on the real photos, and the same "
-        "tags found on every data set (docs/detect.md). Tags fainter than this are lost.",
+        "not segmented (the library's default is 5); the floor of the per-frame threshold (adaptive_white_black_diff)."
+        " Flat noisy background then makes no candidate clusters: 3-25x faster at decimation 1 on the simulator and "
+        "rendered frames, 2x on the real photos, and the same tags found on every data set (docs/detect.md).",
+    )
+    adaptive_white_black_diff: float = Field(
+        1.2,
+        ge=0.0,
+        description="apriltag3: per frame, min_white_black_diff = this times the frame's median tile contrast "
+        "(grey range of each 4x4 tile with its neighbours: pixel noise and fine texture), at least "
+        "min_white_black_diff and at most max_white_black_diff; 0 = the fixed min_white_black_diff. 1.2 keeps "
+        "noisy frames as fast as clean ones (pixel noise 4 or 5: 3x faster than the fixed 15) and finds as many "
+        "tags as AprilTag 3 on every generated world; 1.5 and more lose faint tags in noise (docs/detect.md).",
+    )
+    max_white_black_diff: int = Field(
+        50, ge=0, le=255, description="apriltag3: ceiling of the per-frame threshold of adaptive_white_black_diff."
     )
     min_cluster_pixels: int = Field(
         5, ge=1, description="apriltag3: smallest edge cluster (pixels) considered for a quad (library default 5)."
@@ -55,9 +67,18 @@ class DetectConfig(SettingsModel):
     )
     min_side_px: float = Field(8.0, ge=0.0, description="Detections whose shortest side is shorter are dropped, px.")
     min_decision_margin: float = Field(
-        10.0, ge=0.0, description="apriltag3 detections with a lower decision margin are dropped (grey levels)."
+        0.0,
+        ge=0.0,
+        description="apriltag3 detections with a lower decision margin are dropped (grey levels). 0 = none, as "
+        "the library: faint tags (contrast ~20 grey levels) have margins of 5-11 and 10 lost a third of them.",
     )
-    max_hamming: int = Field(1, ge=0, le=3, description="Detections with more corrected bits are dropped.")
+    max_hamming: int = Field(
+        2,
+        ge=0,
+        le=3,
+        description="Detections with more corrected bits are dropped (2 = the AprilTag 3 library's own limit; "
+        "1 lost small blurred tags the library finds).",
+    )
     tag_size_m: float = Field(
         0.162, gt=0, le=MAX_TAG_SIZE_M, description="Default edge of a tag's black square, metres."
     )

@@ -6,6 +6,7 @@ Plain script (not a test; wall times are never asserted):
     python tests/benchmarks/bench_detect.py --skip speed --fit-seeds 1 2   # fit corner_bias_px on other seeds
     python tests/benchmarks/bench_detect.py --skip sim photos --speed-frames 40 --repeats 5
     python tests/benchmarks/bench_detect.py --skip sim photos speed --repeats 5   # pose + covariance share only
+    python tests/benchmarks/bench_detect.py --worlds --skip sim photos posecov speed   # recall on generated worlds
 
 Data: the committed sample ``sample_data/office/office.bag`` with ``office.ground_truth.json`` (tags
 0.16 m), simulator runs of other seeds (``--fit-seeds``, in memory), ../shared/data/apriltag-photos (real
@@ -32,20 +33,30 @@ sys.path.insert(0, str(ROOT))
 from stages.camera import colmap_camera  # noqa: E402
 from stages.detect.backends import make_detector, shortest_side_px  # noqa: E402
 from stages.detect.config import DetectConfig  # noqa: E402
-from stages.detect.core import DetectionRow, FrameJob, FrameProcessor  # noqa: E402
+from stages.detect.core import DetectionRow, FrameJob, FrameProcessor, detect_image  # noqa: E402
 from stages.detect.stage import _corner_sigma  # noqa: E402
 from stages.ingest.artifacts import CameraModel  # noqa: E402
 from tests.fixtures.tag_render import TagPlacement, look_at_tag, render_frame  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
-DEFAULT = "apriltag3 dec1 wb15 (default)"
+DEFAULT = "apriltag3 dec1 adaptive1.2 (default)"
 REFERENCE = "apriltag3 dec2 (library defaults)"
 VARIANTS: dict[str, dict[str, Any]] = {
     DEFAULT: {},
-    "apriltag3 dec1 (library defaults)": {"decimation": 1.0, "min_white_black_diff": 5},
-    "apriltag3 dec1.5 wb15": {"decimation": 1.5},
-    REFERENCE: {"decimation": 2.0, "min_white_black_diff": 5},
-    "apriltag3 dec2 wb15": {"decimation": 2.0},
+    "apriltag3 dec1 (library defaults)": {
+        "decimation": 1.0,
+        "min_white_black_diff": 5,
+        "adaptive_white_black_diff": 0,
+    },
+    "apriltag3 dec1 wb15 (the default until #16)": {
+        "adaptive_white_black_diff": 0,
+        "max_hamming": 1,
+        "min_decision_margin": 10,
+    },
+    "apriltag3 dec1 adaptive1.5": {"adaptive_white_black_diff": 1.5},
+    "apriltag3 dec1.5": {"decimation": 1.5},
+    REFERENCE: {"decimation": 2.0, "min_white_black_diff": 5, "adaptive_white_black_diff": 0},
+    "apriltag3 dec2 adaptive": {"decimation": 2.0},
     "opencv subpix": {"backend": "opencv", "opencv_corner_refinement": "subpix"},
     "opencv contour": {"backend": "opencv", "opencv_corner_refinement": "contour"},
 }
@@ -90,6 +101,150 @@ def simulated(seed: int) -> tuple[list[np.ndarray], list[dict[str, Any]], Camera
 def rms(values: list[float]) -> float:
     """Root mean square (nan when empty)."""
     return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
+
+
+# Generated recordings whose rendering differs from the sample's (``sample_data/simulate.py`` options), each
+# 150 frames at 2 Hz over the first 75 s of the office path. "held-out" is never looked at while choosing settings.
+WORLDS: dict[str, list[str]] = {
+    "a: q75, barrel, vignetting, blur": [
+        *("--seed", "11", "--jpeg-quality", "75", "--distortion", "-0.28", "0.07", "0", "0", "0"),
+        *("--vignetting", "0.6", "--motion-blur", "3"),
+    ],
+    "b: dark, low contrast, noise 4": [
+        *("--seed", "12", "--exposure", "0.35", "--contrast", "0.7", "--pixel-noise", "4"),
+    ],
+    "c: 1280x960, 0.08 m tags, q80": [
+        *("--seed", "13", "--width", "1280", "--height", "960", "--tag-size", "0.08", "--jpeg-quality", "80"),
+    ],
+    "e: faint (exposure 0.25, contrast 0.5, vignetting 0.5, noise 3)": [
+        *("--seed", "15", "--exposure", "0.25", "--contrast", "0.5", "--vignetting", "0.5", "--pixel-noise", "3"),
+    ],
+    "f: very faint, noisy (exposure 0.2, contrast 0.5, noise 5, q70)": [
+        *("--seed", "21", "--exposure", "0.2", "--contrast", "0.5", "--pixel-noise", "5", "--vignetting", "0.4"),
+        *("--jpeg-quality", "70"),
+    ],
+    "d (held-out): 800x600 q60, dim, vignetting, blur": [
+        *("--seed", "14", "--width", "800", "--height", "600", "--jpeg-quality", "60", "--exposure", "0.6"),
+        *("--vignetting", "0.5", "--motion-blur", "2", "--distortion", "-0.15", "0.03", "0.001", "0", "0"),
+        *("--pixel-noise", "2.5"),
+    ],
+}
+WORLD_FRAMES_ARGS = ["--camera-rate", "2", "--duration", "75"]
+
+
+def generated_worlds(folder: Path) -> dict[str, tuple[list[np.ndarray], list[dict[str, Any]], CameraModel]]:
+    """The recordings of :data:`WORLDS`, written by ``sample_data/simulate.py`` into ``folder`` (kept there and
+    reused when present), read back like the sample (frames, ground truth, camera from camera_info)."""
+    import subprocess
+
+    out = {}
+    for name, args in WORLDS.items():
+        stem = "world_" + name.split(" ")[0].rstrip(":")
+        bag = folder / f"{stem}.bag"
+        if not bag.exists():
+            cmd = [sys.executable, "-m", "sample_data.simulate", "--out", str(folder), "--name", stem]
+            subprocess.run([*cmd, *WORLD_FRAMES_ARGS, *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        out[name] = sample_recording(bag)
+    return out
+
+
+def library_recall(frames: list[np.ndarray], truth: list[dict[str, Any]], decimation: float = 1.0) -> dict[str, Any]:
+    """Recall of the AprilTag 3 library itself (pupil-apriltags, its defaults but ``quad_decimate``, no focusmap
+    filter), by id over tags fully in view with shortest side >= 15 px."""
+    import pupil_apriltags
+
+    det = pupil_apriltags.Detector(families="tag36h11", quad_decimate=decimation)
+    n = hits = false = 0
+    for img, gt in zip(frames, truth, strict=True):
+        ids = {t["id"]: t for t in gt["visible_tags"]}
+        found = {int(d.tag_id) for d in det.detect(np.ascontiguousarray(img))}
+        false += len(found - set(ids))
+        for tid, t in ids.items():
+            if shortest_side_px(np.reshape(t["corners_px"], (4, 2))) >= 15:
+                n += 1
+                hits += tid in found
+    det.tag_detector_ptr = None  # pupil-apriltags 1.0.4 corrupts the heap when it frees a detector
+    return {"hits": hits, "n": n, "false": false}
+
+
+def photo_recall(kw: dict[str, Any] | None) -> tuple[int, int, int]:
+    """Tags found on the real photos (their 22 truth tags, matched by centre within 3 px) and on apriltag-multi
+    (the ids the AprilTag 3 library finds there at decimation 1), and the detections that match none of those
+    (extra); ``kw`` None = the library at decimation 1."""
+    import pupil_apriltags
+
+    lib = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
+
+    def library(img: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        return [(int(d.tag_id), np.asarray(d.corners)[[1, 0, 3, 2]] - 0.5) for d in lib.detect(img)]
+
+    def ours(img: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        assert det is not None
+        cfg = DetectConfig(**(kw or {}))
+        return [(r.tag_id, np.reshape(r.corners, (4, 2))) for r in detect_image(img, det, camera, cfg)]
+
+    det = None if kw is None else make_detector(DetectConfig(**kw))
+    hits = n = extra = 0
+    for path in sorted((SHARED / "apriltag-photos").glob("*.jpg")) + sorted((SHARED / "apriltag-multi").glob("*.png")):
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        h, w = img.shape
+        camera = colmap_camera(
+            CameraModel(width=w, height=h, K=[w, 0, w / 2, 0, w, h / 2, 0, 0, 1], distortion_model="none", D=[])
+        )
+        found = library(img) if det is None else ours(img)
+        if path.suffix == ".jpg":
+            truth = []
+            for line in path.with_suffix(".txt").read_text().splitlines():
+                nums = [float(v) for v in line.replace("(", " ").replace(")", " ").replace(",", " ").split()[1:]]
+                truth.append(np.array(nums).reshape(4, 2)[[1, 0, 3, 2]] - 0.5)
+            n += len(truth)
+            near = [[np.linalg.norm(c.mean(0) - t.mean(0)) < 3 for _, c in found] for t in truth]
+            hits += sum(any(m) for m in near)
+            extra += sum(not any(m[k] for m in near) for k in range(len(found)))
+        else:
+            want = {i for i, _ in library(img)}
+            got = {i for i, _ in found}
+            n += len(want)
+            hits += len(want & got)
+            extra += len(got - want)
+    lib.tag_detector_ptr = None
+    return hits, n, extra
+
+
+def bench_worlds(
+    worlds: dict[str, tuple[list[np.ndarray], list[dict[str, Any]], CameraModel]], variants: dict[str, dict[str, Any]]
+) -> None:
+    """Recall of focusmap's settings (the stage's whole path: detection, filters, pose) and of the AprilTag 3
+    library at decimation 1 with its defaults, on every generated world, the sample and the real photos."""
+    print(
+        "\n## Recall on generated worlds (tags fully in view, shortest side >= 15 px, matched by id; photos: "
+        "22 truth tags by centre + the ids the library finds on apriltag-multi)"
+    )
+    print("| detector | " + " | ".join(worlds) + " | photos |")
+    print("| --- |" + " --- |" * (len(worlds) + 1))
+
+    def cell(st: dict[str, Any]) -> str:
+        return f"{st['hits']}/{st['n']} = {st['hits'] / max(st['n'], 1):.3f}" + (
+            f" ({st['false']} false)" if st["false"] else ""
+        )
+
+    cells = [cell(library_recall(f, t)) for f, t, _ in worlds.values()]
+    h, n, x = photo_recall(None)
+    print(
+        "| AprilTag 3 library, dec 1, its defaults | "
+        + " | ".join(cells)
+        + f" | {h}/{n} = {h / n:.3f}"
+        + (f" ({x} extra)" if x else "")
+        + " |"
+    )
+    for name, kw in variants.items():
+        if kw.get("backend") == "opencv":
+            continue
+        cells = []
+        for f, t, cam in worlds.values():
+            cells.append(cell(run_variant(DetectConfig(tag_size_m=TAG_SIZE_M, **kw), f, t, cam)[2]))
+        h, n, x = photo_recall(kw)
+        print(f"| {name} | " + " | ".join(cells) + f" | {h}/{n} = {h / n:.3f}" + (f" ({x} extra)" if x else "") + " |")
 
 
 def run_variant(
@@ -270,12 +425,17 @@ def _tasks(variant: str, set_name: str, n: int, pose: bool, batch: int = 4) -> l
     return [(variant, set_name, i, min(i + batch, n), pose) for i in range(0, n, batch)]
 
 
+_CPU: dict[tuple[str, str, bool], list[float]] = {}
+
+
 def _fps(pool: ProcessPoolExecutor | None, variant: str, set_name: str, n: int, pose: bool) -> float:
+    """Frames per second (wall); in this process also records the CPU time per frame in ``_CPU``."""
     tasks = _tasks(variant, set_name, n, pose)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if pool is None:
         for t in tasks:
             _work(t)
+        _CPU.setdefault((variant, set_name, pose), []).append((time.process_time() - c0) / n)
     else:
         list(pool.map(_work, tasks))
     return n / (time.perf_counter() - t0)
@@ -328,7 +488,13 @@ def photo_frames(n: int) -> tuple[list[np.ndarray], CameraModel] | None:
     return [imgs[k % len(imgs)] for k in range(n)], camera
 
 
-def bench_speed(sim_frames: list[np.ndarray], sim_camera: CameraModel, n: int, repeats: int) -> None:
+def bench_speed(
+    sim_frames: list[np.ndarray],
+    sim_camera: CameraModel,
+    n: int,
+    repeats: int,
+    extra: dict[str, tuple[list[np.ndarray], CameraModel]] | None = None,
+) -> None:
     """Frames per second, one process and two, per setting and frame set, interleaved; ratios to the reference.
 
     Frames are decoded once and sent to the workers once (the initializer); pool start-up and the first
@@ -343,6 +509,8 @@ def bench_speed(sim_frames: list[np.ndarray], sim_camera: CameraModel, n: int, r
         "640x480": synthetic_frames(640, 480, n),
         "1280x720": synthetic_frames(1280, 720, n),
     }
+    for name, (frames, cam) in (extra or {}).items():  # the generated worlds (--worlds), spread over each
+        sets[f"world {name}"] = (frames[:: max(1, len(frames) // n)][:n], cam)
     photos = photo_frames(n)
     if photos is not None:
         sets[f"photos {photos[0][0].shape[1]}x{photos[0][0].shape[0]}"] = photos
@@ -383,6 +551,19 @@ def bench_speed(sim_frames: list[np.ndarray], sim_camera: CameraModel, n: int, r
                 ref = float(np.median(results[(REFERENCE, s, 1, pose)]))
                 cells.append(f"{med:.1f} ({med / ref:.2f}x)")
             print(f"| {variant} | " + " | ".join(cells) + " |")
+    print(
+        "\nCPU time per frame, one process, detection + pose (ms; ratio = the reference's CPU time / this; less "
+        "sensitive to other jobs than the wall times above; two processes on two free cores give about twice it):"
+    )
+    print("| detector | " + " | ".join(sets) + " |")
+    print("| --- |" + " --- |" * len(sets))
+    for variant in VARIANTS:
+        cells = []
+        for s in sets:
+            med = float(np.median(_CPU[(variant, s, True)]))
+            ref = float(np.median(_CPU[(REFERENCE, s, True)]))
+            cells.append(f"{1e3 * med:.2f} ({ref / med:.2f}x)")
+        print(f"| {variant} | " + " | ".join(cells) + " |")
     spread = {
         s: max(float(np.ptp(v) / np.median(v)) for (var, s2, w, p), v in results.items() if s2 == s and var == DEFAULT)
         for s in sets
@@ -548,15 +729,36 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fit-seeds", type=int, nargs="*", default=[], help="also run simulator seeds (fitting)")
     parser.add_argument("--speed-frames", type=int, default=40, help="frames per speed set")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats per speed cell (median)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed", "posecov"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed", "posecov", "recall"])
     parser.add_argument("--posecov-frames", type=int, default=200, help="sample frames for the pose + covariance share")
     parser.add_argument(
         "--posecov-batches", type=int, nargs="*", default=[], help="chunk sizes to compare (default: batch_frames)"
     )
     parser.add_argument("--corner-scale", action="store_true", help="also the exact-render corner scale check")
+    parser.add_argument(
+        "--worlds", action="store_true", help="recall against AprilTag 3 on generated worlds (WORLDS), sample, photos"
+    )
+    parser.add_argument("--worlds-dir", type=Path, default=None, help="keep / reuse the generated worlds here")
+    parser.add_argument(
+        "--variants", nargs="*", default=None, help="only the settings whose name contains one of these words"
+    )
     args = parser.parse_args(argv)
+    if args.variants:
+        for name in list(VARIANTS):
+            if name not in (DEFAULT, REFERENCE) and not any(w in name for w in args.variants):
+                del VARIANTS[name]
     t0 = time.perf_counter()
     frames, truth, camera = sample_recording(args.bag)
+    worlds: dict[str, tuple[list[np.ndarray], list[dict[str, Any]], CameraModel]] = {}
+    if args.worlds:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = args.worlds_dir or Path(tmp)
+            folder.mkdir(parents=True, exist_ok=True)
+            worlds = generated_worlds(folder)
+        if "recall" not in args.skip:
+            bench_worlds({**worlds, f"sample {args.bag.name}": (frames, truth, camera)}, VARIANTS)
     if "sim" not in args.skip:
         bench_sim(frames, truth, camera, f"Sample recording {args.bag.name}")
     for seed in args.fit_seeds:
@@ -570,7 +772,8 @@ def main(argv: list[str] | None = None) -> int:
         batches = args.posecov_batches or [DetectConfig().batch_frames]
         bench_posecov(frames, camera, args.posecov_frames, args.repeats, batches)
     if "speed" not in args.skip:
-        bench_speed(frames, camera, args.speed_frames, args.repeats)
+        extra = {name.split(":")[0]: (f, c) for name, (f, _, c) in worlds.items()}
+        bench_speed(frames, camera, args.speed_frames, args.repeats, extra)
     print(f"\n(benchmark took {time.perf_counter() - t0:.0f} s)")
     return 0
 

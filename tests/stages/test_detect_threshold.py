@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from stages.camera import colmap_camera
-from stages.detect.backends import _quad_thresh_params, make_detector
+from stages.detect.backends import _quad_thresh_params, make_detector, median_tile_contrast
 from stages.detect.config import DetectConfig
 from tests.fixtures.tag_render import TagPlacement, look_at_tag, plumb_bob_camera, render_frame
 
@@ -53,3 +53,46 @@ def test_default_threshold_keeps_small_and_faint_tags(contrast: float) -> None:
     ids_default = {o.tag_id for o in make_detector(DetectConfig()).detect(frame)}
     assert len(ids_lib) >= 4
     assert ids_default == ids_lib
+
+
+def test_median_tile_contrast_follows_the_noise() -> None:
+    rng = np.random.default_rng(2)
+    assert median_tile_contrast(np.full((240, 320), 128, np.uint8)) == 0
+    for sigma in (1.5, 4.0, 8.0):
+        img = np.clip(np.rint(128 + rng.normal(0, sigma, (240, 320))), 0, 255).astype(np.uint8)
+        # range of 144 Gaussian samples (a 4x4 tile with its 8 neighbours): about 5.3 sigma
+        assert 4.5 * sigma <= median_tile_contrast(img) <= 6.2 * sigma
+
+
+def _faint_tags(noise_sigma: float, contrast: float, seed: int) -> np.ndarray:
+    cam = colmap_camera(CAMERA)
+    rng = np.random.default_rng(seed)
+    tags = [
+        TagPlacement(20 + k, "tag36h11", 0.16, look_at_tag(d, a, 5, 0, ((k % 3 - 1) * 0.9, (k // 3 - 0.5) * 0.5)))
+        for k, (d, a) in enumerate([(2.0, 10), (2.5, 30), (3.0, 0), (2.2, 45), (2.8, 20), (1.8, 50)])
+    ]
+    frame = render_frame(cam, tags, background=140.0, noise_sigma=0.0, rng=rng).astype(float)
+    frame = 140.0 + (frame - 140.0) * contrast / 200.0 + rng.normal(0, noise_sigma, frame.shape)
+    return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+
+
+def test_adaptive_threshold_rises_with_noise_and_keeps_the_tags() -> None:
+    """Clean frames keep the floor (15); noisy ones get 1.2 x their median tile contrast, and the faint tags in
+    them are still all found (what the library finds at its own threshold of 5)."""
+    det = make_detector(DetectConfig())
+    clean = _faint_tags(1.0, 120.0, 5)
+    det.detect(clean)
+    assert det.white_black_diff == 15  # type: ignore[attr-defined]
+    noisy = _faint_tags(4.0, 40.0, 6)
+    found = {o.tag_id for o in det.detect(noisy)}
+    assert det.white_black_diff == round(1.2 * median_tile_contrast(noisy)) > 15  # type: ignore[attr-defined]
+    library = {
+        o.tag_id for o in make_detector(DetectConfig(min_white_black_diff=5, adaptive_white_black_diff=0)).detect(noisy)
+    }
+    assert len(library) >= 4 and found >= library
+    capped = make_detector(DetectConfig(max_white_black_diff=18))
+    capped.detect(noisy)
+    assert capped.white_black_diff == 18  # type: ignore[attr-defined]
+    fixed = make_detector(DetectConfig(adaptive_white_black_diff=0))
+    fixed.detect(noisy)
+    assert fixed.white_black_diff == 15  # type: ignore[attr-defined]
