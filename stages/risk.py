@@ -351,22 +351,37 @@ def scan_clearance(
     nearest = order[_nearest_index(s_sorted, np.asarray(stamps_ns, dtype=np.int64))]
     gap_ok = np.abs(s_stamps[nearest] - stamps_ns) <= max_gap_s * 1e9
     rows, which = np.unique(nearest[gap_ok], return_inverse=True)
-    beams = scan_beams(scans, stamps_ns, poses, T_base_laser, rows)
-    returns = beams.hit
-    scan_of, ends = beams.scan[returns], beams.ends[returns]
-    first = np.searchsorted(scan_of, np.arange(len(rows) + 1))
-    for t, k in zip(np.flatnonzero(gap_ok), which.reshape(-1), strict=True):
-        p_map = ends[first[k] : first[k + 1]]
-        if len(p_map) == 0:
-            continue
-        x, y = poses[t, 0], poses[t, 1]
-        d = np.hypot(p_map[:, 0] - x, p_map[:, 1] - y)
-        j = int(np.argmin(d))
-        clearance[t] = d[j]
-        points[t] = p_map[j]
-        if d[j] > 0:
-            normals[t] = (p_map[j] - [x, y]) / d[j]
+    keyframes, which = np.flatnonzero(gap_ok), which.reshape(-1)
+    order = np.argsort(which, kind="stable")
+    keyframes, which = keyframes[order], which[order]
+    for a in range(0, len(rows), CLEARANCE_SCANS):  # a piece of the scans at a time: memory bounded, same numbers
+        beams = scan_beams(scans, stamps_ns, poses, T_base_laser, rows[a : a + CLEARANCE_SCANS])
+        scan_of, ends = beams.scan[beams.hit], beams.ends[beams.hit]
+        del beams
+        first = np.searchsorted(scan_of, np.arange(CLEARANCE_SCANS + 1))
+        lo, hi = np.searchsorted(which, [a, a + CLEARANCE_SCANS])
+        for t, k in zip(keyframes[lo:hi], which[lo:hi], strict=True):
+            _nearest_return(poses, t, ends[first[k - a] : first[k - a + 1]], clearance, normals, points)
     return clearance, normals, points
+
+
+CLEARANCE_SCANS = 512
+"""Scans placed at once by :func:`scan_clearance`."""
+
+
+def _nearest_return(
+    poses: FloatArray, t: int, p_map: FloatArray, clearance: FloatArray, normals: FloatArray, points: FloatArray
+) -> None:
+    """Keyframe ``t``'s nearest of the returns ``p_map`` into ``clearance``, ``normals`` and ``points``."""
+    if len(p_map) == 0:
+        return
+    x, y = poses[t, 0], poses[t, 1]
+    d = np.hypot(p_map[:, 0] - x, p_map[:, 1] - y)
+    j = int(np.argmin(d))
+    clearance[t] = d[j]
+    points[t] = p_map[j]
+    if d[j] > 0:
+        normals[t] = (p_map[j] - [x, y]) / d[j]
 
 
 def path_geometry(

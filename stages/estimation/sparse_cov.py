@@ -55,6 +55,7 @@ class SPDSolver:
         self.n = int(A.shape[0])
         self._lu: spla.SuperLU | None = None
         self._chol = None
+        self._wide = False  # a solve of several columns has been made (see ``__del__``)
         self.backend = backend or ("cholmod" if _HAVE_CHOLESPY else "superlu")
         if self.n == 0:
             return
@@ -110,8 +111,17 @@ class SPDSolver:
         if self._chol is not None:
             x = np.zeros_like(b)
             self._chol.solve(b, x)
+            self._wide = self._wide or (b.ndim == 2 and b.shape[1] > 1)
             return x
         return np.asarray(self._superlu().solve(b))
+
+    def __del__(self) -> None:
+        # cholespy 2.2 keeps a dense buffer of the last solve's size (n × columns) that its destructor does not
+        # free: every solver that solved many columns leaked them (500 MB over select_measurements' replay of a
+        # 16-minute recording). One last single-column solve shrinks the buffer to n values before the solver goes.
+        if getattr(self, "_wide", False) and self._chol is not None:
+            z = np.zeros(self.n)
+            self._chol.solve(z, np.zeros(self.n))
 
 
 def _variable_graph(info: SparseMatrix, offsets: IntArray) -> sp.csr_matrix:

@@ -216,3 +216,34 @@ def test_eq20_obstacles_are_the_deskewed_returns() -> None:
     assert np.abs(clearance - true_clearance).max() < 0.04  # the nearest of many noisy returns: biased by ~-2 sigma
     assert distance_to_walls(points, world.walls).max() < 0.04
     np.testing.assert_allclose(points, poses[:, :2] + clearance[:, None] * normals, atol=1e-9)
+
+
+def test_beams_and_clearance_in_pieces_are_the_same_numbers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """scan_beams and scan_clearance work a piece of the scans at a time (memory bounded on long recordings): any
+    piece size gives the same beams and clearances, bit for bit, as one piece, including a scan larger than a
+    piece and keyframes sharing a scan."""
+    import stages.laser
+    import stages.risk
+
+    cfg = SimConfig(path="office", laser_sweep=True)
+    world, traj = build_world(cfg), build_trajectory(cfg)
+    rng = np.random.default_rng(7)
+    scan_ns = [cfg.start_time_ns + round((6.0 + 0.1 * k) * 1e9) for k in range(23)]
+    scans = _scans_of([laser_scan(cfg, world.walls, traj, s, rng) for s in scan_ns])
+    key_ns = np.sort(np.r_[np.array(scan_ns) + 3 * 10**7, np.array(scan_ns[::4]) + 4 * 10**7])
+    poses = np.column_stack(traj.sample((key_ns - cfg.start_time_ns) * 1e-9)[:3])
+    _, T_bl = mount_transforms(cfg)
+    rows = [5, 2, 2, 17, 9, 0, 22]
+    whole = scan_beams(scans, key_ns, poses, T_bl, rows)
+    clear = scan_clearance(poses, key_ns, scans, T_bl, max_gap_s=0.06)
+    assert len(whole) > 1000 and np.isfinite(clear[0]).all()
+    for beams, scans_at_once in ((cfg.laser_beams // 3, 1), (cfg.laser_beams + 1, 4), (5 * cfg.laser_beams, 7)):
+        monkeypatch.setattr(stages.laser, "CHUNK_BEAMS", beams)
+        monkeypatch.setattr(stages.risk, "CLEARANCE_SCANS", scans_at_once)
+        part = scan_beams(scans, key_ns, poses, T_bl, rows)
+        for field in ("scan", "origins", "ends", "hit"):
+            np.testing.assert_array_equal(getattr(part, field), getattr(whole, field))
+        for a, b in zip(scan_clearance(poses, key_ns, scans, T_bl, max_gap_s=0.06), clear, strict=True):
+            np.testing.assert_array_equal(a, b)
+    empty = scan_beams(scans, key_ns, poses, T_bl, [])
+    assert empty.origins.shape == (0, 2) and empty.hit.dtype == bool
