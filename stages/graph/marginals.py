@@ -42,38 +42,45 @@ def tree_marginals(
     want = set(order)
     tree = linear.eliminateMultifrontal()
     out: dict[int, np.ndarray] = {}
-    with single_threaded_blas():  # thousands of tiny triangular solves: threads only wait on each other
-        stack: list[tuple[gtsam.GaussianBayesTreeClique, dict[int, slice] | None, np.ndarray | None]] = [
-            (root, None, None) for root in tree.roots()
-        ]
+    trtri = sla.lapack.dtrtri  # R⁻¹ of a small upper-triangular R, without solve_triangular's checks
+    # each clique is handed its parent's covariance and, per key of the parent, that key's indices in it
+    stack: list[tuple[gtsam.GaussianBayesTreeClique, dict[int, int], np.ndarray]] = [
+        (root, {}, np.zeros((0, 0))) for root in tree.roots()
+    ]
+    with single_threaded_blas():  # thousands of tiny products: threads only wait on each other
         while stack:
             clique, parent_at, parent_cov = stack.pop()
             cond = clique.conditional()
             ks = [int(k) for k in cond.keys()]  # noqa: SIM118 (a gtsam KeyVector)
             R = np.asarray(cond.R(), dtype=float)
-            n_front, n_frontals = R.shape[0], 0
-            while sum(dims[k] for k in ks[:n_frontals]) < n_front:
-                n_frontals += 1
-            r_inv = sla.solve_triangular(R, np.eye(n_front), lower=False)
-            if n_frontals < len(ks):
-                assert parent_at is not None and parent_cov is not None  # a clique with a separator has a parent
-                sep = np.concatenate([np.arange(parent_at[k].start, parent_at[k].stop) for k in ks[n_frontals:]])
-                cov_ss = parent_cov[np.ix_(sep, sep)]
-                a = r_inv @ np.asarray(cond.S(), dtype=float)
-                cov_fs = -a @ cov_ss
-                cov = np.block([[r_inv @ r_inv.T - cov_fs @ a.T, cov_fs], [cov_fs.T, cov_ss]])
-            else:
-                cov = r_inv @ r_inv.T
-            at: dict[int, slice] = {}
+            n_front = R.shape[0]
+            r_inv, info = trtri(R, lower=0)
+            if info != 0:
+                raise RuntimeError(f"indeterminant linear system: a zero pivot in the clique of {ks[0]}")
+            at: dict[int, int] = {}  # where each key's block starts in this clique's covariance
             start = 0
             for k in ks:
-                at[k] = slice(start, start + dims[k])
+                at[k] = start
                 start += dims[k]
-            for k in ks[:n_frontals]:
+            cov = np.empty((start, start))
+            cov[:n_front, :n_front] = r_inv @ r_inv.T
+            if start > n_front:  # a separator: its covariance is a block of the parent's
+                sep = [j for k in ks if at[k] >= n_front for j in range(parent_at[k], parent_at[k] + dims[k])]
+                cov_ss = parent_cov[sep][:, sep]
+                a = r_inv @ np.asarray(cond.S(), dtype=float)
+                cov_fs = -a @ cov_ss
+                cov[:n_front, :n_front] -= cov_fs @ a.T
+                cov[:n_front, n_front:] = cov_fs
+                cov[n_front:, :n_front] = cov_fs.T
+                cov[n_front:, n_front:] = cov_ss
+            for k in ks:
+                i = at[k]
+                if i >= n_front:
+                    break
                 if k in want:
-                    block = cov[at[k], at[k]]
+                    block = cov[i : i + dims[k], i : i + dims[k]]
                     out[k] = 0.5 * (block + block.T)
-            stack.extend((clique[i], at, cov) for i in range(clique.nrChildren()))
+            stack.extend((clique[c], at, cov) for c in range(clique.nrChildren()))
     if missing := sorted(want - set(out)):
         raise RuntimeError(f"variables {missing[:5]} are not in the graph, so have no marginal")
     return {k: out[k] for k in order}  # in the order asked
