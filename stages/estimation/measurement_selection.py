@@ -40,7 +40,7 @@ leaves unobserved have finite, comparable first gains.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -129,8 +129,7 @@ def _compact_problem(
     sub = LinearSystem(variables, factors)
     nb = len(base)
     landmark_vars = sub.variables_of_kind("landmark")
-    weak = landmark_vars + _unanchored_poses(sub, nb, landmark_vars)
-    prior = sub.diagonal_prior(weak, landmark_prior_sigma) if weak else sp.csc_matrix((sub.dim, sub.dim))
+    prior = weak_prior(sub, range(nb), landmark_prior_sigma)
     info0 = sp.csc_matrix(sub.information(range(nb)) + prior)
     return _Problem(
         sub,
@@ -143,9 +142,17 @@ def _compact_problem(
     )
 
 
-def _unanchored_poses(sub: LinearSystem, n_base: int, landmark_vars: Sequence[int]) -> list[int]:
-    """The first pose of every group of variables that the base factors (the first ``n_base``) link but do not
-    anchor: no unary base factor and no landmark (whose weak prior anchors it) among them.
+def weak_prior(system: LinearSystem, base: Iterable[int], landmark_prior_sigma: float) -> sp.csc_matrix:
+    """The weak prior of ``Λ₀``: ``landmark_prior_sigma`` (rotation capped, :func:`landmark_prior_sigmas`) on every
+    landmark, and on the first pose of every group that the ``base`` factors leave without an anchor."""
+    landmark_vars = system.variables_of_kind("landmark")
+    weak = landmark_vars + _unanchored_poses(system, list(base), landmark_vars)
+    return system.diagonal_prior(weak, landmark_prior_sigma) if weak else sp.csc_matrix((system.dim, system.dim))
+
+
+def _unanchored_poses(sub: LinearSystem, base: Sequence[int], landmark_vars: Sequence[int]) -> list[int]:
+    """The first pose of every group of variables that the ``base`` factors link but do not anchor: no unary base
+    factor and no landmark (whose weak prior anchors it) among them.
 
     Such a group has a free gauge in ``Λ₀`` (a camera-only rig whose only prior is on a surveyed tag: the poses hang
     on the tag through candidate measurements alone), so ``Λ₀`` would be singular. The weak prior put on its first
@@ -157,8 +164,8 @@ def _unanchored_poses(sub: LinearSystem, n_base: int, landmark_vars: Sequence[in
     rows, cols = [], []
     anchored = np.zeros(n_var, dtype=bool)
     anchored[list(landmark_vars)] = True
-    for f in sub.factors[:n_base]:
-        vs = f.variables
+    for b in base:
+        vs = sub.factors[b].variables
         if len(vs) == 1:
             anchored[vs[0]] = True
         rows += [vs[0]] * len(vs)

@@ -23,8 +23,9 @@ own APE is printed beside ours as an oracle; evo is not a dependency of focusmap
 
 ``--set`` passes settings on to every case's command. ``--through-evaluate`` runs every stage up to evaluate, with
 the landmark selection these camera-only recordings can run (no laser: ``select_landmarks.strategy=
-mutual-information``), and prints a second table: each stage's ``seconds`` from its ``summary.json`` (stages that
-were up to date and skipped show the time of the run that made them).
+mutual-information``) and navigation off (no walls: ``evaluate.trials=0``), and prints a second table: each
+stage's ``seconds`` from its ``summary.json`` (stages that were up to date and skipped show the time of the run that
+made them).
 """
 
 from __future__ import annotations
@@ -273,13 +274,13 @@ def main() -> None:
     parser.add_argument(
         "--through-evaluate",
         action="store_true",
-        help="run up to evaluate with select_landmarks.strategy=mutual-information; print each stage's seconds",
+        help="run up to evaluate (mutual-information landmarks, evaluate.trials=0); print each stage's seconds",
     )
     args = parser.parse_args()
     settings = tuple(args.settings)
     if args.through_evaluate:
         args.until = "evaluate"
-        settings = ("select_landmarks.strategy=mutual-information", *settings)
+        settings = ("select_landmarks.strategy=mutual-information", "evaluate.trials=0", *settings)
     if not SHARED.exists():
         raise SystemExit(f"the shared TagSLAM cases are not present: {SHARED}")
     cases = [c for c in CASES if c.name in args.cases]
