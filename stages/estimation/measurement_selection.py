@@ -40,7 +40,7 @@ leaves unobserved have finite, comparable first gains.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -48,6 +48,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg as sla
 import scipy.sparse as sp
+from scipy.sparse import csgraph
 
 from stages.estimation.blas import single_threaded_blas
 from stages.estimation.gaussian import entropy_from_logdet
@@ -128,9 +129,7 @@ def _compact_problem(
     sub = LinearSystem(variables, factors)
     nb = len(base)
     landmark_vars = sub.variables_of_kind("landmark")
-    prior = (
-        sub.diagonal_prior(landmark_vars, landmark_prior_sigma) if landmark_vars else sp.csc_matrix((sub.dim, sub.dim))
-    )
+    prior = weak_prior(sub, range(nb), landmark_prior_sigma)
     info0 = sp.csc_matrix(sub.information(range(nb)) + prior)
     return _Problem(
         sub,
@@ -141,6 +140,46 @@ def _compact_problem(
         info0,
         landmark_vars,
     )
+
+
+def weak_prior(system: LinearSystem, base: Iterable[int], landmark_prior_sigma: float) -> sp.csc_matrix:
+    """The weak prior of ``Λ₀``: ``landmark_prior_sigma`` (rotation capped, :func:`landmark_prior_sigmas`) on every
+    landmark, and on the first pose of every group that the ``base`` factors leave without an anchor."""
+    landmark_vars = system.variables_of_kind("landmark")
+    weak = landmark_vars + _unanchored_poses(system, list(base), landmark_vars)
+    return system.diagonal_prior(weak, landmark_prior_sigma) if weak else sp.csc_matrix((system.dim, system.dim))
+
+
+def _unanchored_poses(sub: LinearSystem, base: Sequence[int], landmark_vars: Sequence[int]) -> list[int]:
+    """The first pose of every group of variables that the ``base`` factors link but do not anchor: no unary base
+    factor and no landmark (whose weak prior anchors it) among them.
+
+    Such a group has a free gauge in ``Λ₀`` (a camera-only rig whose only prior is on a surveyed tag: the poses hang
+    on the tag through candidate measurements alone), so ``Λ₀`` would be singular. The weak prior put on its first
+    pose fixes the gauge as loosely as the landmarks' weak prior does; a graph whose base is anchored (a prior on the
+    first pose) gets none, and its numbers do not change."""
+    if sub.dim == 0:
+        return []
+    n_var = len(sub.variables)
+    rows, cols = [], []
+    anchored = np.zeros(n_var, dtype=bool)
+    anchored[list(landmark_vars)] = True
+    for b in base:
+        vs = sub.factors[b].variables
+        if len(vs) == 1:
+            anchored[vs[0]] = True
+        rows += [vs[0]] * len(vs)
+        cols += list(vs)
+    link = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_var, n_var))
+    n_comp, label = csgraph.connected_components(link, directed=False)
+    held = np.zeros(n_comp, dtype=bool)
+    held[label[anchored]] = True
+    out: list[int] = []
+    for v, var in enumerate(sub.variables):
+        if var.kind == "pose" and not held[label[v]]:
+            out.append(v)
+            held[label[v]] = True
+    return out
 
 
 def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:
@@ -270,6 +309,11 @@ class TrackerOptions:
     through the weak prior (the pick that makes ``C`` ill-conditioned, cond ~1e6). Not needed for exactness once
     ``C`` is kept as a Cholesky factor (measured: same picks, gains within 1e-8 of the dense reference either
     way), and costly when most picks are first observations."""
+    recompute_tol: float = 1e-4
+    """Nats: when the pick is in doubt by more than this (its gain's error bound, :class:`_Precision`, or another
+    candidate within the bounds), the tracked quantities are recomputed from the information of the picks so far.
+    ``inf``: never (the bare downdates). Measured (bench graph, K=1000): 1e-6 needs 25 recomputations of ~1,000
+    candidates each (4x the time), 1e-4 15 (2x), with the same picks."""
 
 
 class _Refactorising:
@@ -488,6 +532,16 @@ def _det_eye_plus_sym(U: FloatArray, m: int) -> FloatArray:
     return np.where(sign > 0, np.exp(ld), 0.0)
 
 
+def _slogdet_eye_plus_sym(U: FloatArray, m: int) -> tuple[FloatArray, FloatArray]:
+    """Sign and ``log det(I + M_c)`` for symmetric ``M_c`` stored as its upper triangle (``(m(m+1)/2, N)``)."""
+    full = np.empty((U.shape[1], m, m))
+    for k, (a, b) in enumerate(_sym_pairs(m)):
+        full[:, a, b] = U[k]
+        full[:, b, a] = U[k]
+    full += np.eye(m)[None]
+    return np.linalg.slogdet(full)
+
+
 def _inv_at_least_identity(A: FloatArray) -> FloatArray:
     """Inverse of ``T = I + A Σ Aᵀ`` or ``E = I + A Σ_{·|F} Aᵀ``, both ``⪰ I`` exactly.
 
@@ -556,8 +610,125 @@ class _Gains:
     picked: npt.NDArray[np.bool_]
 
 
-def _initial_gains(prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates) -> _Gains:
-    """``M_c = A_c Σ₀ A_cᵀ`` and ``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c`` with ``U_c = W Σ₀ A_cᵀ`` (from the focused columns)."""
+def _solve_accuracy(info: sp.csc_matrix, solver: SPDSolver) -> float:
+    """The relative forward error of a solve with ``info`` (max-norm), estimated from one probe: ``x = Λ⁻¹ b``, then
+    ``Λ⁻¹ (b − Λ x)``, over ``|x|``. Covariances computed from ``info`` carry absolute errors of this times their
+    size; the tracked ``M_c``, ``K_c``, ``Σ_F`` keep those absolute errors while picks shrink them."""
+    n = int(info.shape[0])
+    if n == 0:
+        return float(np.finfo(float).eps)
+    b = np.random.default_rng(0).standard_normal(n)
+    x = solver.solve(b)
+    e = solver.solve(b - info @ x)
+    return max(float(np.max(np.abs(e)) / max(float(np.max(np.abs(x))), 1e-300)), float(np.finfo(float).eps))
+
+
+RESET_FRACTION = 0.01
+"""A recomputation also refreshes the candidates whose bound is above this fraction of the tolerance, so that they
+do not cause the next one soon after."""
+
+
+@dataclass
+class _Precision:
+    """When the tracked ``M_c``, ``K_c`` and ``Σ_F`` have lost too many digits to the downdates.
+
+    Each is a covariance computed from an information matrix (``Λ₀``, or ``Λ_S`` at a recomputation) with a relative
+    error ``delta`` (:func:`_solve_accuracy`, about ``cond · ε``), then only downdated (``M_c −= g T⁻¹ gᵀ``, ...): its
+    absolute error stays ``delta × its size then`` while the picks shrink its value. A gain reads
+    ``log det(I + M_c)``, so its error is at most about ``½ m delta · peak / (1 + now)`` over the diagonal (for
+    ``M_c`` and ``K_c``); ``Σ_F`` is inverted (``P``), so its error is relative, ``delta · peak / now``.
+
+    The greedy recomputes, from the information of the picks so far (:func:`_exact_gains`), the candidates whose bound
+    exceeds ``tol`` whenever the pick is in doubt (its own bound above ``tol``, or another candidate within the
+    bounds), and ``Σ_F`` before ``P`` is re-inverted from it. On camera-only 3D rigs (6-dof tags to millimetres,
+    poses tied only by a weak motion prior, a weak landmark prior) ``delta`` is ~1e-9 and ``M_c`` falls from ~1e10 to
+    ~10 when a tag is first measured: the downdated gains were then wrong by more than they were worth (3.5 nats of
+    drift after 60 picks on a 300-pose rig, picks other than Alg. 1's from the 13th). On well-conditioned graphs
+    (the planar sample: ``delta`` ~1e-13) the bounds stay far below ``tol`` and nothing is recomputed."""
+
+    delta: FloatArray
+    """Per candidate, the accuracy of the information its ``M_c``, ``K_c`` were last computed from."""
+    peak_m: FloatArray
+    peak_k: FloatArray
+    delta_f: float
+    peak_f: FloatArray
+    diag: list[int]
+    tol: float = 1e-4
+    recomputations: int = 0
+    recomputed: int = 0
+    """Candidates recomputed, summed over the recomputations."""
+
+    @classmethod
+    def of(cls, g: _Gains, delta: float, tol: float = 1e-4) -> _Precision:
+        diag = [k for k, (a, b) in enumerate(g.pairs) if a == b]
+        n = g.Mu.shape[1]
+        return cls(np.full(n, delta), g.Mu[diag].copy(), g.Ku[diag].copy(), delta, np.diag(g.SF).copy(), diag, tol)
+
+    def bounds(self, g: _Gains) -> FloatArray:
+        """Per candidate, a bound (nats) on its gain's error (``|Δ log det(I + M)| ≤ tr((I + M)⁻¹ ΔM)``)."""
+        d = self.diag
+        em = np.max(self.peak_m / (1.0 + np.abs(g.Mu[d])), axis=0)
+        ek = np.max(self.peak_k / (1.0 + np.abs(g.Ku[d])), axis=0)
+        return 0.5 * g.m * self.delta * (em + ek)
+
+    def in_doubt(self, gain: FloatArray, j: int, g: _Gains) -> npt.NDArray[np.bool_] | None:
+        """The candidates to recompute when the pick ``j`` could be wrong or its gain off by more than ``tol`` (its
+        bound above ``tol``, or another candidate's gain could exceed it within the bounds), else None."""
+        e = self.bounds(g)
+        e[g.picked] = 0.0
+        upper = gain + e
+        upper[j] = -np.inf
+        if e[j] <= self.tol and not upper.max() > gain[j] - e[j] + self.tol:
+            return None
+        return e > self.tol * RESET_FRACTION
+
+    def focused_lost(self, g: _Gains) -> bool:
+        """``Σ_F`` has lost more than ``tol`` relatively (it is about to be inverted for ``P``)."""
+        sf = np.diag(g.SF)
+        return bool(sf.size and float(np.max(self.delta_f * self.peak_f / np.maximum(sf, 1e-300))) > self.tol)
+
+    def reset(self, g: _Gains, which: IntArray, delta: float) -> None:
+        """``which`` candidates and ``Σ_F`` were just recomputed from an information of accuracy ``delta``."""
+        self.delta[which] = delta
+        self.peak_m[:, which] = g.Mu[self.diag][:, which]
+        self.peak_k[:, which] = g.Ku[self.diag][:, which]
+        self.delta_f, self.peak_f = delta, np.diag(g.SF).copy()
+        self.recomputations += 1
+        self.recomputed += len(which)
+
+
+def _exact_gains(
+    prob: _Problem, c: _Candidates, g: _Gains, info: sp.csc_matrix, solver: SPDSolver, which: IntArray
+) -> tuple[FloatArray, float]:
+    """Recompute ``Σ_F``, ``P`` and the ``which`` candidates' ``M_c``, ``K_c`` in ``g`` from ``info`` (``Λ₀`` plus
+    the picks, factorised by ``solver``); returns ``Σ[:, F]`` and the solve's accuracy."""
+    n = prob.system.dim
+    if prob.full_focus:
+        XF, SF = np.zeros((n, 0)), np.zeros((0, 0))
+    else:
+        XF, SF = _focused_cov(solver, n, prob.system.columns(prob.focused))
+    g.SF, g.P = SF, _sym_inv(SF)
+    for s in range(0, len(which), 256):  # Σ A_cᵀ by solves, m right-hand sides per candidate
+        k = which[s : s + 256]
+        Ac, cols = c.Ac[k], c.cols[k]
+        nk, m, _ = Ac.shape
+        rhs = np.zeros((n, nk, m))
+        np.add.at(rhs, (cols, np.arange(nk)[:, None]), np.swapaxes(Ac, 1, 2))
+        X = solver.solve(rhs.reshape(n, nk * m)).reshape(n, nk, m)
+        M = Ac @ X[cols, np.arange(nk)[:, None]]  # (nk, m, m)
+        U = np.einsum("ndf,nad->nfa", XF[cols], Ac)
+        K = M - np.einsum("nfa,fg,ngb->nab", U, g.P, U, optimize=True)
+        for q, (a, b) in enumerate(g.pairs):
+            g.Mu[q, k] = 0.5 * (M[:, a, b] + M[:, b, a])
+            g.Ku[q, k] = 0.0 if prob.full_focus else 0.5 * (K[:, a, b] + K[:, b, a])
+    return XF, _solve_accuracy(info, solver)
+
+
+def _gain_blocks(
+    prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Upper triangles of ``M_c = A_c Σ A_cᵀ`` and ``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c`` (``U_c = W Σ A_cᵀ``, from the focused
+    columns ``XF``) for ``Σ = prob.info0⁻¹``, and ``P = Σ_F⁻¹``."""
     Ac, cols = c.Ac, c.cols
     N, m, d = Ac.shape
     Sig_c = _clique_covariances(prob.info0, prob.system, c.index, d, None, solver=solver)
@@ -572,21 +743,40 @@ def _initial_gains(prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatA
     Ku = np.ascontiguousarray(np.stack([K0[:, a, b] for a, b in pairs]))
     if prob.full_focus:
         Ku[:] = 0.0  # K_c = A_c Σ_{·|F} A_cᵀ = 0: the candidates touch only focused columns
-    B = _candidate_operator(Ac, c.pos, len(c.rows))
-    return _Gains(Mu, Ku, SF, P, B, pairs, m, np.zeros(N, dtype=bool))
+    return Mu, Ku, P
+
+
+def _initial_gains(prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates) -> _Gains:
+    """``M_c``, ``K_c`` (:func:`_gain_blocks`) under ``Λ₀``, and the operator ``B``."""
+    Mu, Ku, P = _gain_blocks(prob, solver, XF, SF, c)
+    B = _candidate_operator(c.Ac, c.pos, len(c.rows))
+    m = c.Ac.shape[1]
+    return _Gains(Mu, Ku, SF, P, B, _sym_pairs(m), m, np.zeros(len(c.index), dtype=bool))
 
 
 def _best_gain(g: _Gains) -> tuple[int, float]:
     """The unpicked candidate of largest ``½ log det(I + M_c) − ½ log det(I + K_c)`` (first on ties)."""
-    det_m = _det_eye_plus_sym(g.Mu, g.m)
-    det_k = _det_eye_plus_sym(g.Ku, g.m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gain = 0.5 * np.log(det_m / det_k)
-    if not (det_m.min() > 0 and det_k.min() > 0):  # not PD: log det = inf (as for a singular block)
-        gain = np.where(det_k <= 0, -np.inf, np.where(det_m <= 0, np.inf, gain))
-    gain[g.picked] = -np.inf
+    gain = _all_gains(g)
     j = int(np.argmax(gain))
     return j, float(gain[j])
+
+
+def _all_gains(g: _Gains) -> FloatArray:
+    """``½ log det(I + M_c) − ½ log det(I + K_c)`` of every candidate, ``-inf`` for the picked ones."""
+    if g.m > 3:  # log-determinants: a 6-dof tag under the weak priors has det(I + M_c) beyond float range
+        sm, ld_m = _slogdet_eye_plus_sym(g.Mu, g.m)
+        sk, ld_k = _slogdet_eye_plus_sym(g.Ku, g.m)
+        gain = 0.5 * (ld_m - ld_k)
+        gain = np.where(sk <= 0, -np.inf, np.where(sm <= 0, np.inf, gain))
+    else:
+        det_m = _det_eye_plus_sym(g.Mu, g.m)
+        det_k = _det_eye_plus_sym(g.Ku, g.m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = 0.5 * np.log(det_m / det_k)
+        if not (det_m.min() > 0 and det_k.min() > 0):  # not PD: log det = inf (as for a singular block)
+            gain = np.where(det_k <= 0, -np.inf, np.where(det_m <= 0, np.inf, gain))
+    gain[g.picked] = -np.inf
+    return gain
 
 
 @dataclass
@@ -729,6 +919,7 @@ def _greedy(
     budget: int,
     refactor_every: int | None,
     options: TrackerOptions,
+    delta0: float,
 ) -> tuple[list[int], list[float], dict[str, float]]:
     """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain."""
     fcols = prob.system.columns(prob.focused)
@@ -742,8 +933,9 @@ def _greedy(
 
     picks: list[int] = []
     gains: list[float] = []
-    t_update = t_gain = 0.0
+    t_update = t_gain = t_exact = 0.0
     t_loop = time.perf_counter()
+    precision = _Precision.of(g, delta0, options.recompute_tol)
     with single_threaded_blas():
         tracker: _Tracker | _CapacitanceTracker
         if capacitance:
@@ -751,9 +943,38 @@ def _greedy(
             tracker = _capacitance_tracker(prob, add_info, g.m, c.Ac.shape[2], fcols, refactor_every, options)
         else:
             tracker = _Tracker(info_t, rows_t, g.m, add_info, refactor_every)
+
+        info_s, n_folded = prob.info0, 0
+
+        def recompute(which: npt.NDArray[np.bool_]) -> None:
+            """``Σ_F`` and the ``which`` candidates again from the information of the picks so far
+            (see :class:`_Precision`)."""
+            nonlocal Yt, t_exact, info_s, n_folded
+            tr = time.perf_counter()
+            if tracker.window:
+                tracker._refactorise()
+            if isinstance(tracker, _CapacitanceTracker):  # its factor is of Λ₀ plus every pick now
+                info_s, solver = tracker.info, tracker.solver
+            else:
+                info_s = sp.csc_matrix(info_s + prob.system.information([c.index[i] for i in picks[n_folded:]]))
+                solver = SPDSolver(info_s)
+            n_folded = len(picks)
+            XF, delta = _exact_gains(prob, c, g, info_s, solver, np.flatnonzero(which & ~g.picked))
+            if Yt is not None:
+                Yt = np.ascontiguousarray(XF[c.rows].T)
+            precision.reset(g, np.flatnonzero(which & ~g.picked), delta)
+            t_exact += time.perf_counter() - tr
+
         for _ in range(budget):
             tg = time.perf_counter()
-            j, gain = _best_gain(g)
+            gain_all = _all_gains(g)
+            j = int(np.argmax(gain_all))
+            doubt = precision.in_doubt(gain_all, j, g)
+            if doubt is not None:
+                recompute(doubt)
+                gain_all = _all_gains(g)
+                j = int(np.argmax(gain_all))
+            gain = float(gain_all[j])
             t_gain += time.perf_counter() - tg
             picks.append(j)
             gains.append(gain)
@@ -773,8 +994,17 @@ def _greedy(
             else:
                 refactorised = tracker.add(j, st.Vt, st.Tinv)
             if refactorised:
-                g.P = _sym_inv(g.SF)
+                if precision.focused_lost(g):
+                    recompute(np.zeros(len(g.picked), dtype=bool))
+                else:
+                    g.P = _sym_inv(g.SF)
     stats |= {"loop_s": time.perf_counter() - t_loop, "update_s": t_update, "gain_s": t_gain}
+    stats |= {
+        "recomputations": float(precision.recomputations),
+        "recomputed_candidates": float(precision.recomputed),
+        "recompute_s": t_exact,
+        "solve_delta": delta0,
+    }
     stats |= _tracker_stats(tracker)
     stats["solve_s"] = stats["loop_s"] - t_update
     stats |= {"tracked_rows": float(len(c.rows)), "reduced": float(rows_t is None), "capacitance": float(capacitance)}
@@ -864,7 +1094,9 @@ def select_information(
     Yt = np.ascontiguousarray(XF[c.rows].T) if len(fcols) <= options.track_focused_max else None
     del XF
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
-    js, gains, loop_stats = _greedy(prob, c, g, Yt, budget, refactor_every, options)
+    js, gains, loop_stats = _greedy(
+        prob, c, g, Yt, budget, refactor_every, options, _solve_accuracy(prob.info0, solver)
+    )
     stats |= loop_stats
     picks = [cand[j] for j in js]
     # the running entropy is h0 - Σ gains; the exact one takes one more factorisation. They differ when rounding in the

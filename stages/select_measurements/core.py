@@ -33,6 +33,7 @@ from stages.estimation.measurement_selection import (
     select_leverage,
     select_random,
     select_uniform,
+    weak_prior,
 )
 from stages.estimation.sparse_cov import SPDSolver, logdet_spd
 from stages.select_measurements.config import SelectMeasurementsConfig
@@ -244,12 +245,10 @@ def focused_covariances(
 ) -> tuple[list[FloatArray], float]:
     """Marginal covariance (tangent) of each focused variable and the focused entropy (nats), given the factors.
 
-    One sparse factorisation of ``Λ = Σ_{base + picks} AᵀA + σ⁻² I`` (landmarks) and one solve with the
-    focused columns; no dense ``n × n`` matrix.
+    One sparse factorisation of ``Λ = Σ_{base + picks} AᵀA`` + the weak prior (:func:`weak_prior`) and one solve
+    with the focused columns; no dense ``n × n`` matrix.
     """
-    info = system.information(list(base) + list(picks)) + system.diagonal_prior(
-        system.variables_of_kind("landmark"), landmark_prior_sigma
-    )
+    info = system.information(list(base) + list(picks)) + weak_prior(system, base, landmark_prior_sigma)
     cols = system.columns(focused)
     E = np.zeros((system.dim, len(cols)))
     E[cols, np.arange(len(cols))] = 1.0

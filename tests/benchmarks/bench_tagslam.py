@@ -1,7 +1,8 @@
 """ATE of focusmap's trajectory against TagSLAM's own on every shared TagSLAM regression case.
 
     python tests/benchmarks/bench_tagslam.py [--cases test_1 test_2 ...] [--work DIR] [--timeout 1800]
-                                             [--until graph] [--without-tags]
+                                             [--until graph] [--without-tags] [--set SECTION.KEY=VALUE ...]
+                                             [--through-evaluate]
 
 For each case in ``../shared/data/tagslam-test`` the recording (``tag_detections.bag.bz2``) and TagSLAM's
 result (``reference.bag.bz2``, topic ``/tagslam/odom/body_rig``) are decompressed into a temporary folder, and
@@ -19,6 +20,12 @@ off when a tag frame convention is wrong), the path length of TagSLAM's matched 
 max(5 cm, 1 % of that path). When the ``evo`` package imports
 (e.g. ``pip install --no-deps --target /tmp/evo_pkg evo`` and ``PYTHONPATH=$PYTHONPATH:/tmp/evo_pkg``), evo's
 own APE is printed beside ours as an oracle; evo is not a dependency of focusmap.
+
+``--set`` passes settings on to every case's command. ``--through-evaluate`` runs every stage up to evaluate, with
+the landmark selection these camera-only recordings can run (no laser: ``select_landmarks.strategy=
+mutual-information``) and navigation off (no walls: ``evaluate.trials=0``), and prints a second table: each
+stage's ``seconds`` from its ``summary.json`` (stages that were up to date and skipped show the time of the run that
+made them).
 """
 
 from __future__ import annotations
@@ -172,19 +179,37 @@ class Row:
     unaligned_m: float | None = None
     path_m: float | None = None
     matched: int = 0
+    stage_seconds: dict[str, float | None] | None = None
 
     @property
     def target_m(self) -> float | None:
         return None if self.path_m is None else max(0.05, 0.01 * self.path_m)
 
 
-def run_case(case: Case, work: Path, until: str, timeout: float, with_tags: bool = True) -> Row:
+STAGES = ("ingest", "detect", "graph", "select_landmarks", "select_measurements", "optimize", "evaluate")
+
+
+def stage_seconds(run: Path) -> dict[str, float | None]:
+    """Each stage's ``seconds`` from its ``summary.json`` in the run folder (None: not run)."""
+    import json
+
+    out: dict[str, float | None] = {}
+    for stage in STAGES:
+        path = run / stage / "summary.json"
+        out[stage] = json.loads(path.read_text()).get("seconds") if path.exists() else None
+    return out
+
+
+def run_case(
+    case: Case, work: Path, until: str, timeout: float, with_tags: bool = True, settings: tuple[str, ...] = ()
+) -> Row:
     folder = SHARED / case.name
     bag_folder = SHARED / (case.bag_of or case.name)
     bag_name = case.bag_of or case.name
     bag = decompress(bag_folder / "tag_detections.bag.bz2", work / "bags" / bag_name / "tag_detections.bag")
     ref_bag = decompress(folder / "reference.bag.bz2", work / "bags" / case.name / "reference.bag")
     args = [a.replace("{shared}", str(SHARED)) for a in (case.args if with_tags else case.without_tags)]
+    args += [a for kv in settings for a in ("--set", kv)]
     out = work / "runs"
     cmd = ["focusmap", "run", str(bag), "--out", str(out), "--name", case.name, "--until", until, *args]
     shown = " ".join(
@@ -194,15 +219,16 @@ def run_case(case: Case, work: Path, until: str, timeout: float, with_tags: bool
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=os.environ.copy())
     except subprocess.TimeoutExpired:
-        return Row(case.name, shown, f"timeout after {timeout:.0f} s")
+        return Row(case.name, shown, f"timeout after {timeout:.0f} s", stage_seconds=stage_seconds(out / case.name))
     if proc.returncode != 0:
         lines = [ln for ln in proc.stderr.splitlines() + proc.stdout.splitlines() if ln.startswith("error")]
-        return Row(case.name, shown, (lines or proc.stderr.strip().splitlines()[-1:] or ["failed"])[0])
+        status = (lines or proc.stderr.strip().splitlines()[-1:] or ["failed"])[0]
+        return Row(case.name, shown, status, stage_seconds=stage_seconds(out / case.name))
     warnings = [ln.strip() for ln in proc.stderr.splitlines() if ln.strip().startswith("warning:")]
     t_ref, xyz_ref = read_reference(ref_bag)
     status = "solved" + (f" ({len(warnings)} warnings)" if warnings else "")
     if len(t_ref) == 0:
-        return Row(case.name, shown, status + "; reference empty")
+        return Row(case.name, shown, status + "; reference empty", stage_seconds=stage_seconds(out / case.name))
     t_est, xyz_est = read_tum(out / case.name / "graph" / "trajectory.tum")
     i_est, i_ref = match_stamps(t_est, t_ref)
     if len(i_est) < 3:
@@ -216,11 +242,16 @@ def run_case(case: Case, work: Path, until: str, timeout: float, with_tags: bool
         unaligned_m=float(np.sqrt(np.mean(np.sum((xyz_est[i_est] - xyz_ref[i_ref]) ** 2, axis=1)))),
         path_m=path_length(xyz_ref[i_ref]),
         matched=len(i_est),
+        stage_seconds=stage_seconds(out / case.name),
     )
 
 
 def _m(v: float | None) -> str:
     return "—" if v is None else f"{v:.3f}"
+
+
+def _s(v: float | None) -> str:
+    return "—" if v is None else f"{v:.1f} s"
 
 
 def main() -> None:
@@ -232,7 +263,24 @@ def main() -> None:
     parser.add_argument(
         "--without-tags", action="store_true", help="the commands without --tags (tag sizes as settings)"
     )
+    parser.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="passed on (repeatable)",
+    )
+    parser.add_argument(
+        "--through-evaluate",
+        action="store_true",
+        help="run up to evaluate (mutual-information landmarks, evaluate.trials=0); print each stage's seconds",
+    )
     args = parser.parse_args()
+    settings = tuple(args.settings)
+    if args.through_evaluate:
+        args.until = "evaluate"
+        settings = ("select_landmarks.strategy=mutual-information", "evaluate.trials=0", *settings)
     if not SHARED.exists():
         raise SystemExit(f"the shared TagSLAM cases are not present: {SHARED}")
     cases = [c for c in CASES if c.name in args.cases]
@@ -240,7 +288,7 @@ def main() -> None:
         work = args.work or Path(tmp)
         rows = []
         for case in cases:
-            row = run_case(case, work, args.until, args.timeout, not args.without_tags)
+            row = run_case(case, work, args.until, args.timeout, not args.without_tags, settings)
             rows.append(row)
             print(f"{row.case}: {row.status} ATE {_m(row.ate_m)} m", file=sys.stderr, flush=True)
     print("| case | command | status | ATE m | evo APE m | in frame m | path m | target m | within |")
@@ -252,6 +300,13 @@ def main() -> None:
             f"{_m(r.path_m)} | "
             f"{_m(r.target_m)} | {within} |"
         )
+    if args.through_evaluate or args.settings:
+        print()
+        print("| case | " + " | ".join(STAGES) + " |")
+        print("|---|" + "---|" * len(STAGES))
+        for r in rows:
+            secs = r.stage_seconds or {}
+            print(f"| {r.case} | " + " | ".join(_s(secs.get(st)) for st in STAGES) + " |")
 
 
 if __name__ == "__main__":
