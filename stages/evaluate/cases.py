@@ -245,7 +245,7 @@ class EvalInputs:
         if red.focused_tag_ids != sorted({int(t) for t in self.focus}):
             return None
         rows, tagset = self.loaded.rows, set(red.focused_tag_ids)
-        kept = {int(i) for i in red.full_index if rows[int(i)].kind == "tag"}
+        kept = {int(i) for i in red.full_index if i >= 0 and rows[int(i)].kind == "tag"}
         wanted = {int(i) for i in selected if rows[int(i)].kind == "tag" and rows[int(i)].tag_id in tagset}
         return red if kept == wanted else None
 
@@ -559,7 +559,7 @@ def _why_columns(
     out[art.FOCUSED_SIGMA_M] = lc.mean_sigma_m
     out[art.FOCUSED_NEES] = lc.mean_nees
     out[art.FOCUSED_OUTSIDE_95] = lc.share_outside_95
-    kept = [i for i in reduced.full_index.tolist() if inputs.loaded.rows[i].kind == "tag"]
+    kept = [i for i in reduced.full_index.tolist() if i >= 0 and inputs.loaded.rows[i].kind == "tag"]
     mc = measurement_consistency(inputs.loaded, truth, kept).get("tag")
     if mc is not None:
         out.update({art.KEPT_TAG_NEES: mc.mean_nees, art.KEPT_RANGE_BIAS_M: float(mc.mean_residual[1])})

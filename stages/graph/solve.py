@@ -98,7 +98,7 @@ def check_problem(problem: GraphProblem) -> None:
                 f"{problem.describe(k)} is under-constrained ({touched[k]} measurement dimensions for "
                 f"{problem.kind(k).dim} unknowns); {fix_for(problem, k)}"
             )
-    loose = _unanchored(problem)
+    loose = unanchored(problem)
     if loose:
         poses = [k for k in loose if k in set(problem.pose_keys)]
         first = poses[0] if poses else loose[0]
@@ -145,7 +145,7 @@ def _check_row(problem: GraphProblem, i: int) -> None:
             raise StageError(f"{_row_label(problem, i)} refers to key {k} that has no initial value")
 
 
-def _unanchored(problem: GraphProblem) -> list[int]:
+def unanchored(problem: GraphProblem) -> list[int]:
     """Variables no chain of factors connects to a prior (union-find over the factors' keys)."""
     keys = list(problem.var_types)
     anchor = -1

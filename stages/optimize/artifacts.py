@@ -30,7 +30,12 @@ _F64 = pa.float64()
 
 # kept.parquet ------------------------------------------------------------------------------------------
 INDEX = Column("index", pa.int64(), "factor of the reduced graph (its row of `optimize/factors.parquet`)")
-FULL_INDEX = Column("full_index", pa.int64(), "the same factor's row of `graph/factors.parquet`")
+FULL_INDEX = Column(
+    "full_index",
+    pa.int64(),
+    "the same factor's row of `graph/factors.parquet`; -1: a prior on the first pose that the reduced graph adds "
+    "when no selected measurement reaches a surveyed tag, its only anchor (at the full graph's solution and marginal)",
+)
 KEPT: Final = TableSpec("kept.parquet", "one row per factor of the reduced graph", [INDEX, FULL_INDEX])
 
 # landmark_errors.parquet -------------------------------------------------------------------------------

@@ -33,8 +33,9 @@ from stages.estimation.linear_system import landmark_prior_sigmas
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.marginals import key_dims, tree_marginals
+from stages.graph.models import graph_model
 from stages.graph.problem import GraphProblem
-from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise
+from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise, unanchored
 from stages.graph.variables import var_kind
 from stages.risk import LandmarkMap, PathGeometry, map_covariances
 
@@ -49,7 +50,8 @@ class ReducedMap:
     solution: Solution
     marginals: dict[int, FloatArray]
     full_index: npt.NDArray[np.int64]
-    """Factor ``i`` of the reduced graph is factor ``full_index[i]`` of the full graph."""
+    """Factor ``i`` of the reduced graph is factor ``full_index[i]`` of the full graph; −1: a prior the reduced graph
+    adds to keep its anchor (:func:`_gauge_rows`), no factor of the full graph."""
     focused_tag_ids: list[int]
     observed_tag_ids: list[int]
     """Landmarks with at least one kept measurement (the map the robot carries)."""
@@ -108,6 +110,11 @@ def solve_reduced(
     rows = [override.get(int(i), loaded.rows[i]) for i in keep]
     src = loaded.initial if initialise_from == "dead_reckoning" else loaded.values
     problem = loaded.restricted(rows, src, dict(landmark_heights or {}))
+    gauge = _gauge_rows(loaded, problem)
+    if gauge:  # the reduced graph lost its anchor: a prior in the full map's frame, not a factor of the full graph
+        rows += gauge
+        keep = np.concatenate([keep, np.full(len(gauge), -1, dtype=np.int64)])
+        problem = loaded.restricted(rows, src, dict(landmark_heights or {}))
     observed = sorted(problem.landmark_keys)
     check_problem(problem)
     graph = build_graph(rows)
@@ -142,6 +149,30 @@ def solve_reduced(
         dropped_unfocused=int(dropped),
         timing_s={"build": round(t1 - t0, 4), "optimise": round(t2 - t1, 4), "marginals": round(t3 - t2, 4)},
     )
+
+
+def _gauge_rows(loaded: LoadedGraph, problem: GraphProblem) -> list[FactorRow]:
+    """Priors that anchor the reduced graph where dropping measurements left poses without one.
+
+    A run whose only anchors are surveyed tags (``--tags``: their priors replace the first pose's) loses its anchor
+    when no surveyed tag is selected: the reduced graph's poses and landmarks then float (a singular graph). Each
+    such part gets a prior on its first pose at the full graph's solution with the full graph's marginal covariance,
+    so the reduced map stays in the full map's frame, as uncertain there as the full map holds that pose.
+    """
+    out: list[FactorRow] = []
+    poses = set(problem.pose_keys)
+    rows = list(problem.rows)
+    for _ in range(len(poses)):
+        loose = set(unanchored(dataclasses.replace(problem, rows=rows)))
+        first = next((k for k in problem.pose_keys if k in loose), None)
+        if first is None:
+            break
+        model = graph_model(loaded.model)
+        measurement = loaded.kind(first).vector(loaded.values, first)
+        row = FactorRow("prior", model.prior_type, (first,), measurement, np.asarray(loaded.marginals[first]))
+        out.append(row)
+        rows.append(row)
+    return out
 
 
 def _reduced_factors(

@@ -332,6 +332,42 @@ def test_graph_remaps_a_duplicated_id_in_its_window() -> None:
     assert 7777 in p.landmark_keys and tag in p.landmark_keys
 
 
+def test_a_reduced_map_without_the_surveyed_tags_keeps_an_anchor() -> None:
+    """Surveyed tags replace the first keyframe's prior; a reduced graph whose selection reaches none of them would
+    float (optimize stopped: 'variables are not connected to the first pose', TagSLAM's test_14). It gets a prior on
+    its first pose at the full solution and marginal (full index -1), and its landmarks land where the full map
+    has them."""
+    import dataclasses
+
+    from stages.graph.load import LoadedGraph
+    from stages.graph.problem import GraphProblem
+    from stages.graph.solve import marginal_covariances
+    from stages.optimize import solve_reduced
+
+    sim = synthetic_run(seed=3, loops=1.0)
+    ids = sorted(set(sim.detections.column("tag_id").to_pylist()))
+    surveyed, focused = ids[:2], ids[3:6]
+    tags = TagsInfo(file="tagslam.yaml", known_tags=[_known(t, sim.tags_world[t], 0.001, 0.001) for t in surveyed])
+    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"), tags)
+    graph = build_graph(p.rows)
+    sol = optimise(p, graph)
+    fields = {f.name: getattr(p, f.name) for f in dataclasses.fields(GraphProblem)}
+    marginals = marginal_covariances(p, graph, sol.values, list(p.var_types))
+    loaded = LoadedGraph(**fields, graph=graph, values=sol.values, factors=None, marginals=marginals)  # type: ignore[arg-type]
+    selected = [i for i, r in enumerate(p.rows) if r.kind == "tag" and r.tag_id in focused]
+    red = solve_reduced(loaded, focused, selected)
+    assert red.full_index[-1] == -1 and (red.full_index[:-1] >= 0).all()
+    gauge = red.problem.rows[-1]
+    assert gauge.kind == "prior" and gauge.keys == (p.pose_keys[0],)
+    for t in focused:  # the full map's landmark is within the reduced map's own uncertainty (drift included)
+        k = p.landmark_keys[t]
+        full = np.asarray(sol.values.atPose3(k).translation())
+        reduced = red.solution.values.atPose3(k)
+        d = np.asarray(reduced.rotation().unrotate(full - np.asarray(reduced.translation())))  # body frame
+        cov = red.marginals[k][3:, 3:]  # Pose3 tangent: rotation, then translation (body frame)
+        assert float(d @ np.linalg.solve(cov, d)) < 16.3, (t, d, np.sqrt(np.diag(cov)))  # chi2(3) at 99.9 %
+
+
 def test_planar_graph_notes_that_it_does_not_use_the_priors() -> None:
     sim = synthetic_run(seed=3, loops=1.0)
     t = sorted(set(sim.detections.column("tag_id").to_pylist()))[0]
