@@ -4,7 +4,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -39,15 +40,7 @@ def reference_greedy(
         cov_f = sla.cho_solve(sla.cho_factor(L), E)[fidx]  # the focused columns of L⁻¹, from a dense Cholesky
         return 0.5 * float(np.linalg.slogdet(cov_f)[1])
 
-    picks: list[int] = []
-    gains: list[float] = []
-    for _ in range(budget):
-        h = entropy(lam)
-        best = max(((h - entropy(lam + infos[c]), c) for c in candidates if c not in picks), key=lambda t: t[0])
-        picks.append(best[1])
-        gains.append(best[0])
-        lam = lam + infos[best[1]]
-    return picks, np.array(gains)
+    return _greedy(entropy, lam, infos, candidates, budget)
 
 
 def reference_greedy_logdet(
@@ -77,6 +70,13 @@ def reference_greedy_logdet(
         ld_other = SPDSolver(sp.csc_matrix(L[other][:, other]), backend="superlu").logdet()
         return 0.5 * (ld_other - ld_all)
 
+    return _greedy(entropy, lam, infos, candidates, budget)
+
+
+def _greedy(
+    entropy: Callable[[Any], float], lam: Any, infos: dict[int, Any], candidates: Sequence[int], budget: int
+) -> tuple[list[int], FloatArray]:
+    """Alg. 1's loop: ``budget`` times, the candidate whose information lowers ``entropy`` most, and that drop."""
     picks: list[int] = []
     gains: list[float] = []
     for _ in range(budget):

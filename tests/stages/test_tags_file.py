@@ -384,26 +384,33 @@ def _tagslam_bag(tmp_path: Path, case: str) -> Path:
     return bag
 
 
-def test_tagslam_test_21_with_tags_reaches_the_target(tmp_path: Path) -> None:
-    """TagSLAM's test_21 (VIO odometry in the IMU frame, tags of two sizes, one surveyed tag) with --tags: the
-    trajectory is within max(5 cm, 1 % of its path) of TagSLAM's own after a rigid alignment (0.637 m before
-    --tags, when the odometry was taken as the camera's), and without one too: the surveyed tag puts the map in
-    TagSLAM's world frame (3.6 m off, a half turn about the tag's normal, before the tag frames were matched)."""
-    folder = need_shared("tagslam-test/test_21")
+def _run_tagslam_case(tmp_path: Path, case: str, name: str) -> tuple[Path, subprocess.CompletedProcess[str]]:
+    """``focusmap run`` a TagSLAM case to the graph stage as a user types it (its cameras, camera poses and
+    tagslam.yaml, the 3d model), into ``tmp_path/runs/NAME``: TagSLAM's reference bag and the finished run."""
+    folder = need_shared(f"tagslam-test/{case}")
     sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
-    from bench_tagslam import ate, match_stamps, path_length, read_reference, read_tum
-
-    bag = _tagslam_bag(tmp_path, "test_21")
+    bag = _tagslam_bag(tmp_path, case)
     ref_bag = tmp_path / "reference.bag"
     ref_bag.write_bytes(bz2.decompress((folder / "reference.bag.bz2").read_bytes()))
     cmd = [
-        *(sys.executable, "-m", "cli.app", "run", str(bag), "--out", str(tmp_path / "runs"), "--name", "t21"),
+        *(sys.executable, "-m", "cli.app", "run", str(bag), "--out", str(tmp_path / "runs"), "--name", name),
         *("--until", "graph", "--camera", str(folder / "cameras.yaml")),
         *("--extrinsics", str(folder / "camera_poses.yaml"), "--tags", str(folder / "tagslam.yaml")),
         *("--set", "graph.model=3d"),
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
+    return ref_bag, proc
+
+
+def test_tagslam_test_21_with_tags_reaches_the_target(tmp_path: Path) -> None:
+    """TagSLAM's test_21 (VIO odometry in the IMU frame, tags of two sizes, one surveyed tag) with --tags: the
+    trajectory is within max(5 cm, 1 % of its path) of TagSLAM's own after a rigid alignment (0.637 m before
+    --tags, when the odometry was taken as the camera's), and without one too: the surveyed tag puts the map in
+    TagSLAM's world frame (3.6 m off, a half turn about the tag's normal, before the tag frames were matched)."""
+    ref_bag, proc = _run_tagslam_case(tmp_path, "test_21", "t21")
+    from bench_tagslam import ate, match_stamps, path_length, read_reference, read_tum
+
     assert "by T_body_odom of tagslam.yaml" in proc.stderr + proc.stdout
     run = tmp_path / "runs" / "t21"
     tags: dict[str, Any] = json.loads((run / "ingest" / "tags.json").read_text())
@@ -427,21 +434,9 @@ def test_tagslam_test_10_with_many_surveyed_tags_reaches_the_target(tmp_path: Pa
     is within max(5 cm, 1 % of its path) of TagSLAM's in TagSLAM's world frame, without any alignment. Before the
     tag frames were matched (TagSLAM's is focusmap's turned a half turn about the tag's normal) every surveyed tag
     pulled the map its own way: the graph stopped singular near tag 4 (with a huber kernel it solved 3.4 m off)."""
-    folder = need_shared("tagslam-test/test_10")
-    sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
+    ref_bag, _ = _run_tagslam_case(tmp_path, "test_10", "t10")
     from bench_tagslam import match_stamps, path_length, read_reference, read_tum
 
-    bag = _tagslam_bag(tmp_path, "test_10")
-    ref_bag = tmp_path / "reference.bag"
-    ref_bag.write_bytes(bz2.decompress((folder / "reference.bag.bz2").read_bytes()))
-    cmd = [
-        *(sys.executable, "-m", "cli.app", "run", str(bag), "--out", str(tmp_path / "runs"), "--name", "t10"),
-        *("--until", "graph", "--camera", str(folder / "cameras.yaml")),
-        *("--extrinsics", str(folder / "camera_poses.yaml"), "--tags", str(folder / "tagslam.yaml")),
-        *("--set", "graph.model=3d"),
-    ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
     run = tmp_path / "runs" / "t10"
     graph: dict[str, Any] = json.loads((run / "graph" / "summary.json").read_text())
     assert len(graph["known_tags_seen"]) > 50
