@@ -60,6 +60,8 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
     decision = calibration.get("decision") if isinstance(calibration, dict) else None
     if isinstance(decision, dict) and decision.get("applied"):
         out.append(("note", f"odometry calibration on (graph.odometry_calibration=auto): {decision.get('reason')}"))
+    if isinstance(decision, dict) and decision.get("skipped"):
+        out.append(("note", f"odometry calibration off (graph.odometry_calibration=auto): {decision.get('reason')}"))
     health = summary.get("health")
     warnings = health.get("warnings") if isinstance(health, dict) else None
     if isinstance(warnings, list):

@@ -84,6 +84,14 @@ class GraphConfig(SettingsModel):
         "redundancy with the calibration free) exceeds this (13.8: the 99.9 % point of chi-square with 2 degrees "
         "of freedom).",
     )
+    calibration_test_max_poses: int = Field(
+        6000,
+        ge=0,
+        description="odometry_calibration=auto skips its test (and leaves the calibration off, with a note) above "
+        "this many keyframes: the test's redundancy takes sparse solves with dense right-hand sides, quadratic in "
+        "the keyframes (a 60-minute recording, 17,890 keyframes: 131 s of a 162 s graph stage; 16 minutes: seconds). "
+        "Set odometry_calibration=true to estimate the calibration on such a recording.",
+    )
     calibration_max_iterations: int = Field(
         10, ge=1, description="Most outer iterations (solve, then update the calibration and noise scales)."
     )

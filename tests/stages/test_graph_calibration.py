@@ -135,6 +135,25 @@ def test_auto_turns_the_calibration_on_for_wheel_errors_only(wheel_run: Syntheti
     assert off.solution.final_error == plain.solution.final_error
 
 
+def test_auto_skips_its_test_on_recordings_too_long_for_it(wheel_run: SyntheticRun) -> None:
+    """Above graph.calibration_test_max_poses keyframes the test (quadratic in them) is not run: the calibration stays
+    off, the solution is the uncalibrated one bit for bit, and a note names the setting that turns it on."""
+    from stages.graph import remarks
+    from stages.graph.solve_all import _solve as stage_solve
+
+    cfg = GraphConfig(tag_scale_sigma=EXACT_TAG_SCALE)
+    problem = build_problem(wheel_run.detections, wheel_run.odometry, wheel_run.extrinsics, cfg)
+    short = cfg.model_copy(update={"calibration_test_max_poses": len(problem.pose_keys) - 1})
+    skipped = stage_solve(problem, short)
+    assert skipped.calibration is not None and skipped.calibration["estimated"] is False
+    decision = skipped.calibration["decision"]
+    assert decision["skipped"] and not decision["applied"] and "statistic" not in decision
+    plain = stage_solve(problem, cfg.model_copy(update={"odometry_calibration": False}))
+    assert skipped.solution.final_error == plain.solution.final_error
+    notes = remarks({"odometry_calibration": skipped.calibration})
+    assert any(k == "note" and "graph.odometry_calibration=true" in t for k, t in notes)
+
+
 def test_auto_is_not_fooled_by_overconfident_covariances() -> None:
     """Clean odometry whose covariances are 10x too small: the plain Wald statistic of the yaw calibration is near
     the threshold (every residual looks 3x too large), but divided by the odometry's own variance factor it is
