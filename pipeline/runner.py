@@ -184,8 +184,8 @@ def stale_inputs(run: RunFolder, registry: Registry, name: str) -> list[str]:
 def _give_back_arrow_memory() -> None:
     """Return the memory of the stage's freed Arrow tables to the system before its recording is encoded.
 
-    Arrow's allocator (mimalloc) keeps freed memory for reuse: after ingest of a 16-minute recording had read its
-    frames back for the recording, 140 MiB of it, and the encoding on top made the stage's peak (523 -> 316 MiB).
+    Arrow's allocator (mimalloc) keeps freed memory for reuse: the tables a stage read and dropped stay held while its
+    recording is encoded on top (ingest of a 16-minute recording, when it still read its frames back: 140 MiB).
     """
     import pyarrow as pa
 

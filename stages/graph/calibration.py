@@ -93,7 +93,8 @@ def resolved(cfg: GraphConfig, calibration: bool) -> GraphConfig:
 def calibration_test(
     problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig
 ) -> dict[str, Any]:
-    """Do the data reject uncalibrated odometry? The ``decision`` block of ``odometry_calibration: auto``.
+    """Do the data reject uncalibrated odometry? The ``decision`` block of ``odometry_calibration: auto`` (not
+    tested, ``skipped``, above ``calibration_test_max_poses`` keyframes: the test is quadratic in them).
 
     At the uncalibrated solution the graph is linearised with the calibration as one more variable (its priors
     as configured), exactly the first round of :func:`calibrate`. Its Gauss-Newton step ``δc`` and covariance
@@ -106,6 +107,16 @@ def calibration_test(
     cannot tell a long wheel from a small tag (the ``tag_scale`` health check reports that case); once the
     calibration is on it is estimated with the rest.
     """
+    if len(problem.pose_keys) > cfg.calibration_test_max_poses:
+        return {
+            "setting": "auto",
+            "applied": False,
+            "rejected": False,
+            "skipped": True,
+            "reason": f"not tested: {len(problem.pose_keys)} keyframes > graph.calibration_test_max_poses="
+            f"{cfg.calibration_test_max_poses} (the test grows with the square of the keyframes); set "
+            "graph.odometry_calibration=true to estimate wheel errors on this recording",
+        }
     t0 = time.perf_counter()
     on = resolved(cfg, True)
     base = list(problem.rows)

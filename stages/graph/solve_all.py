@@ -101,17 +101,7 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     graph = build_graph(problem.rows)
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
     decision: dict[str, Any] | None = None
-    if tested(problem, cfg) and len(problem.pose_keys) > cfg.calibration_test_max_poses:
-        decision = {
-            "setting": "auto",
-            "applied": False,
-            "rejected": False,
-            "skipped": True,
-            "reason": f"not tested: {len(problem.pose_keys)} keyframes > graph.calibration_test_max_poses="
-            f"{cfg.calibration_test_max_poses} (the test grows with the square of the keyframes); set "
-            "graph.odometry_calibration=true to estimate wheel errors on this recording",
-        }
-    elif tested(problem, cfg):
+    if tested(problem, cfg):
         decision = calibration_test(problem, graph, solution.values, cfg)
         if decision["applied"]:
             result = calibrate(problem, cfg, initial=solution.values)
