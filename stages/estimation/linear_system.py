@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Literal, TypeAlias
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
+from scipy.sparse import csgraph
 
 if TYPE_CHECKING:
     import gtsam
@@ -224,3 +225,35 @@ class LinearSystem:
         for v in variable_ids:
             d[self.offsets[v] : self.offsets[v + 1]] = 1.0 / landmark_prior_sigmas(self.variables[v].dim, sigma) ** 2
         return sp.diags(d, format="csc")
+
+
+def unanchored_poses(sub: LinearSystem, base: Sequence[int], anchors: Sequence[int]) -> list[int]:
+    """The first pose of every group of variables that the ``base`` factors link but do not anchor: no unary base
+    factor and no variable of ``anchors`` (landmarks whose weak prior anchors them) among them.
+
+    Such a group has a free gauge in ``Λ₀`` (a camera-only rig whose only prior is on a surveyed tag: the poses hang
+    on the tag through candidate measurements alone), so ``Λ₀`` would be singular. The weak prior put on its first
+    pose fixes the gauge as loosely as the landmarks' weak prior does; a graph whose base is anchored (a prior on the
+    first pose) gets none, and its numbers do not change."""
+    if sub.dim == 0:
+        return []
+    n_var = len(sub.variables)
+    rows, cols = [], []
+    anchored = np.zeros(n_var, dtype=bool)
+    anchored[list(anchors)] = True
+    for b in base:
+        vs = sub.factors[b].variables
+        if len(vs) == 1:
+            anchored[vs[0]] = True
+        rows += [vs[0]] * len(vs)
+        cols += list(vs)
+    link = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_var, n_var))
+    n_comp, label = csgraph.connected_components(link, directed=False)
+    held = np.zeros(n_comp, dtype=bool)
+    held[label[anchored]] = True
+    out: list[int] = []
+    for v, var in enumerate(sub.variables):
+        if var.kind == "pose" and not held[label[v]]:
+            out.append(v)
+            held[label[v]] = True
+    return out

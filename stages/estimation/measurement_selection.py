@@ -48,11 +48,10 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.sparse import csgraph
 
 from stages.estimation.blas import single_threaded_blas
 from stages.estimation.gaussian import entropy_from_logdet
-from stages.estimation.linear_system import Factor, LinearSystem, SparseMatrix
+from stages.estimation.linear_system import Factor, LinearSystem, SparseMatrix, unanchored_poses
 from stages.estimation.sparse_cov import (
     SPDSolver,
     covariance_blocks,
@@ -146,40 +145,8 @@ def weak_prior(system: LinearSystem, base: Iterable[int], landmark_prior_sigma: 
     """The weak prior of ``Λ₀``: ``landmark_prior_sigma`` (rotation capped, :func:`landmark_prior_sigmas`) on every
     landmark, and on the first pose of every group that the ``base`` factors leave without an anchor."""
     landmark_vars = system.variables_of_kind("landmark")
-    weak = landmark_vars + _unanchored_poses(system, list(base), landmark_vars)
+    weak = landmark_vars + unanchored_poses(system, list(base), landmark_vars)
     return system.diagonal_prior(weak, landmark_prior_sigma) if weak else sp.csc_matrix((system.dim, system.dim))
-
-
-def _unanchored_poses(sub: LinearSystem, base: Sequence[int], landmark_vars: Sequence[int]) -> list[int]:
-    """The first pose of every group of variables that the ``base`` factors link but do not anchor: no unary base
-    factor and no landmark (whose weak prior anchors it) among them.
-
-    Such a group has a free gauge in ``Λ₀`` (a camera-only rig whose only prior is on a surveyed tag: the poses hang
-    on the tag through candidate measurements alone), so ``Λ₀`` would be singular. The weak prior put on its first
-    pose fixes the gauge as loosely as the landmarks' weak prior does; a graph whose base is anchored (a prior on the
-    first pose) gets none, and its numbers do not change."""
-    if sub.dim == 0:
-        return []
-    n_var = len(sub.variables)
-    rows, cols = [], []
-    anchored = np.zeros(n_var, dtype=bool)
-    anchored[list(landmark_vars)] = True
-    for b in base:
-        vs = sub.factors[b].variables
-        if len(vs) == 1:
-            anchored[vs[0]] = True
-        rows += [vs[0]] * len(vs)
-        cols += list(vs)
-    link = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_var, n_var))
-    n_comp, label = csgraph.connected_components(link, directed=False)
-    held = np.zeros(n_comp, dtype=bool)
-    held[label[anchored]] = True
-    out: list[int] = []
-    for v, var in enumerate(sub.variables):
-        if var.kind == "pose" and not held[label[v]]:
-            out.append(v)
-            held[label[v]] = True
-    return out
 
 
 def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:

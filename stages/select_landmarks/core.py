@@ -111,7 +111,7 @@ class LandmarkInputs:
         """
         if self._trajectory is not None and self._trajectory_prior == landmark_prior_sigma:
             return self._trajectory
-        from stages.estimation.linear_system import LinearSystem, landmark_prior_sigmas
+        from stages.estimation.linear_system import LinearSystem, landmark_prior_sigmas, unanchored_poses
 
         loaded = self.loaded
         system = LinearSystem.from_gtsam(
@@ -132,6 +132,11 @@ class LandmarkInputs:
         col_in_traj[pose_cols] = np.arange(n)
         fixed = [int(i) for i in loaded.fixed_factor_indices]
         full_info = system.information(fixed)
+        # a trajectory anchored only through a surveyed tag (its prior is on the landmark, outside Λ₀) has a free
+        # gauge: the weak landmark prior goes on the first pose of each such group, else Λ₀ is singular
+        loose = unanchored_poses(system, fixed, [])
+        if loose:
+            full_info = full_info + system.diagonal_prior(loose, landmark_prior_sigma)
         info0 = full_info[pose_cols][:, pose_cols].toarray()
         by_landmark: dict[int, list[int]] = {k: [] for k in loaded.landmark_keys.values()}
         for i in loaded.tag_factor_indices:

@@ -8,7 +8,8 @@ own random stream). The graph is then built and solved in process for odometry v
 ``sample_data.simulate.simulate_odometry`` (the same draws): the world's own (``as recorded``), the same with the
 covariances 10x too small, all zero, or absent (no covariance column), and the same world without wheel errors
 (the control: calibration must not hurt it). Each is solved with the calibration off (``before``) and on
-(``after``: ``graph.odometry_calibration`` and ``graph.noise_estimate=odometry``), and with the defaults
+(``after``: ``graph.odometry_calibration``, with the odometry's and the tags' noise levels estimated;
+``after_odometry_noise``: the odometry's alone, as before 2026-12), and with the defaults
 (``default``: ``odometry_calibration: auto`` decides; the ``auto`` column says what it chose and its statistic).
 
 Figures per run: landmark RMSE after a rigid 2D alignment of the landmarks to the truth (Umeyama, no scale),
@@ -41,11 +42,27 @@ ERRORS = {"odom_distance_scale_error": 0.02, "odom_yaw_scale_error": -0.015, "od
 """Default wheel errors: 2 % long, 1.5 % short in turns, 0.01 rad per metre (0.57°/m)."""
 
 
-def world_config(path: str, seed: int, corridor_length: float, errors: dict[str, float]) -> Any:
+NOMINAL_TAG_M = 0.16
+"""The tag size every run is told (``detect.tag_size_m``); the printed size may differ (``--print-error-sigma``)."""
+
+
+def print_error(path: str, seed: int, sigma: float) -> float:
+    """The world's relative tag print error, drawn from N(0, sigma^2) (the graph's tag-size prior when sigma is
+    ``graph.tag_scale_sigma``): one number per world, from its own stream (the same for every variant)."""
+    if sigma <= 0:
+        return 0.0
+    rng = np.random.default_rng([seed, sum(map(ord, path))])
+    return float(rng.normal(0.0, sigma))
+
+
+def world_config(
+    path: str, seed: int, corridor_length: float, errors: dict[str, float], print_error: float = 0.0
+) -> Any:
     from sample_data.simulate import SimConfig
 
     extra = {"corridor_length_m": corridor_length} if path == "corridor_return" else {}
-    return SimConfig(seed=seed, path=path, **extra, **errors)  # type: ignore[arg-type]
+    size = NOMINAL_TAG_M * (1.0 + print_error)
+    return SimConfig(seed=seed, path=path, tag_size_m=size, **extra, **errors)  # type: ignore[arg-type]
 
 
 def make_world(work: Path, name: str, cfg: Any) -> Path:
@@ -66,7 +83,7 @@ def make_world(work: Path, name: str, cfg: Any) -> Path:
     if not (run_dir / "detect" / "detections.parquet").exists():
         reg = Registry([ingest.STAGE, detect.STAGE])
         run = RunFolder.create(run_dir, bag)
-        settings = load_settings(reg.models(), overrides=["detect.tag_size_m=0.16"])
+        settings = load_settings(reg.models(), overrides=[f"detect.tag_size_m={NOMINAL_TAG_M}"])
         for stage in ("ingest", "detect"):
             t = time.perf_counter()
             run_stage(run, reg, stage, settings)
@@ -135,7 +152,7 @@ def solve(det: Any, odo: Any, extr: Any, overrides: dict[str, Any]) -> tuple[Any
     return s.problem, s.solution.values, s.marginals, s.calibration or {}, time.perf_counter() - t
 
 
-def decompose(det: Any, odo: Any, extr: Any, calibrated: bool, gt: dict[str, Any]) -> dict[str, float]:
+def decompose(det: Any, odo: Any, extr: Any, used: dict[str, Any], gt: dict[str, Any]) -> dict[str, float]:
     """Where the landmark NEES / 2 comes from: its radial part (along each landmark's direction from the first
     keyframe, where the map's scale moves it) and tangential part (NEES / 1 each), and the NEES / 2 modulo the map's
     scale: each landmark's covariance conditioned on the shared tag scale ``s``, and the estimate moved along its
@@ -148,7 +165,7 @@ def decompose(det: Any, odo: Any, extr: Any, calibrated: bool, gt: dict[str, Any
     from stages.graph.build import build_problem
     from stages.graph.config import GraphConfig
 
-    cfg = GraphConfig(**(AFTER if calibrated else BEFORE))
+    cfg = GraphConfig(**used)
     p0 = build_problem(det, odo, extr, cfg)
     r = cal.calibrate(p0, cfg)
     p, values, summ = r.problem, r.solution.values, r.summary
@@ -179,6 +196,12 @@ def decompose(det: Any, odo: Any, extr: Any, calibrated: bool, gt: dict[str, Any
         rad.append(float((u @ d) ** 2 / (u @ S @ u)))
         tan.append(float((w @ d) ** 2 / (w @ S @ w)))
         parts.append((d, J[:2, 2] / J[2, 2], S - np.outer(J[:2, 2], J[:2, 2]) / J[2, 2]))
+    # the joint NEES of the map (one chi-square over all landmarks, their correlations included: the map's scale
+    # is one of its degrees of freedom, not one in each landmark); blocks in the order of the keys given
+    keys = list(p.landmark_keys.values())
+    full = np.asarray(marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix())
+    d_all = np.concatenate([d for d, _, _ in parts])
+    joint_nees = float(d_all @ np.linalg.solve(full, d_all)) / d_all.size
     num = sum(g @ np.linalg.solve(Sc, d) for d, g, Sc in parts)
     den = sum(g @ np.linalg.solve(Sc, g) for d, g, Sc in parts)
     step = num / den
@@ -188,16 +211,26 @@ def decompose(det: Any, odo: Any, extr: Any, calibrated: bool, gt: dict[str, Any
         "nees_tangential": float(np.mean(tan)),
         "nees_modulo_scale": float(np.mean(mod)),
         "scale_error": float(step),
+        "nees_joint": joint_nees,
     }
 
 
 BEFORE: dict[str, Any] = {"odometry_calibration": False, "noise_estimate": "off"}
-AFTER: dict[str, Any] = {"odometry_calibration": True, "noise_estimate": "odometry"}
-AFTER_YAW: dict[str, Any] = {"odometry_calibration": True, "odometry_scale_sigma": 0.0, "noise_estimate": "odometry"}
+AFTER: dict[str, Any] = {"odometry_calibration": True}
+"""The calibration forced on (with ``noise_estimate: auto``: the odometry's and the tags' noise levels)."""
+AFTER_ODOMETRY_NOISE: dict[str, Any] = {"odometry_calibration": True, "noise_estimate": "odometry"}
+"""As before 2026-12: the odometry's noise level estimated, the tags' taken as detect reports them."""
+AFTER_YAW: dict[str, Any] = {"odometry_calibration": True, "odometry_scale_sigma": 0.0}
 """The yaw-rate scale and yaw bias only (the distance scale left to the tag scale)."""
 DEFAULT: dict[str, Any] = {}
 """The defaults: ``odometry_calibration: auto`` (on when the data reject uncalibrated odometry)."""
-CONFIGS = {"before": BEFORE, "after": AFTER, "after_yaw": AFTER_YAW, "default": DEFAULT}
+CONFIGS = {
+    "before": BEFORE,
+    "after": AFTER,
+    "after_odometry_noise": AFTER_ODOMETRY_NOISE,
+    "after_yaw": AFTER_YAW,
+    "default": DEFAULT,
+}
 
 
 def main() -> None:
@@ -214,6 +247,13 @@ def main() -> None:
         action="store_true",
         help="also split each NEES into its radial and tangential parts and give it modulo the map's scale",
     )
+    ap.add_argument(
+        "--print-error-sigma",
+        type=float,
+        default=0.0,
+        help="print each world's tags (1 + e) times the size detect is told, e ~ N(0, this^2) per world (0: exact "
+        "tags; 0.005 = graph.tag_scale_sigma, the tolerance the graph assumes of a real print)",
+    )
     args = ap.parse_args()
 
     import pyarrow.parquet as pq
@@ -225,8 +265,9 @@ def main() -> None:
     rows = []
     for path in args.paths:
         for seed in args.seeds:
-            name = f"{path}_seed{seed}"
-            cfg = world_config(path, seed, args.corridor_length, ERRORS)
+            eps = print_error(path, seed, args.print_error_sigma)
+            name = f"{path}_seed{seed}" + (f"_print{args.print_error_sigma:g}" if args.print_error_sigma > 0 else "")
+            cfg = world_config(path, seed, args.corridor_length, ERRORS, eps)
             run_dir = make_world(args.work, name, cfg)
             if args.worlds_only:
                 continue
@@ -234,23 +275,27 @@ def main() -> None:
             det = pq.read_table(run_dir / "detect" / DETECTIONS.file)
             extr = Extrinsics.model_validate_json((run_dir / "ingest" / EXTRINSICS.file).read_text())
             for variant in args.variants:
-                vcfg = world_config(path, seed, args.corridor_length, {}) if variant == "no_errors" else cfg
+                vcfg = world_config(path, seed, args.corridor_length, {}, eps) if variant == "no_errors" else cfg
                 odo = odometry_table(vcfg, "recorded" if variant == "no_errors" else variant)
                 for label in args.configs:
                     over = CONFIGS[label]
                     p, values, marg, summ, secs = solve(det, odo, extr, over)
                     res = {"world": name, "odometry": variant, "graph": label, **evaluate(p, values, marg, gt)}
+                    res["print_error"] = round(eps, 5)
                     res["seconds"] = round(secs, 1)
                     if "decision" in summ:
                         dec = summ["decision"]
                         res["auto"] = f"{'on' if dec['applied'] else 'off'} ({dec['statistic']:.1f})"
                     if args.decompose:
-                        parts = decompose(det, odo, extr, "distance_scale" in summ, gt)
+                        calibrated = "distance_scale" in summ
+                        used = {"odometry_calibration": calibrated, "noise_estimate": summ.get("noise_estimate", "off")}
+                        parts = decompose(det, odo, extr, used, gt)
                         res.update({k: round(v, 4) for k, v in parts.items()})
                     if "distance_scale" in summ:
                         for k in ("distance_scale", "yaw_rate_scale", "yaw_bias_rad_per_m"):
                             res[k] = f"{summ[k]['value']:.4f} ± {summ[k]['sigma']:.4f}"
                         res["odo_cov_scale"] = round(summ["odometry_covariance_scale"], 3)
+                        res["tag_cov_scale"] = round(summ["tag_covariance_scale"], 3)
                     rows.append(res)
                     print(json.dumps(res), flush=True)
     if rows:
@@ -268,10 +313,13 @@ def table(rows: list[dict[str, Any]]) -> None:
         "yaw_rate_scale",
         "yaw_bias_rad_per_m",
         "odo_cov_scale",
+        "tag_cov_scale",
         "auto",
         "nees_radial",
         "nees_tangential",
         "nees_modulo_scale",
+        "nees_joint",
+        "print_error",
     ]
     print("| " + " | ".join(cols) + " |")
     print("|" + " --- |" * len(cols))
