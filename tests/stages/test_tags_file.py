@@ -368,6 +368,44 @@ def test_a_reduced_map_without_the_surveyed_tags_keeps_an_anchor() -> None:
         assert float(d @ np.linalg.solve(cov, d)) < 16.3, (t, d, np.sqrt(np.diag(cov)))  # chi2(3) at 99.9 %
 
 
+def _surveyed_loaded(surveyed_count: int = 2):  # type: ignore[no-untyped-def]
+    """A 3D graph of a simulated room whose only anchors are priors on its first surveyed tags, solved."""
+    import dataclasses
+
+    from stages.graph.load import LoadedGraph
+    from stages.graph.problem import GraphProblem
+    from stages.graph.solve import marginal_covariances
+
+    sim = synthetic_run(seed=3, loops=1.0)
+    ids = sorted(set(sim.detections.column("tag_id").to_pylist()))
+    known = [_known(t, sim.tags_world[t], 0.001, 0.001) for t in ids[:surveyed_count]]
+    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"), TagsInfo(file="t", known_tags=known))
+    graph = build_graph(p.rows)
+    sol = optimise(p, graph)
+    fields = {f.name: getattr(p, f.name) for f in dataclasses.fields(GraphProblem)}
+    marginals = marginal_covariances(p, graph, sol.values, list(p.var_types))
+    return LoadedGraph(**fields, graph=graph, values=sol.values, factors=None, marginals=marginals)  # type: ignore[arg-type]
+
+
+def test_mutual_information_selects_on_a_trajectory_anchored_only_by_surveyed_tags() -> None:
+    """The surveyed tags' priors replace the first keyframe's, so the trajectory information from the odometry
+    alone (Λ₀, landmarks marginalised) had a free gauge: mutual information stopped with 'LinAlgError: Matrix is
+    not positive definite' (TagSLAM's test_10). The weak landmark prior goes on the first pose; the picks are
+    then those of the same graph anchored by that weak prior as a factor."""
+    from stages.select_landmarks.config import SelectLandmarksConfig
+    from stages.select_landmarks.core import LandmarkInputs, choose
+
+    loaded = _surveyed_loaded()
+    assert "prior" not in {r.kind for r in loaded.rows}
+    inputs = LandmarkInputs.from_pieces(loaded, None)
+    cfg = SelectLandmarksConfig(strategy="mutual-information", budget=4)
+    info0, _ = inputs.trajectory_information(cfg.landmark_prior_sigma_m, cfg.max_trajectory_dim)
+    assert np.linalg.eigvalsh(np.asarray(info0.todense() if hasattr(info0, "todense") else info0)).min() > 0
+    choice = choose(inputs, cfg, with_risk=False)
+    assert choice.status == "ok" and len(choice.tag_ids) == 4 and len(set(choice.tag_ids)) == 4
+    assert all(np.isfinite(choice.scores)) and all(g > 0 for g in choice.scores)
+
+
 def test_planar_graph_notes_that_it_does_not_use_the_priors() -> None:
     sim = synthetic_run(seed=3, loops=1.0)
     t = sorted(set(sim.detections.column("tag_id").to_pylist()))[0]
