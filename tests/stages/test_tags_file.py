@@ -379,7 +379,9 @@ def _surveyed_loaded(surveyed_count: int = 2):  # type: ignore[no-untyped-def]
     sim = synthetic_run(seed=3, loops=1.0)
     ids = sorted(set(sim.detections.column("tag_id").to_pylist()))
     known = [_known(t, sim.tags_world[t], 0.001, 0.001) for t in ids[:surveyed_count]]
-    p = build_problem(sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"), TagsInfo(file="t", known_tags=known))
+    p = build_problem(
+        sim.detections, sim.odometry, sim.extrinsics, GraphConfig(model="3d"), TagsInfo(file="t", known_tags=known)
+    )
     graph = build_graph(p.rows)
     sol = optimise(p, graph)
     fields = {f.name: getattr(p, f.name) for f in dataclasses.fields(GraphProblem)}
