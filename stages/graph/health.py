@@ -236,15 +236,27 @@ def _moved_tags_check(problem: GraphProblem, chi2: np.ndarray) -> tuple[dict[str
     if not moved:
         return figures, None
 
+    surveyed = {int(r.tag_id) for r in problem.rows if r.kind == "tag_prior" and r.tag_id is not None}
+    figures["surveyed"] = [t for t in moved if t in surveyed]
+
     def shown_one(t: int) -> str:
-        return f"{t} ({judged[t]:.3g}" + (f", {dr[t]:.3g} against the odometry)" if t in dr else ")")
+        more = [f"{dr[t]:.3g} against the odometry"] if t in dr else []
+        more += ["surveyed"] if t in surveyed else []
+        return f"{t} ({', '.join([f'{judged[t]:.3g}', *more])})"
 
     shown = ", ".join(shown_one(t) for t in moved[:10]) + (" ..." if len(moved) > 10 else "")
     against = f"; against the odometry alone above {dr_limit:.3g}, the median's {dr_typical:.3g}" if dr else ""
+    # a surveyed tag is held at its surveyed pose, so a wrong survey puts the disagreement into its measurements
+    survey = (
+        "; a surveyed tag whose pose in the tags file is off looks the same: check its pose there, or give it a "
+        "position_noise that matches the survey"
+        if figures["surveyed"]
+        else ""
+    )
     return figures, (
         f"{len(moved)} tag(s) look like they moved (their measurements disagree with one position; mean whitened "
         f"chi2 per dimension above {limit:.3g}, the median tag's {typical:.3g}{against}): {shown}; a tag that moved "
-        "or a duplicated id breaks the map: take it down or leave it out"
+        f"or a duplicated id breaks the map: take it down or leave it out{survey}"
     )
 
 
