@@ -74,7 +74,7 @@ class GraphConfig(SettingsModel):
         "auto",
         description="Scale the odometry (and tag) covariances until each group's whitened chi-square matches its "
         "redundancy (variance component estimation), for messages whose covariances are wrong, zero or absent. "
-        "auto: odometry_and_tags when the odometry calibration runs, else off.",
+        "auto: odometry when the odometry calibration runs, else off.",
     )
     calibration_test_threshold: float = Field(
         13.8,

@@ -114,7 +114,7 @@ def test_auto_turns_the_calibration_on_for_wheel_errors_only(wheel_run: Syntheti
     decision = on.calibration["decision"]
     assert decision["applied"] and decision["statistic"] > cfg.calibration_test_threshold
     assert "systematic errors" in decision["reason"]
-    assert on.calibration["noise_estimate"] == "odometry_and_tags"  # auto: the noise estimate runs with it
+    assert on.calibration["noise_estimate"] == "odometry"  # auto: the noise estimate runs with the calibration
     for name, truth in zip(PARAMETERS, TRUE, strict=True):
         assert abs(on.calibration[name]["value"] - truth) < 3 * on.calibration[name]["sigma"], name
     assert 0.5 <= _landmark_nees(wheel_run, on.problem, on.solution.values, on.marginals) <= 2.0
