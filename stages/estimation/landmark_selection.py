@@ -396,7 +396,7 @@ def _mi_backend(n: int, budget: int, blocks: _LevelBlocks, rank: float, backend:
 
 @blas_single
 def select_mutual_information(
-    info0: FloatArray,
+    info0: FloatArray | SparseMatrix,
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     budget: int,
     lazy: bool = True,
@@ -532,7 +532,9 @@ def _leverage_probabilities(
 
 @blas_single
 def landmark_leverage_probabilities(
-    info0: FloatArray, contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]], min_block: int | None = None
+    info0: FloatArray | SparseMatrix,
+    contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
+    min_block: int | None = None,
 ) -> FloatArray:
     """Mousavi & Motee eq. 29-30: ``π_l = tr(Λ_all⁻¹ (Λ₀/N + Λ_l)) / n`` (sums to 1).
 
@@ -546,7 +548,7 @@ def landmark_leverage_probabilities(
 
 @blas_single
 def select_landmark_leverage(
-    info0: FloatArray,
+    info0: FloatArray | SparseMatrix,
     contributions: Sequence[tuple[npt.NDArray[np.int64], FloatArray]],
     budget: int,
     draws: int = 20,

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
+import scipy.sparse as sp
 
 from pipeline.errors import StageError
 from stages.estimation.collision import Contribution, select_collision
@@ -62,7 +63,7 @@ class LandmarkInputs:
     sigma_cache: dict[int, Contribution] = field(default_factory=dict, repr=False)
     """Each tag's measurement information along the path, shared by the :func:`stages.risk.path_risk` calls on
     these inputs."""
-    _trajectory: tuple[FloatArray, Contributions] | None = field(default=None, repr=False)
+    _trajectory: tuple[sp.csc_matrix, Contributions] | None = field(default=None, repr=False)
     _trajectory_prior: float | None = field(default=None, repr=False)
 
     @classmethod
@@ -104,8 +105,9 @@ class LandmarkInputs:
         """Whether the collision strategy can run."""
         return self.geometry.has_laser
 
-    def trajectory_information(self, landmark_prior_sigma: float, max_dim: int) -> tuple[FloatArray, Contributions]:
-        """Dense ``Λ₀`` of the trajectory (odometry and priors) and each landmark's Schur contribution.
+    def trajectory_information(self, landmark_prior_sigma: float, max_dim: int) -> tuple[sp.csc_matrix, Contributions]:
+        """``Λ₀`` of the trajectory (odometry and priors; sparse) and each landmark's Schur contribution (dense on
+        the poses that see it).
 
         Contributions are in landmark-map order (``self.landmarks.tag_ids``); cached per prior.
         """
@@ -137,7 +139,7 @@ class LandmarkInputs:
         loose = unanchored_poses(system, fixed, [])
         if loose:
             full_info = full_info + system.diagonal_prior(loose, landmark_prior_sigma)
-        info0 = full_info[pose_cols][:, pose_cols].toarray()
+        info0 = sp.csc_matrix(full_info[pose_cols][:, pose_cols])  # sparse: the greedy factorises it sparse
         by_landmark: dict[int, list[int]] = {k: [] for k in loaded.landmark_keys.values()}
         for i in loaded.tag_factor_indices:
             keys = loaded.rows[int(i)].keys
