@@ -398,8 +398,9 @@ def _fallback_focus(inputs: EvalInputs) -> tuple[list[int], float]:
     loaded = inputs.loaded
     dim = len(loaded.pose_keys) * loaded.graph_model.pose.dim
     why = (
-        f"this run has no laser for the collision focus, and mutual information needs the dense {dim}x{dim} "
-        f"trajectory information (above select_landmarks.max_trajectory_dim={inputs.sl_cfg.max_trajectory_dim})"
+        f"this run has no laser for the collision focus, and mutual information's time and memory grow up to the "
+        f"square of its trajectory ({dim} dimensions, above select_landmarks.max_trajectory_dim="
+        f"{inputs.sl_cfg.max_trajectory_dim})"
     )
     up = inputs.upstream.landmarks
     if up is not None and up.budget == inputs.alpha:

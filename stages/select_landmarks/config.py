@@ -41,7 +41,8 @@ class SelectLandmarksConfig(SettingsModel):
     max_trajectory_dim: int = Field(
         12000,
         ge=1,
-        description="mutual-information and leverage work on the dense trajectory information; refuse larger "
+        description="mutual-information and leverage work on each landmark's dense information over the poses "
+        "that see it (time and memory up to quadratic in the trajectory); refuse larger "
         "trajectories (poses x pose dimension) than this.",
     )
     robot_radius_m: float = Field(

@@ -125,10 +125,11 @@ class LandmarkInputs:
         if n > max_dim:
             instead = "collision" if self.has_laser else "uniform (this run has no laser for collision)"
             raise StageError(
-                f"mutual-information and leverage need the dense {n}x{n} trajectory information "
-                f"({n * n * 8 / 2**30:.1f} GiB), above select_landmarks.max_trajectory_dim={max_dim}; use --set "
+                f"mutual-information and leverage work on each landmark's dense information over the poses that "
+                f"see it, so their time and memory grow up to the square of the trajectory ({n} dimensions here, "
+                f"above select_landmarks.max_trajectory_dim={max_dim}); use --set "
                 f"select_landmarks.strategy={instead}, a budget at or above the {len(self.landmarks.tag_ids)} "
-                "landmarks, or raise the limit if memory allows"
+                "landmarks, or raise the limit if time and memory allow"
             )
         col_in_traj = np.full(system.dim, -1, dtype=np.int64)
         col_in_traj[pose_cols] = np.arange(n)
