@@ -620,7 +620,10 @@ def run_all(inputs: EvalInputs, todo: Sequence[Case], progress: Any = None) -> l
     prepare(inputs)
     todo = [c for c in todo if not c.focus_poses or inputs.risky_keyframes]  # no laser: no risky poses to focus
     results: list[CaseResult] = []
-    first = run_case(inputs, todo[0])
+    try:
+        first = run_case(inputs, todo[0])
+    except StageError as err:
+        raise StageError(f"case {todo[0].name}: {err}") from err
     optimal = first.reduced
     if inputs.cfg.trials > 0:
         inputs.navigation = navigation_setup(inputs, optimal)
@@ -632,7 +635,7 @@ def run_all(inputs: EvalInputs, todo: Sequence[Case], progress: Any = None) -> l
             results.append(run_case(inputs, case, optimal))
         except StageError as err:  # an extra pair that cannot run here (e.g. MI on a long trajectory): skip it
             if (case.name, case.landmark_strategy, case.measurement_strategy) in TABLE_I:
-                raise
+                raise StageError(f"case {case.name}: {err}") from err
             inputs.skipped.append(f"case {case.name} skipped: {err}")
     return results
 

@@ -317,7 +317,9 @@ def optimise_with_scale(
     return ScaleSolution(with_scale(theta, key, s), initial_error, error, iterations + rounds, rounds)
 
 
-def joint_marginals(rows: Sequence[FactorRow], values: gtsam.Values, keys: Sequence[int]) -> dict[int, np.ndarray]:
+def joint_marginals(
+    rows: Sequence[FactorRow], values: gtsam.Values, keys: Sequence[int], last: Sequence[int] = ()
+) -> dict[int, np.ndarray]:
     """Marginal covariance of each key of the model with the shared scale at ``values`` (which hold ``s``), from one
     elimination of its joint linear system (:func:`stages.graph.marginals.tree_marginals`): the same system GTSAM
     linearises the scaled factors to."""
@@ -326,4 +328,4 @@ def joint_marginals(rows: Sequence[FactorRow], values: gtsam.Values, keys: Seque
         raise ValueError("the rows carry no tag scale")
     native = NativeScaleGraph(rows, float(values.atDouble(key)))
     joint = native.joint_system(without_key(values, key))
-    return tree_marginals(joint, key_dims(values), keys)
+    return tree_marginals(joint, key_dims(values), keys, last=last)

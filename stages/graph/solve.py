@@ -265,9 +265,10 @@ def marginal_covariances(
     Covariances are in each variable's tangent space (Pose3: (rx, ry, rz, tx, ty, tz), body frame).
     """
     try:
+        landmarks = list(problem.landmark_keys.values())
         if has_python_factors(problem.rows):
-            return joint_marginals(problem.rows, values, keys)
-        return tree_marginals(graph.linearize(values), key_dims(values), keys)
+            return joint_marginals(problem.rows, values, keys, last=landmarks)
+        return tree_marginals(graph.linearize(values), key_dims(values), keys, last=landmarks)
     except RuntimeError as err:
         if _is_indeterminant(err):
             raise StageError(indeterminant_message(problem, err, "computing marginals")) from err

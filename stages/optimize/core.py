@@ -32,7 +32,7 @@ from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
 from stages.estimation.linear_system import landmark_prior_sigmas
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
-from stages.graph.marginals import key_dims, tree_marginals
+from stages.graph.marginals import key_dims, sparse_joint_covariance, tree_marginals
 from stages.graph.models import graph_model
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, check_problem, indeterminant_message, optimise, unanchored
@@ -211,10 +211,15 @@ def _marginals(
     """Every variable's marginal covariance and the joint covariance of the observed focused landmarks."""
     try:
         values = solution.values
-        marginals = tree_marginals(graph.linearize(values), key_dims(values), problem.var_types)
+        linear, dims = graph.linearize(values), key_dims(values)
+        landmarks = list(problem.landmark_keys.values())
+        marginals = tree_marginals(linear, dims, problem.var_types, last=landmarks)
         if focused_observed:
             kv = gtsam.KeyVector([problem.landmark_keys[t] for t in focused_observed])
-            joint = np.asarray(gtsam.Marginals(graph, values).jointMarginalCovariance(kv).fullMatrix(), dtype=float)
+            try:
+                joint = np.asarray(gtsam.Marginals(graph, values).jointMarginalCovariance(kv).fullMatrix(), dtype=float)
+            except RuntimeError:  # GTSAM's ordering met a pivot lost to rounding (see stages.graph.marginals.eliminate)
+                joint = sparse_joint_covariance(linear, dims, list(kv))
         else:
             joint = np.zeros((0, 0))
     except RuntimeError as err:
