@@ -40,7 +40,7 @@ leaves unobserved have finite, comparable first gains.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -723,7 +723,7 @@ def _chain_separator(info: sp.csc_matrix, sub: LinearSystem, focused: Sequence[i
 
 def _schur_clique_gains(
     info: sp.csc_matrix, sub: LinearSystem, separator: list[int], fcols: IntArray, c: _Candidates, which: IntArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, Iterator[tuple[IntArray, FloatArray, FloatArray]]]:
     """``Σ[:, F]``, ``Σ_F`` and, for the ``which`` candidates, ``M_c = A_c Σ A_cᵀ`` and ``U_c = W Σ A_cᵀ``, all from
     one Schur complement of ``info`` onto the ``separator`` (which holds the focused variables).
 
@@ -757,8 +757,49 @@ def _schur_clique_gains(
     XF[s_cols] = C[:, fs]
     XF[r_cols] = -Y[:, fs]
     SF = C[np.ix_(fs, fs)]
-    # Σ at every candidate's columns: separator-separator, rest-separator and rest-rest (Λ_rr⁻¹ blocks + X C Xᵀ)
-    cols, width, Ac = c.cols[which], c.width[which], c.Ac[which]
+    # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks
+    r_var = np.full(len(sub.variables), -1, dtype=np.int64)
+    r_var[rest] = np.arange(len(rest))
+    r_off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in rest])]).astype(np.int64)
+    pairs: list[tuple[int, int]] = []
+    per_cand: list[list[tuple[int, int, int, int]]] = []
+    for i in which:
+        vs = sub.factors[c.index[i]].variables
+        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
+        own = [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
+               enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
+        per_cand.append(own)
+        pairs += [(u, v) for u, v, _, _ in own]
+    blocks = covariance_blocks(L_rr, r_off, pairs, solver=solver_r) if pairs else {}
+
+    def chunks() -> Iterator[tuple[IntArray, FloatArray, FloatArray]]:
+        for start in range(0, len(which), SCHUR_CHUNK):
+            k = which[start : start + SCHUR_CHUNK]
+            yield k, *_schur_chunk(c, k, per_cand[start : start + SCHUR_CHUNK], blocks, s_pos, r_pos, C, X, Y, XF)
+
+    return XF, SF, chunks()
+
+
+SCHUR_CHUNK = 2048
+"""Candidates whose ``Σ`` at their columns is gathered at once (each gathers rows of ``X`` and ``X C``, one per pair
+of its columns off the separator: ~1 GB for the 35,000 candidates of an hour's recording in one piece)."""
+
+
+def _schur_chunk(
+    c: _Candidates,
+    k: IntArray,
+    per_cand: list[list[tuple[int, int, int, int]]],
+    blocks: dict[tuple[int, int], FloatArray],
+    s_pos: IntArray,
+    r_pos: IntArray,
+    C: FloatArray,
+    X: FloatArray,
+    Y: FloatArray,
+    XF: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """``M_c`` and ``U_c`` of the candidates ``k`` from the Schur pieces of :func:`_schur_clique_gains`: ``Σ`` at
+    their columns, separator-separator ``C``, rest-separator ``−X C``, rest-rest ``Λ_rr⁻¹`` blocks plus ``X C Xᵀ``."""
+    cols, width, Ac = c.cols[k], c.width[k], c.Ac[k]
     nk, d = cols.shape
     valid = np.arange(d)[None, :] < width[:, None]
     sp_, rp = np.where(valid, s_pos[cols], -1), np.where(valid, r_pos[cols], -1)
@@ -774,27 +815,13 @@ def _schur_clique_gains(
     rr = (rp[:, :, None] >= 0) & (rp[:, None, :] >= 0)
     a, b = np.broadcast_arrays(rp[:, :, None], rp[:, None, :])
     Sig[rr] = np.einsum("qk,qk->q", X[a[rr]], Y[b[rr]])
-    # Λ_rr⁻¹ at the rest-rest pairs, by variable blocks
-    r_var = np.full(len(sub.variables), -1, dtype=np.int64)
-    r_var[rest] = np.arange(len(rest))
-    r_off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in rest])]).astype(np.int64)
-    pairs: list[tuple[int, int]] = []
-    per_cand: list[list[tuple[int, int, int, int]]] = []
-    for i in which:
-        vs = sub.factors[c.index[i]].variables
-        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
-        own = [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
-               enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
-        per_cand.append(own)
-        pairs += [(u, v) for u, v, _, _ in own]
-    blocks = covariance_blocks(L_rr, r_off, pairs, solver=solver_r) if pairs else {}
-    for k, own in enumerate(per_cand):
+    for q, own in enumerate(per_cand):
         for u, v, ou, ov in own:
             blk = blocks[(u, v)]
-            Sig[k, ou : ou + blk.shape[0], ov : ov + blk.shape[1]] += blk
+            Sig[q, ou : ou + blk.shape[0], ov : ov + blk.shape[1]] += blk
     M = Ac @ Sig @ np.swapaxes(Ac, 1, 2)
     U = np.einsum("ndf,nad->nfa", XF[cols], Ac)
-    return XF, SF, M, U
+    return M, U
 
 
 def _exact_gains(
@@ -810,9 +837,10 @@ def _exact_gains(
     fcols = prob.system.columns(prob.focused)
     separator = [] if prob.full_focus else _chain_separator(info, prob.system, prob.focused)
     if separator and len(prob.system.columns(separator)) <= SCHUR_MAX_COLUMNS:
-        XF, SF, M, U = _schur_clique_gains(info, prob.system, separator, fcols, c, which)
+        XF, SF, chunks = _schur_clique_gains(info, prob.system, separator, fcols, c, which)
         g.SF, g.P = SF, _sym_inv(SF)
-        _store_gains(g, which, M, U, prob.full_focus)
+        for k, M, U in chunks:
+            _store_gains(g, k, M, U, prob.full_focus)
         return XF, _solve_accuracy(info, solver)
     if prob.full_focus:
         XF, SF = np.zeros((n, 0)), np.zeros((0, 0))

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from stages.estimation import measurement_selection
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
     TrackerOptions,
@@ -451,7 +452,9 @@ def _chain_with_hub(loop: bool) -> tuple[LinearSystem, list[int]]:
 
 
 @pytest.mark.parametrize("loop", [False, True])
-def test_recomputation_through_the_chain_separator_equals_the_inverse(loop: bool) -> None:
+def test_recomputation_through_the_chain_separator_equals_the_inverse(
+    loop: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The recomputation's linear path (Schur complement onto the landmarks, the focused variables and the hubs; a
     block-tridiagonal recursion along the pose chain) gives the dense inverse's ``Σ_F``, ``Σ[:, F]``, ``M_c`` and
     ``U_c``; with a loop closure the rest is not a path and its blocks are solved for."""
@@ -467,8 +470,13 @@ def test_recomputation_through_the_chain_separator_equals_the_inverse(loop: bool
         assert sorted(sep) == sorted({*landmarks, hub, 7})
     fcols = system.columns(focused)
     c = _candidates(system, meas, fcols)
+    monkeypatch.setattr(measurement_selection, "SCHUR_CHUNK", 7)  # the candidates in chunks of 7
     which = np.arange(len(meas))
-    XF, SF, M, U = _schur_clique_gains(info, system, sep, fcols, c, which)
+    XF, SF, chunks = _schur_clique_gains(info, system, sep, fcols, c, which)
+    parts = list(chunks)
+    assert len(parts) == (len(which) + 6) // 7
+    M = np.concatenate([m for _, m, _ in parts])
+    U = np.concatenate([u for _, _, u in parts])
     dense = np.linalg.inv(info.toarray())
     np.testing.assert_allclose(XF, dense[:, fcols], rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(SF, dense[np.ix_(fcols, fcols)], rtol=1e-8, atol=1e-10)
