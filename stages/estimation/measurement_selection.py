@@ -702,6 +702,11 @@ SCHUR_MAX_COLUMNS = 4096
 """The recomputation takes the Schur complement onto at most this many separator columns, else it solves."""
 
 
+SCHUR_SOLVE_COLUMNS = 32
+"""Separator columns solved for at once by :func:`_schur_clique_gains` (the right-hand sides, the solution, its
+refinement and the solver's buffer are each ``n × columns``: ~460 MB for all 178 of an hour's recording at once)."""
+
+
 def _chain_separator(info: sp.csc_matrix, sub: LinearSystem, focused: Sequence[int], max_hubs: int = 64) -> list[int]:
     """The variables to take the Schur complement onto so that the rest of ``info``'s block graph is paths: the
     landmarks, the focused variables and the hubs among the others, removed one by one from the most connected while
@@ -744,12 +749,17 @@ def _schur_clique_gains(
     r_pos = np.full(n, -1, dtype=np.int64)
     r_pos[r_cols] = np.arange(len(r_cols))
     L_rr = sp.csc_matrix(info[r_cols][:, r_cols])
-    L_rs = info[r_cols][:, s_cols].toarray()
+    L_rs = sp.csc_matrix(info[r_cols][:, s_cols])
     L_ss = info[s_cols][:, s_cols].toarray()
     solver_r = SPDSolver(L_rr)
-    X = solver_r.solve(L_rs)
-    X += solver_r.solve(L_rs - L_rr @ X)  # one step of iterative refinement
-    C = np.linalg.inv(L_ss - L_rs.T @ X)
+    X = np.empty((len(r_cols), len(s_cols)))
+    for j in range(0, len(s_cols), SCHUR_SOLVE_COLUMNS):  # a few columns at a time: the dense temporaries stay small
+        B = L_rs[:, j : j + SCHUR_SOLVE_COLUMNS].toarray()
+        Xj = solver_r.solve(B)
+        Xj += solver_r.solve(B - L_rr @ Xj)  # one step of iterative refinement
+        X[:, j : j + SCHUR_SOLVE_COLUMNS] = Xj
+    C = np.linalg.inv(L_ss - np.asarray(L_rs.T @ X))
+    del L_rs
     C = 0.5 * (C + C.T)
     Y = X @ C  # −Σ_rs
     fs = s_pos[fcols]

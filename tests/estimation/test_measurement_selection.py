@@ -471,6 +471,7 @@ def test_recomputation_through_the_chain_separator_equals_the_inverse(
     fcols = system.columns(focused)
     c = _candidates(system, meas, fcols)
     monkeypatch.setattr(measurement_selection, "SCHUR_CHUNK", 7)  # the candidates in chunks of 7
+    monkeypatch.setattr(measurement_selection, "SCHUR_SOLVE_COLUMNS", 3)  # the separator's solves 3 columns at a time
     which = np.arange(len(meas))
     XF, SF, chunks = _schur_clique_gains(info, system, sep, fcols, c, which)
     parts = list(chunks)
