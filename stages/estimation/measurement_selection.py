@@ -40,7 +40,7 @@ leaves unobserved have finite, comparable first gains.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -54,6 +54,7 @@ from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import Factor, LinearSystem, SparseMatrix, unanchored_poses
 from stages.estimation.sparse_cov import (
     SPDSolver,
+    _variable_graph,
     covariance_blocks,
     covariance_blocks_schur,
     logdet_spd,
@@ -664,16 +665,164 @@ class _Precision:
         self.recomputed += len(which)
 
 
+SCHUR_MAX_COLUMNS = 4096
+"""The recomputation takes the Schur complement onto at most this many separator columns, else it solves."""
+
+
+SCHUR_SOLVE_COLUMNS = 32
+"""Separator columns solved for at once by :func:`_schur_clique_gains` (the right-hand sides, the solution, its
+refinement and the solver's buffer are each ``n × columns``: ~460 MB for all 178 of an hour's recording at once)."""
+
+
+def _chain_separator(info: sp.csc_matrix, sub: LinearSystem, focused: Sequence[int], max_hubs: int = 64) -> list[int]:
+    """The variables to take the Schur complement onto so that the rest of ``info``'s block graph is paths: the
+    landmarks, the focused variables and the hubs among the others, removed one by one from the most connected while
+    some variable has more than two neighbours (at most ``max_hubs``: the shared tag scale, which every picked
+    measurement joins). What is still not a path after that (loop closures) is solved for."""
+    removed = np.zeros(len(sub.variables), dtype=bool)
+    removed[sub.variables_of_kind("landmark")] = True
+    removed[list(focused)] = True
+    coo = sp.coo_matrix(_variable_graph(info, sub.offsets))
+    for _ in range(max_hubs):
+        keep = ~removed[coo.row] & ~removed[coo.col]
+        degree = np.bincount(coo.row[keep], minlength=len(sub.variables))
+        hub = int(np.argmax(degree)) if len(degree) else 0
+        if not len(degree) or degree[hub] <= 2:
+            break
+        removed[hub] = True
+    return np.flatnonzero(removed).tolist()
+
+
+def _schur_clique_gains(
+    info: sp.csc_matrix, sub: LinearSystem, separator: list[int], fcols: IntArray, c: _Candidates, which: IntArray
+) -> tuple[FloatArray, FloatArray, Iterator[tuple[IntArray, FloatArray, FloatArray]]]:
+    """``Σ[:, F]``, ``Σ_F`` and, for the ``which`` candidates, ``M_c = A_c Σ A_cᵀ`` and ``U_c = W Σ A_cᵀ``, all from
+    one Schur complement of ``info`` onto the ``separator`` (which holds the focused variables).
+
+    With ``info = [[Λ_rr, Λ_rs], [Λ_sr, Λ_ss]]``, ``X = Λ_rr⁻¹ Λ_rs`` (one solve per separator column) and
+    ``C = (Λ_ss − Λ_sr X)⁻¹``: ``Σ_ss = C``, ``Σ_rs = −X C``, ``Σ_rr = Λ_rr⁻¹ + X C Xᵀ``, and the blocks of ``Λ_rr⁻¹``
+    come from a block-tridiagonal recursion along the paths of the rest. Linear in the length of the recording where
+    ``m`` solves per candidate are quadratic; ``M_c``, ``U_c`` and ``Σ_F`` read the same ``C``, so the differences
+    the gains take (``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c``) cancel as they do exactly (a candidate observing a landmark known
+    only through the weak prior: ``M_c`` ~1e10, ``K_c`` ~10)."""
+    n = sub.dim
+    is_s = np.zeros(len(sub.variables), dtype=bool)
+    is_s[separator] = True
+    s_cols = sub.columns(separator)
+    rest = np.flatnonzero(~is_s)
+    r_cols = sub.columns(rest.tolist())
+    s_pos = np.full(n, -1, dtype=np.int64)
+    s_pos[s_cols] = np.arange(len(s_cols))
+    r_pos = np.full(n, -1, dtype=np.int64)
+    r_pos[r_cols] = np.arange(len(r_cols))
+    L_rr = sp.csc_matrix(info[r_cols][:, r_cols])
+    L_rs = sp.csc_matrix(info[r_cols][:, s_cols])
+    L_ss = info[s_cols][:, s_cols].toarray()
+    solver_r = SPDSolver(L_rr)
+    X = np.empty((len(r_cols), len(s_cols)))
+    for j in range(0, len(s_cols), SCHUR_SOLVE_COLUMNS):  # a few columns at a time: the dense temporaries stay small
+        B = L_rs[:, j : j + SCHUR_SOLVE_COLUMNS].toarray()
+        Xj = solver_r.solve(B)
+        Xj += solver_r.solve(B - L_rr @ Xj)  # one step of iterative refinement
+        X[:, j : j + SCHUR_SOLVE_COLUMNS] = Xj
+    C = np.linalg.inv(L_ss - np.asarray(L_rs.T @ X))
+    del L_rs
+    C = 0.5 * (C + C.T)
+    Y = X @ C  # −Σ_rs
+    fs = s_pos[fcols]
+    XF = np.empty((n, len(fcols)))
+    XF[s_cols] = C[:, fs]
+    XF[r_cols] = -Y[:, fs]
+    SF = C[np.ix_(fs, fs)]
+    # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks
+    r_var = np.full(len(sub.variables), -1, dtype=np.int64)
+    r_var[rest] = np.arange(len(rest))
+    r_off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in rest])]).astype(np.int64)
+    pairs: list[tuple[int, int]] = []
+    per_cand: list[list[tuple[int, int, int, int]]] = []
+    for i in which:
+        vs = sub.factors[c.index[i]].variables
+        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
+        own = [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
+               enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
+        per_cand.append(own)
+        pairs += [(u, v) for u, v, _, _ in own]
+    blocks = covariance_blocks(L_rr, r_off, pairs, solver=solver_r) if pairs else {}
+
+    def chunks() -> Iterator[tuple[IntArray, FloatArray, FloatArray]]:
+        for start in range(0, len(which), SCHUR_CHUNK):
+            k = which[start : start + SCHUR_CHUNK]
+            yield k, *_schur_chunk(c, k, per_cand[start : start + SCHUR_CHUNK], blocks, s_pos, r_pos, C, X, Y, XF)
+
+    return XF, SF, chunks()
+
+
+SCHUR_CHUNK = 2048
+"""Candidates whose ``Σ`` at their columns is gathered at once (each gathers rows of ``X`` and ``X C``, one per pair
+of its columns off the separator: ~1 GB for the 35,000 candidates of an hour's recording in one piece)."""
+
+
+def _schur_chunk(
+    c: _Candidates,
+    k: IntArray,
+    per_cand: list[list[tuple[int, int, int, int]]],
+    blocks: dict[tuple[int, int], FloatArray],
+    s_pos: IntArray,
+    r_pos: IntArray,
+    C: FloatArray,
+    X: FloatArray,
+    Y: FloatArray,
+    XF: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """``M_c`` and ``U_c`` of the candidates ``k`` from the Schur pieces of :func:`_schur_clique_gains`: ``Σ`` at
+    their columns, separator-separator ``C``, rest-separator ``−X C``, rest-rest ``Λ_rr⁻¹`` blocks plus ``X C Xᵀ``."""
+    cols, width, Ac = c.cols[k], c.width[k], c.Ac[k]
+    nk, d = cols.shape
+    valid = np.arange(d)[None, :] < width[:, None]
+    sp_, rp = np.where(valid, s_pos[cols], -1), np.where(valid, r_pos[cols], -1)
+    Sig = np.zeros((nk, d, d))
+    ss = (sp_[:, :, None] >= 0) & (sp_[:, None, :] >= 0)
+    a, b = np.broadcast_arrays(sp_[:, :, None], sp_[:, None, :])
+    Sig[ss] = C[a[ss], b[ss]]
+    rs = (rp[:, :, None] >= 0) & (sp_[:, None, :] >= 0)
+    a, b = np.broadcast_arrays(rp[:, :, None], sp_[:, None, :])
+    Sig[rs] = -Y[a[rs], b[rs]]
+    sr = np.swapaxes(rs, 1, 2)
+    Sig[sr] = np.swapaxes(Sig, 1, 2)[sr]
+    rr = (rp[:, :, None] >= 0) & (rp[:, None, :] >= 0)
+    a, b = np.broadcast_arrays(rp[:, :, None], rp[:, None, :])
+    Sig[rr] = np.einsum("qk,qk->q", X[a[rr]], Y[b[rr]])
+    for q, own in enumerate(per_cand):
+        for u, v, ou, ov in own:
+            blk = blocks[(u, v)]
+            Sig[q, ou : ou + blk.shape[0], ov : ov + blk.shape[1]] += blk
+    M = Ac @ Sig @ np.swapaxes(Ac, 1, 2)
+    U = np.einsum("ndf,nad->nfa", XF[cols], Ac)
+    return M, U
+
+
 def _exact_gains(
     prob: _Problem, c: _Candidates, g: _Gains, info: sp.csc_matrix, solver: SPDSolver, which: IntArray
 ) -> tuple[FloatArray, float]:
     """Recompute ``Σ_F``, ``P`` and the ``which`` candidates' ``M_c``, ``K_c`` in ``g`` from ``info`` (``Λ₀`` plus
-    the picks, factorised by ``solver``); returns ``Σ[:, F]`` and the solve's accuracy."""
+    the picks, factorised by ``solver``); returns ``Σ[:, F]`` and the solve's accuracy.
+
+    Through the Schur complement onto the landmarks, the focused variables and the hubs
+    (:func:`_schur_clique_gains`, linear in the recording's length) when that separator is small; else ``m`` solves
+    per candidate."""
     n = prob.system.dim
+    fcols = prob.system.columns(prob.focused)
+    separator = [] if prob.full_focus else _chain_separator(info, prob.system, prob.focused)
+    if separator and len(prob.system.columns(separator)) <= SCHUR_MAX_COLUMNS:
+        XF, SF, chunks = _schur_clique_gains(info, prob.system, separator, fcols, c, which)
+        g.SF, g.P = SF, _sym_inv(SF)
+        for k, M, U in chunks:
+            _store_gains(g, k, M, U, prob.full_focus)
+        return XF, _solve_accuracy(info, solver)
     if prob.full_focus:
         XF, SF = np.zeros((n, 0)), np.zeros((0, 0))
     else:
-        XF, SF = _focused_cov(solver, n, prob.system.columns(prob.focused))
+        XF, SF = _focused_cov(solver, n, fcols)
     g.SF, g.P = SF, _sym_inv(SF)
     for s in range(0, len(which), 256):  # Σ A_cᵀ by solves, m right-hand sides per candidate
         k = which[s : s + 256]
@@ -684,11 +833,16 @@ def _exact_gains(
         X = solver.solve(rhs.reshape(n, nk * m)).reshape(n, nk, m)
         M = Ac @ X[cols, np.arange(nk)[:, None]]  # (nk, m, m)
         U = np.einsum("ndf,nad->nfa", XF[cols], Ac)
-        K = M - np.einsum("nfa,fg,ngb->nab", U, g.P, U, optimize=True)
-        for q, (a, b) in enumerate(g.pairs):
-            g.Mu[q, k] = 0.5 * (M[:, a, b] + M[:, b, a])
-            g.Ku[q, k] = 0.0 if prob.full_focus else 0.5 * (K[:, a, b] + K[:, b, a])
+        _store_gains(g, k, M, U, prob.full_focus)
     return XF, _solve_accuracy(info, solver)
+
+
+def _store_gains(g: _Gains, k: IntArray, M: FloatArray, U: FloatArray, full_focus: bool) -> None:
+    """``M_c`` and ``K_c = M_c − U_cᵀ P U_c`` of the candidates ``k`` into ``g``'s upper triangles."""
+    K = M - np.einsum("nfa,fg,ngb->nab", U, g.P, U, optimize=True)
+    for q, (a, b) in enumerate(g.pairs):
+        g.Mu[q, k] = 0.5 * (M[:, a, b] + M[:, b, a])
+        g.Ku[q, k] = 0.0 if full_focus else 0.5 * (K[:, a, b] + K[:, b, a])
 
 
 def _gain_blocks(

@@ -256,8 +256,7 @@ def covariance_blocks(
         if solver is None:
             solver = SPDSolver(info)
         cols_needed = sorted({j for _, j in pending})
-        for start in range(0, len(cols_needed), 256):
-            chunk = cols_needed[start : start + 256]
+        for chunk in _column_chunks(cols_needed, dims, int(info.shape[0])):
             rhs_cols = np.concatenate([np.arange(offsets[j], offsets[j + 1]) for j in chunk])
             E = np.zeros((info.shape[0], len(rhs_cols)))
             E[rhs_cols, np.arange(len(rhs_cols))] = 1.0
@@ -271,6 +270,31 @@ def covariance_blocks(
                 if j in local:
                     out[(i, j)] = local[j][offsets[i] : offsets[i + 1], :]
     return out
+
+
+SOLVE_CHUNK_BYTES = 32 * 2**20
+"""Dense right-hand sides solved for at once by :func:`covariance_blocks`: the identity columns, the solution and
+the solver's own buffer are each ``n × columns``, so 256 variables of 3 columns at a time on an hour's graph (54,000
+columns) held ~1 GB; 32 MiB each keeps the solves' size (tens of columns) and bounds the memory."""
+
+
+def _column_chunks(variables: Sequence[int], dims: IntArray, n: int) -> list[list[int]]:
+    """``variables`` in groups whose columns make at most :data:`SOLVE_CHUNK_BYTES` of ``n``-row doubles (at least
+    one variable, at most 256 per group)."""
+    max_cols = max(1, SOLVE_CHUNK_BYTES // (8 * max(n, 1)))
+    chunks: list[list[int]] = []
+    cur: list[int] = []
+    width = 0
+    for j in variables:
+        d = int(dims[j])
+        if cur and (width + d > max_cols or len(cur) == 256):
+            chunks.append(cur)
+            cur, width = [], 0
+        cur.append(j)
+        width += d
+    if cur:
+        chunks.append(cur)
+    return chunks
 
 
 def logdet_spd(matrix: FloatArray) -> float:

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
+import scipy.sparse as sp
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.errors import StageError
@@ -236,24 +237,34 @@ def choose(
     )
 
 
+def base_information(system: LinearSystem, base: Sequence[int], landmark_prior_sigma: float) -> sp.csc_matrix:
+    """``Σ_base AᵀA`` plus the weak prior (:func:`weak_prior`): the information every replay step starts from."""
+    return sp.csc_matrix(system.information(list(base)) + weak_prior(system, base, landmark_prior_sigma))
+
+
 def focused_covariances(
     system: LinearSystem,
     base: Sequence[int],
     picks: Sequence[int],
     focused: Sequence[int],
     landmark_prior_sigma: float,
+    base_info: sp.csc_matrix | None = None,
 ) -> tuple[list[FloatArray], float]:
     """Marginal covariance (tangent) of each focused variable and the focused entropy (nats), given the factors.
 
     One sparse factorisation of ``Λ = Σ_{base + picks} AᵀA`` + the weak prior (:func:`weak_prior`) and one solve
-    with the focused columns; no dense ``n × n`` matrix.
+    with the focused columns; no dense ``n × n`` matrix. ``base_info``: :func:`base_information` of ``base``,
+    assembled once by a caller that replays many steps (the base is the whole odometry chain; the picks are few).
     """
-    info = system.information(list(base) + list(picks)) + weak_prior(system, base, landmark_prior_sigma)
+    if base_info is None:
+        base_info = base_information(system, base, landmark_prior_sigma)
+    info = sp.csc_matrix(base_info + system.information(list(picks))) if picks else base_info
     cols = system.columns(focused)
     E = np.zeros((system.dim, len(cols)))
     E[cols, np.arange(len(cols))] = 1.0
-    X = SPDSolver(info.tocsc()).solve(E)
+    X = SPDSolver(info).solve(E)
     SF = X[cols]
+    del X, E
     SF = 0.5 * (SF + SF.T)
     blocks, off = [], 0
     for v in focused:

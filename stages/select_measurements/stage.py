@@ -19,6 +19,7 @@ from stages.select_measurements.artifacts import SELECTED, SELECTION, SelectedMe
 from stages.select_measurements.config import SelectMeasurementsConfig
 from stages.select_measurements.core import (
     MeasurementChoice,
+    base_information,
     choose,
     focused_covariances,
     focused_variables,
@@ -187,10 +188,13 @@ def _log_replay(
     replay = _replay_steps(len(choice.factor_indices), cfg.max_replay_steps)
     focused_vars = focused_variables(loaded, system, choice.focused_tag_ids)
     base = [int(i) for i in loaded.fixed_factor_indices]
+    base_info = base_information(system, base, cfg.landmark_prior_sigma_m)  # once: the odometry chain of every step
     for k in replay:
         picks = choice.factor_indices[:k]
         set_step(rec, k)
-        blocks, entropy = focused_covariances(system, base, picks, focused_vars, cfg.landmark_prior_sigma_m)
+        blocks, entropy = focused_covariances(
+            system, base, picks, focused_vars, cfg.landmark_prior_sigma_m, base_info=base_info
+        )
         covs = []
         for key, block in zip(f_keys, blocks, strict=True):
             kind = loaded.kind(key)

@@ -13,10 +13,15 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
+from stages.estimation import measurement_selection
 from stages.estimation.linear_system import LinearSystem
 from stages.estimation.measurement_selection import (
     TrackerOptions,
+    _candidates,
+    _chain_separator,
+    _schur_clique_gains,
     default_base,
     focused_entropy,
     leverage_probabilities,
@@ -424,3 +429,59 @@ def test_capacitance_tracker_equals_reference(case: str, refactor_every: int, fi
     assert fast.stats["capacitance"] == 1.0
     n_first = fast.stats["first_observation_refactorisations"]
     assert n_first == 0.0 if not first_observation else case != "refactorisations_all" or n_first > 0
+
+
+def _chain_with_hub(loop: bool) -> tuple[LinearSystem, list[int]]:
+    """A 3-dof pose chain with a prior, 2-dof landmarks measured from the poses and a 1-dof hub (a shared scale) that
+    every measurement joins, plus one loop closure if asked; returns the system and its measurement factors."""
+    rng = np.random.default_rng(7)
+    n_pose, n_lm = 40, 4
+    dims = [3] * n_pose + [2] * n_lm + [1]
+    kinds = ["pose"] * n_pose + ["landmark"] * n_lm + ["pose"]
+    hub = n_pose + n_lm
+    factors: list[tuple[list[int], np.ndarray]] = [([0], np.eye(3) * 10.0), ([hub], np.eye(1) * 200.0)]
+    factors += [([i, i + 1], np.hstack([-np.eye(3), np.eye(3)]) * 5.0 + 0.1 * rng.standard_normal((3, 6))) for i in
+                range(n_pose - 1)]  # fmt: skip
+    if loop:
+        factors.append(([3, 30], np.hstack([-np.eye(3), np.eye(3)]) * 2.0))
+    meas = []
+    for i in range(0, n_pose, 2):
+        meas.append(len(factors))
+        factors.append(([i, n_pose + i % n_lm, hub], rng.standard_normal((2, 6))))
+    return LinearSystem.from_blocks(dims, kinds, factors), meas  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("loop", [False, True])
+def test_recomputation_through_the_chain_separator_equals_the_inverse(
+    loop: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The recomputation's linear path (Schur complement onto the landmarks, the focused variables and the hubs; a
+    block-tridiagonal recursion along the pose chain) gives the dense inverse's ``Σ_F``, ``Σ[:, F]``, ``M_c`` and
+    ``U_c``; with a loop closure the rest is not a path and its blocks are solved for."""
+    system, meas = _chain_with_hub(loop)
+    hub = len(system.variables) - 1
+    landmarks = system.variables_of_kind("landmark")
+    info = sp.csc_matrix(system.information(meas[::3] + list(range(len(system.factors) - len(meas)))))
+    info = sp.csc_matrix(info + system.diagonal_prior(landmarks, 100.0))
+    focused = [*landmarks[:2], 7]  # two landmarks and a pose
+    sep = _chain_separator(info, system, focused)
+    assert set(landmarks) | {hub, 7} <= set(sep)
+    if not loop:
+        assert sorted(sep) == sorted({*landmarks, hub, 7})
+    fcols = system.columns(focused)
+    c = _candidates(system, meas, fcols)
+    monkeypatch.setattr(measurement_selection, "SCHUR_CHUNK", 7)  # the candidates in chunks of 7
+    monkeypatch.setattr(measurement_selection, "SCHUR_SOLVE_COLUMNS", 3)  # the separator's solves 3 columns at a time
+    which = np.arange(len(meas))
+    XF, SF, chunks = _schur_clique_gains(info, system, sep, fcols, c, which)
+    parts = list(chunks)
+    assert len(parts) == (len(which) + 6) // 7
+    M = np.concatenate([m for _, m, _ in parts])
+    U = np.concatenate([u for _, _, u in parts])
+    dense = np.linalg.inv(info.toarray())
+    np.testing.assert_allclose(XF, dense[:, fcols], rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(SF, dense[np.ix_(fcols, fcols)], rtol=1e-8, atol=1e-10)
+    for k, f in enumerate(meas):
+        A, cols = system.factors[f].jacobian, system.factor_columns(f)
+        np.testing.assert_allclose(M[k], A @ dense[np.ix_(cols, cols)] @ A.T, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(U[k], dense[np.ix_(fcols, cols)] @ A.T, rtol=1e-8, atol=1e-10)

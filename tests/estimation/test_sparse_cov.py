@@ -41,3 +41,25 @@ def test_dropped_solvers_give_back_their_solve_buffers() -> None:
         gc.collect()
     leaked_each = n * cols * 8 / 2**20
     assert _rss_mib() - before < 0.25 * solvers * leaked_each
+
+
+def test_covariance_blocks_solved_in_small_chunks_equal_the_inverse(monkeypatch: pytest.MonkeyPatch) -> None:
+    """covariance_blocks solves its dense right-hand sides SOLVE_CHUNK_BYTES at a time (memory on long graphs): with
+    chunks of a few columns the blocks are the dense inverse's, as with one chunk."""
+    rng = np.random.default_rng(5)
+    dims = np.array([3] * 12 + [2] * 5)
+    offsets = np.concatenate([[0], np.cumsum(dims)]).astype(np.int64)
+    n = int(offsets[-1])
+    J = sp.random(3 * n, n, density=0.08, random_state=7, format="csc") + sp.eye(3 * n, n)
+    info = sp.csc_matrix(J.T @ J + 0.5 * sp.eye(n))
+    dense = np.linalg.inv(info.toarray())
+    pairs = [(int(i), int(j)) for i in range(len(dims)) for j in rng.choice(len(dims), 4, replace=False)]
+    whole = sparse_cov.covariance_blocks(info, offsets, pairs)
+    assert len(sparse_cov._column_chunks(list(range(len(dims))), dims, n)) == 1
+    monkeypatch.setattr(sparse_cov, "SOLVE_CHUNK_BYTES", 8 * n * 5)  # 5 columns: one or two variables a chunk
+    assert len(sparse_cov._column_chunks(list(range(len(dims))), dims, n)) >= 8
+    chunked = sparse_cov.covariance_blocks(info, offsets, pairs)
+    for i, j in pairs:
+        block = dense[offsets[i] : offsets[i + 1], offsets[j] : offsets[j + 1]]
+        np.testing.assert_allclose(chunked[(i, j)], block, rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(chunked[(i, j)], whole[(i, j)], rtol=1e-12, atol=1e-14)

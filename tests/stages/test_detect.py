@@ -284,7 +284,8 @@ def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: CameraMo
     return run
 
 
-def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) -> None:
+def _rendered_run(tmp_path: Path) -> tuple[RunFolder, list[TagPlacement]]:
+    """Four rendered frames (the third without tags) and a corrupt one."""
     camera = _camera()
     cam = colmap_camera(camera)
     tags = [
@@ -296,10 +297,15 @@ def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) 
         img = render_frame(cam, tags if k != 2 else [], noise_sigma=2.0, rng=np.random.default_rng(k))
         jobs.append(("png", cv2.imencode(".png", img)[1].tobytes()))
     jobs.append(("jpeg", b"\xff\xd8 not a jpeg"))
-    run = _fake_ingest(tmp_path, jobs, camera, 640, 480)
-    settings = load_settings(
-        REGISTRY.models(), None, ["detect.tag_size_m=0.1", "detect.workers=2", "detect.batch_frames=2"]
-    )
+    return _fake_ingest(tmp_path, jobs, camera, 640, 480), tags
+
+
+_SETTINGS = ["detect.tag_size_m=0.1", "detect.workers=2", "detect.batch_frames=2"]
+
+
+def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) -> None:
+    run, tags = _rendered_run(tmp_path)
+    settings = load_settings(REGISTRY.models(), None, _SETTINGS)
     result = run_stage(run, REGISTRY, "detect", settings)
     summary = result.summary
     assert summary["frames"] == 5 and summary["corrupt_frames"] == 1 and summary["corrupt_frame_ids"] == [4]
@@ -315,6 +321,23 @@ def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) 
         cov = np.reshape(r["pose_cov"], (6, 6))
         assert np.all(np.linalg.eigvalsh(cov) > 0)
     assert (run.path / "detect.rrd").exists()
+
+
+def test_detections_made_into_arrow_in_chunks_equal_the_table_made_at_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stage turns its rows into Arrow TABLE_CHUNK at a time (memory on long recordings): 6 rows in chunks of 4
+    give the same table as in one."""
+    from stages.detect import stage as detect_stage
+
+    whole, _ = _rendered_run(tmp_path / "whole")
+    run_stage(whole, REGISTRY, "detect", load_settings(REGISTRY.models(), None, _SETTINGS))
+    monkeypatch.setattr(detect_stage, "TABLE_CHUNK", 4)
+    chunked, _ = _rendered_run(tmp_path / "chunked")
+    run_stage(chunked, REGISTRY, "detect", load_settings(REGISTRY.models(), None, _SETTINGS))
+    a = pq.read_table(whole.stage_dir("detect") / "detections.parquet")
+    b = pq.read_table(chunked.stage_dir("detect") / "detections.parquet")
+    assert a.num_rows == 6 and a.equals(b)
 
 
 def test_stage_reads_detections_the_bag_holds(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from stages.estimation.linear_system import Factor, LinearSystem
 from stages.estimation.measurement_selection import focused_entropy, select_information
 from stages.graph.load import load_graph
 from stages.select_measurements import SelectMeasurementsConfig, choose, focused_variables, linear_system
+from stages.select_measurements.core import base_information, focused_covariances
 from tests.fixtures.office import copy_run, rrd_rows, run_select
 from tests.oracles.measurement_selection import reference_greedy
 
@@ -158,3 +159,19 @@ def test_fast_information_equals_reference_on_sample_subgraph(loaded, system) ->
     ref_picks, ref_gains = reference_greedy(system, cands, focused, budget, base)
     assert fast.picks == ref_picks
     np.testing.assert_allclose(fast.gains, ref_gains, rtol=1e-6, atol=1e-8)
+
+
+def test_replay_with_the_base_information_assembled_once(loaded, system) -> None:
+    """focused_covariances with the base's information assembled once (the replay) == assembled every step."""
+    choice = choose(loaded, sorted(loaded.landmark_keys)[:5], SelectMeasurementsConfig(budget=6), system)
+    focused = focused_variables(loaded, system, choice.focused_tag_ids)
+    base = [int(i) for i in loaded.fixed_factor_indices]
+    base_info = base_information(system, base, 100.0)
+    for k in (0, 3, 6):
+        picks = choice.factor_indices[:k]
+        blocks, h = focused_covariances(system, base, picks, focused, 100.0)
+        once, h_once = focused_covariances(system, base, picks, focused, 100.0, base_info=base_info)
+        assert h_once == pytest.approx(h, abs=1e-9)
+        for a, b in zip(blocks, once, strict=True):
+            np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+    assert h_once == pytest.approx(choice.entropy_after, abs=1e-6)

@@ -44,6 +44,21 @@ def test_the_simulators_truth_yaml_reads_as_its_json(simulated: Path) -> None:
     assert b.placed_by == "poses"
 
 
+def test_the_json_reads_the_same_without_its_frames(simulated: Path) -> None:
+    """GroundTruth drops the simulator's per-frame entries as the JSON is parsed (memory on long recordings): walls,
+    tags and poses are those of the whole file."""
+    path = simulated.with_name("small.ground_truth.json")
+    data = json.loads(path.read_text())
+    assert data["frames"] and any(f["visible_tags"] for f in data["frames"])
+    truth = read_truth(path)
+    np.testing.assert_array_equal(truth.walls_world, np.asarray(data["world"]["walls"], float).reshape(-1, 4))
+    assert sorted(truth.tags_world) == sorted(int(t["id"]) for t in data["tags"])
+    for t in data["tags"]:
+        np.testing.assert_array_equal(truth.tags_world[int(t["id"])], t["position"])
+    np.testing.assert_array_equal(truth.pose_stamps_ns, [p["stamp_ns"] for p in data["poses"]])
+    np.testing.assert_array_equal(truth.poses_world, [[p["x"], p["y"], p["yaw"]] for p in data["poses"]])
+
+
 def _write(folder: Path, text: str, **files: str) -> Path:
     for name, content in files.items():
         (folder / name.replace("_", ".")).write_text(content)
