@@ -391,25 +391,28 @@ def schmidt_update(
     # (N, m, ·): every trial's estimate against each measured landmark; M w.r.t. each landmark's own position
     zh, H, M = range_bearing_jacobians(xh[:, None, :], np.asarray(lh, dtype=float)[None])
     cols = np.stack([2 * np.asarray(js), 2 * np.asarray(js) + 1], axis=1).ravel()
-    Hs = H.reshape(N, 2 * m, 3)
-    MLam = np.matmul(M, Lam[cols].reshape(1, m, 2, -1)).reshape(N, 2 * m, -1)  # M Λ_J·
-    Mt = M.transpose(0, 1, 3, 2)
-
-    def times_Mt(X: FloatArray) -> FloatArray:  # X (N, a, 2m) @ blockdiag(M_i)ᵀ
-        a = X.shape[1]
-        blocks = np.matmul(X.reshape(N, a, m, 2).transpose(0, 2, 1, 3), Mt)  # (N, m, a, 2)
-        return blocks.transpose(0, 2, 1, 3).reshape(N, a, 2 * m)
-
-    HC = Hs @ C
-    HCM = times_Mt(HC[:, :, cols])
+    diag = np.arange(m)
+    # the measurement Jacobian of the robot's error and the measured landmarks' errors, J = [H, blockdiag(M_i)],
+    # and their joint covariance Σ = [[P, C_J], [C_Jᵀ, Λ_JJ]]: every per-trial product below is (N, ·, 3 + 2m)
+    J = np.zeros((N, 2 * m, 3 + 2 * m))
+    J[:, :, :3] = H.reshape(N, 2 * m, 3)
+    J[:, :, 3:].reshape(N, m, 2, m, 2)[:, diag, :, diag, :] = M.transpose(1, 0, 2, 3)
+    LamJ = Lam[cols]  # Λ_J· (2m, 2L), the same for every trial
+    Sig = np.empty((N, 3 + 2 * m, 3 + 2 * m))
+    Sig[:, :3, :3] = P
+    Sig[:, :3, 3:] = C[:, :, cols]
+    Sig[:, 3:, :3] = Sig[:, :3, 3:].transpose(0, 2, 1)
+    Sig[:, 3:, 3:] = LamJ[:, cols]
+    SigJt = Sig @ J.transpose(0, 2, 1)
+    S = J @ SigJt
+    S.reshape(N, m, 2, m, 2)[:, diag, :, diag, :] += R
     nu = (z - zh).reshape(N, 2 * m)
     nu[:, 0::2] = wrap_angle(nu[:, 0::2])
-    S = Hs @ P @ Hs.transpose(0, 2, 1) + HCM + HCM.transpose(0, 2, 1) + times_Mt(MLam[:, :, cols])
-    S += np.kron(np.eye(m), R)
-    # innovation gate, per measurement on its own block of S
-    blocks = S.reshape(N, m, 2, m, 2)[:, np.arange(m), :, np.arange(m), :]  # (m, N, 2, 2)
-    nu_m = nu.reshape(N, m, 2).transpose(1, 0, 2)
-    nis = np.einsum("mni,mni->mn", nu_m, np.linalg.solve(blocks, nu_m[..., None])[..., 0])
+    # innovation gate, per measurement on its own 2x2 block of S (inverted in closed form)
+    b = S.reshape(N, m, 2, m, 2)[:, diag, :, diag, :]  # (m, N, 2, 2)
+    n0, n1 = nu[:, 0::2].T, nu[:, 1::2].T
+    det = b[..., 0, 0] * b[..., 1, 1] - b[..., 0, 1] * b[..., 1, 0]
+    nis = (b[..., 1, 1] * n0 * n0 - (b[..., 0, 1] + b[..., 1, 0]) * n0 * n1 + b[..., 0, 0] * n1 * n1) / det
     rejected = (nis > GATE_CHI2).T  # (N, m)
     if rejected.any():
         big = np.repeat(rejected, 2, axis=1)
@@ -417,10 +420,13 @@ def schmidt_update(
         idx = np.flatnonzero(big.any(axis=0))
         for c in idx:
             S[big[:, c], c, c] += 1e12
-    G = P @ Hs.transpose(0, 2, 1) + times_Mt(C[:, :, cols])
-    Kg = G @ np.linalg.inv(S)
+    G = SigJt[:, :3]  # P Hᵀ + C_J Mᵀ
+    Kg = np.linalg.solve(S, G.transpose(0, 2, 1)).transpose(0, 2, 1)  # G S⁻¹ (S symmetric)
     xh = xh + np.einsum("nij,nj->ni", Kg, nu)
-    P = P - Kg @ S @ Kg.transpose(0, 2, 1)
+    P = P - Kg @ G.transpose(0, 2, 1)  # K S Kᵀ
     P = 0.5 * (P + P.transpose(0, 2, 1))
-    C = C - Kg @ (HC + MLam)
+    # C ← C − K (H C + M Λ_J·); K M Λ_J· is one (3N, 2m) x (2m, 2L) product, Λ_J· being the same for every trial
+    KJ = Kg @ J
+    KM = np.ascontiguousarray(KJ[:, :, 3:]).reshape(3 * N, 2 * m)  # a strided view would miss BLAS (10x slower)
+    C = C - KJ[:, :, :3] @ C - (KM @ LamJ).reshape(N, 3, -1)
     return xh, P, C
