@@ -33,11 +33,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
+from stages.estimation.blas import single_threaded_blas
 from stages.estimation.collision import range_bearing_jacobians
 from stages.estimation.robot import PathSteps, RobotModel, resample_path, unicycle_jacobians, unicycle_step
 from stages.geometry import wrap_angle
@@ -288,6 +289,13 @@ def simulate(
         step_ekf_sigma_m=np.where(stats.step_n > 0, stats.step_sig / np.maximum(stats.step_n, 1), np.nan),
         nees_per_dof=stats.nees_sum / (3.0 * denom) if stats.n_active else float("nan"),
     )
+
+
+def simulate_in_worker(args: tuple[Any, ...], kwargs: dict[str, Any]) -> NavigationResult:
+    """``simulate(*args, **kwargs)`` with numpy's BLAS on one thread, as a worker process runs it (evaluate runs
+    each case's trials in one while it selects and solves the next case; the same inputs give the same numbers)."""
+    with single_threaded_blas():
+        return simulate(*args, **kwargs)
 
 
 class _TrialStats:
