@@ -39,6 +39,7 @@ from stages.evaluate.analysis import (
     residuals_by_range,
 )
 from stages.evaluate.config import EvaluateConfig
+from stages.graph.factors import FactorRow
 from stages.graph.load import LoadedGraph
 from stages.laser import scan_beams
 from stages.limits import MAX_GRID_CELLS
@@ -191,6 +192,9 @@ class EvalInputs:
     """Tag residuals at the truth by measured range."""
     skipped: list[str] = field(default_factory=list)
     """One line per extra case that could not run on this run (the Table I cases always run or fail the stage)."""
+    oracle: dict[tuple[int, int], FactorRow] = field(default_factory=dict)
+    """The oracle replacement of each tag factor drawn so far, by (seed, factor index): a factor gets the same one in
+    every case that keeps it (:func:`~stages.evaluate.analysis.oracle_rows`), so it is drawn once."""
     analysis: bool = True
     """Compute the measurement-consistency analysis (the report's "Why"); map realisations, which do not report it,
     switch it off."""
@@ -586,7 +590,7 @@ def _why_columns(
             inputs.heights,
             "dead_reckoning",
             entropy_tag_ids=inputs.focus,
-            row_override=oracle_rows(inputs.loaded, truth, kept, inputs.cfg.seed),
+            row_override=_oracle_rows(inputs, truth, kept),
         )
         olm = oracle.landmark_map
         oc = landmark_consistency(olm.tag_ids, olm.positions, olm.covariances, reference, focus)
@@ -600,6 +604,14 @@ def _why_columns(
             }
         )
     return out
+
+
+def _oracle_rows(inputs: EvalInputs, truth: MapTruth, kept: Sequence[int]) -> dict[int, FactorRow]:
+    """:func:`~stages.evaluate.analysis.oracle_rows` of ``kept``, each factor's drawn once per seed."""
+    seed = inputs.cfg.seed
+    todo = [i for i in kept if (seed, i) not in inputs.oracle]
+    inputs.oracle.update({(seed, i): row for i, row in oracle_rows(inputs.loaded, truth, todo, seed).items()})
+    return {i: inputs.oracle[seed, i] for i in kept if (seed, i) in inputs.oracle}
 
 
 def run_all(
