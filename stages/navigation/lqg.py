@@ -252,16 +252,14 @@ def simulate(
         P = A @ P @ A.transpose(0, 2, 1) + B @ Qu @ B.transpose(0, 2, 1) + 1e-12 * np.eye(3)
         # EKF update, one landmark of the map at a time (eq. 26 noise, the landmark as seen from this keyframe)
         C = A @ C
-        zs, js = [], []
-        for lid in visibility[k + 1]:
-            noise = meas_rng.standard_normal((N, 2))  # drawn for every visible landmark: the same world for every map
-            j = index.get(int(lid))
-            if j is None or int(lid) not in truth:
-                continue
-            zs.append(_measure(x, truth[int(lid)], R, noise))
-            js.append(j)
-        if js:  # every landmark measured at this step in one update
-            xh, P, C = schmidt_update(xh, P, C, np.stack(zs, axis=1), landmark_map.positions[js], js, Lam, R)
+        seen = visibility[k + 1]
+        noise = meas_rng.standard_normal((len(seen), N, 2))  # for every visible landmark: the same world for every map
+        used = [(i, index[int(lid)]) for i, lid in enumerate(seen) if int(lid) in index and int(lid) in truth]
+        if used:  # every landmark measured at this step in one update
+            rows, js = [i for i, _ in used], [j for _, j in used]
+            true_xy = np.stack([truth[int(seen[i])] for i in rows])
+            z = _measure(x, true_xy, R, noise[rows].transpose(1, 0, 2))
+            xh, P, C = schmidt_update(xh, P, C, z, landmark_map.positions[js], js, Lam, R)
         active = ~collided
         if active.any():
             stats.add(active, x, xh, P, truth_path[k + 1])
@@ -349,10 +347,12 @@ def _control(xh: FloatArray, path: NominalPath, gains: FloatArray, k: int, param
     return u
 
 
-def _measure(x: FloatArray, landmark: FloatArray, R: FloatArray, noise: FloatArray) -> FloatArray:
-    """Noisy bearing and range of the true ``landmark`` from each true pose (``noise`` standard normal (N, 2))."""
-    d = landmark - x[:, :2]
-    z = np.column_stack([wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - x[:, 2]), np.hypot(d[:, 0], d[:, 1])])
+def _measure(x: FloatArray, landmarks: FloatArray, R: FloatArray, noise: FloatArray) -> FloatArray:
+    """Noisy bearing and range (N, m, 2) of the true ``landmarks`` (m, 2) from each true pose (``noise`` standard
+    normal (N, m, 2))."""
+    d = landmarks[None] - x[:, None, :2]
+    bearing = wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - x[:, None, 2])
+    z = np.stack([bearing, np.hypot(d[..., 0], d[..., 1])], axis=-1)
     return z + noise * np.sqrt(np.diag(R))
 
 
