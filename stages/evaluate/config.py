@@ -75,6 +75,14 @@ class EvaluateConfig(SettingsModel):
     grid_min_hits: int = Field(2, ge=1, description="Laser returns a cell needs to count as occupied.")
     scan_stride: int = Field(2, ge=1, description="Use every n-th laser scan for the occupancy grid.")
     plots: bool = Field(True, description="Draw the report's PNG figures (needs matplotlib).")
+    workers: int = Field(
+        2,
+        ge=1,
+        le=2,
+        description="Processes evaluate uses: 2 runs each case's navigation trials, and draws the maps and navigation "
+        "figures, in a worker process while this one selects and solves the next case (the same numbers and "
+        "pictures); 1 runs everything in this one.",
+    )
     oracle_measurements: bool = Field(
         True,
         description="With a ground truth, re-solve every case with its kept tag measurements replaced by "

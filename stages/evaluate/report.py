@@ -6,15 +6,28 @@ import base64
 import html
 import math
 from collections.abc import Sequence
+from concurrent.futures import Executor, Future
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from stages.evaluate.analysis import CHI2_2_95
 from stages.evaluate.artifacts import LABEL, ORACLE_ERROR_ALL_M, WHY_COLUMNS
 from stages.evaluate.cases import CaseResult, EvalInputs
+from stages.evaluate.figures import (
+    MapPanel,
+    MapsFigure,
+    NavigationFigure,
+    NavigationPanel,
+    draw_in_worker,
+    pyplot,
+    save,
+)
 from stages.evaluate.risk_check import FACTOR, direction
+
+FloatArray = npt.NDArray[np.float64]
 
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("label", "case", "{}"),
@@ -95,94 +108,54 @@ def markdown_table(results: Sequence[CaseResult]) -> str:
     return "\n".join([head, sep, *body])
 
 
-def figures(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_sigma: float) -> list[str]:
-    """Draw maps.png, risk.png, entropy.png (and navigation.png) into ``out_dir``; returns their file names."""
-    drawn = [
-        _maps_figure(inputs, results, out_dir, n_sigma),
-        _risk_figure(inputs, results, out_dir),
-        _entropy_figure(results, out_dir),
-        _navigation_figure(inputs, results, out_dir),
-        margin_figure(inputs, results, out_dir),
-    ]
-    return [name for name in drawn if name is not None]
+def figures(
+    inputs: EvalInputs,
+    results: Sequence[CaseResult],
+    out_dir: Path,
+    n_sigma: float,
+    pool: Executor | None = None,
+) -> list[str]:
+    """Draw maps.png, risk.png, entropy.png (and navigation.png, margin.png) into ``out_dir``; returns their file
+    names. With ``pool`` (evaluate's worker process) the two grid figures, maps and navigation, are drawn there while
+    this process draws the others."""
+    maps, nav = _maps_spec(inputs, results, n_sigma), _navigation_spec(inputs, results)
+    futures: list[Future[str] | None] = []
+    if pool is not None:
+        futures = [None if spec is None else pool.submit(draw_in_worker, spec, out_dir) for spec in (maps, nav)]
+    risk = _risk_figure(inputs, results, out_dir)
+    entropy = _entropy_figure(results, out_dir)
+    margin = margin_figure(inputs, results, out_dir)
+    if pool is None:
+        grids = [None if spec is None else draw_in_worker(spec, out_dir) for spec in (maps, nav)]
+    else:
+        grids = [None if f is None else f.result() for f in futures]
+    return [name for name in (grids[0], risk, entropy, grids[1], margin) if name is not None]
 
 
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _grid(n: int) -> tuple[int, int]:
-    """Rows and columns of a grid of ``n`` panels, at most three across."""
-    cols = min(3, n)
-    return math.ceil(n / cols), cols
-
-
-def _walls(ax: Any, inputs: EvalInputs) -> None:
+def _walls_array(inputs: EvalInputs) -> FloatArray | None:
     walls = inputs.truth.walls if inputs.truth is not None else None
-    if walls is not None:
-        for w in walls:
-            ax.plot([w[0], w[2]], [w[1], w[3]], color="0.3", lw=1)
+    return None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
 
 
-def _save(fig: Any, out_dir: Path, name: str) -> str:
-    fig.tight_layout()
-    fig.savefig(out_dir / name, dpi=110)
-    _pyplot().close(fig)
-    return name
-
-
-def _maps_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path, n_sigma: float) -> str:
-    """maps.png: each case's landmark map with its ellipses, collision-focused landmarks in red."""
-    from matplotlib.collections import EllipseCollection
-
-    plt = _pyplot()
+def _maps_spec(inputs: EvalInputs, results: Sequence[CaseResult], n_sigma: float) -> MapsFigure:
+    """What maps.png draws: each case's landmark map with its ellipses, collision-focused landmarks in red."""
+    panels = [
+        MapPanel(
+            r.reduced.landmark_map.tag_ids,
+            r.reduced.landmark_map.positions,
+            r.reduced.landmark_map.covariances,
+            f"{r.row['label']}: H={r.row['focused_entropy']:.1f}, {r.row['measurements']} meas.",
+        )
+        for r in results
+    ]
     geo = inputs.landmarks.geometry
-    n = len(results)
-    rows_, cols = _grid(n)
-    fig, axes = plt.subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
-    focus = set(inputs.focus)
-    for ax, r in zip(axes.ravel(), results, strict=False):
-        _walls(ax, inputs)
-        ax.plot(geo.poses[:, 0], geo.poses[:, 1], color="tab:blue", lw=0.6)
-        lm = r.reduced.landmark_map
-        if len(lm.tag_ids):
-            covs = 0.5 * (lm.covariances + lm.covariances.transpose(0, 2, 1))
-            vals, vecs = np.linalg.eigh(covs)
-            vals = np.clip(vals, 0, None)
-            angles = np.degrees(np.arctan2(vecs[:, 1, 1], vecs[:, 0, 1]))
-            colors = ["tab:red" if int(t) in focus else "tab:green" for t in lm.tag_ids]
-            ax.add_collection(
-                EllipseCollection(
-                    2 * n_sigma * np.sqrt(vals[:, 1]),
-                    2 * n_sigma * np.sqrt(vals[:, 0]),
-                    angles,
-                    units="xy",
-                    offsets=lm.positions,
-                    offset_transform=ax.transData,
-                    facecolors="none",
-                    edgecolors=colors,
-                    linewidths=0.8,
-                )
-            )
-            ax.scatter(lm.positions[:, 0], lm.positions[:, 1], s=2, c=colors)
-        ax.set_title(f"{r.row['label']}: H={r.row['focused_entropy']:.1f}, {r.row['measurements']} meas.", fontsize=9)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-    for ax in axes.ravel()[n:]:
-        ax.axis("off")
-    fig.suptitle(f"maps ({n_sigma:g}-sigma ellipses; red: collision-focused landmarks)", fontsize=10)
-    return _save(fig, out_dir, "maps.png")
+    return MapsFigure(_walls_array(inputs), geo.poses, frozenset(inputs.focus), panels, n_sigma)
 
 
 def _risk_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path) -> str:
     """risk.png: the risk model's margin to the obstacle in σ along the path (P = Φ(−z)), one line per case."""
     geo = inputs.landmarks.geometry
-    fig, ax = _pyplot().subplots(figsize=(10, 3.8))
+    fig, ax = pyplot().subplots(figsize=(10, 3.8))
     t = (geo.stamps_ns - geo.stamps_ns[0]) / 1e9
     for r in results:
         z = r.risk.z if r.risk.z is not None else np.full(len(t), np.nan)
@@ -192,7 +165,7 @@ def _risk_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Pat
     ax.set_xlabel("time along the path (s)")
     ax.set_ylabel("margin to the obstacle (σ of the belief)")
     ax.legend(fontsize=7, ncol=3)
-    return _save(fig, out_dir, "risk.png")
+    return save(fig, out_dir, "risk.png")
 
 
 def _entropy_figure(results: Sequence[CaseResult], out_dir: Path) -> str | None:
@@ -200,7 +173,7 @@ def _entropy_figure(results: Sequence[CaseResult], out_dir: Path) -> str | None:
     greedy = [r for r in results if r.measurement is not None and r.measurement.entropy_per_step() is not None]
     if not greedy:
         return None
-    fig, ax = _pyplot().subplots(figsize=(7, 3.8))
+    fig, ax = pyplot().subplots(figsize=(7, 3.8))
     for r in greedy:
         assert r.measurement is not None
         steps = r.measurement.entropy_per_step()
@@ -209,29 +182,23 @@ def _entropy_figure(results: Sequence[CaseResult], out_dir: Path) -> str | None:
     ax.set_xlabel("greedy step (measurements kept)")
     ax.set_ylabel("entropy of the selection's focused set (nats)")
     ax.legend(fontsize=8)
-    return _save(fig, out_dir, "entropy.png")
+    return save(fig, out_dir, "entropy.png")
 
 
-def _navigation_figure(inputs: EvalInputs, results: Sequence[CaseResult], out_dir: Path) -> str | None:
-    """navigation.png: sample navigation trials of each case (None: navigation did not run)."""
+def _navigation_spec(inputs: EvalInputs, results: Sequence[CaseResult]) -> NavigationFigure | None:
+    """What navigation.png draws: sample navigation trials of each case (None: navigation did not run)."""
     if inputs.navigation is None or not any(r.navigation is not None for r in results):
         return None
-    n = len(results)
-    rows_, cols = _grid(n)
-    fig, axes = _pyplot().subplots(rows_, cols, figsize=(5.5 * cols, 3.6 * rows_), squeeze=False)
-    nom = inputs.navigation.path.poses
-    for ax, r in zip(axes.ravel(), results, strict=False):
-        _walls(ax, inputs)
-        ax.plot(nom[:, 0], nom[:, 1], "--", color="tab:blue", lw=0.8)
-        if r.navigation is not None:
-            for pth in r.navigation.sample_paths:
-                ax.plot(pth[:, 0], pth[:, 1], lw=0.5, color="tab:orange")
-            ax.set_title(f"{r.row['label']}: {r.navigation.collisions}/{r.navigation.trials} collisions", fontsize=9)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-    for ax in axes.ravel()[n:]:
-        ax.axis("off")
-    return _save(fig, out_dir, "navigation.png")
+    panels = [
+        NavigationPanel(None, None)
+        if r.navigation is None
+        else NavigationPanel(
+            r.navigation.sample_paths,
+            f"{r.row['label']}: {r.navigation.collisions}/{r.navigation.trials} collisions",
+        )
+        for r in results
+    ]
+    return NavigationFigure(_walls_array(inputs), inputs.navigation.path.poses, panels)
 
 
 def markdown_report(

@@ -10,6 +10,7 @@ import rerun as rr
 
 from pipeline.context import StageContext
 from pipeline.recording import colormap, ellipsoids
+from pipeline.workers import WorkerPool
 from stages.estimation.blas import blas_single
 from stages.evaluate import artifacts as art
 from stages.evaluate.cases import (
@@ -93,7 +94,26 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         upstream=Upstream(focused, selection, _optimized(ctx, loaded, focused.tag_ids)),
     )
     todo = cases(cfg)
-    results = run_all(inputs, todo, ctx.progress)
+    # a worker process (evaluate.workers=2) navigates each case while this one solves the next, then draws two figures
+    pool = WorkerPool(1) if cfg.workers > 1 else None
+    try:
+        return _run(ctx, cfg, inputs, todo, read, pool, t0)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+
+def _run(
+    ctx: StageContext,
+    cfg: EvaluateConfig,
+    inputs: EvalInputs,
+    todo: list[Any],
+    read: Any,
+    pool: WorkerPool | None,
+    t0: float,
+) -> dict[str, Any]:
+    landmarks = inputs.landmarks
+    results = run_all(inputs, todo, ctx.progress, pool)
     for r in results:  # the entropy split and the risk model against the simulation, from what each case measured
         r.row.update(check_columns(r.row, r.risk.p_collision, len(inputs.focus)))
     out = ctx.output
@@ -110,7 +130,7 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     notes += [f"- {line}" for line in inputs.skipped]
     study = _realisations(inputs, todo, cfg, read.detections)
     art.REALISATIONS.write(out, study_table(study))
-    images = figures(inputs, results, out.path, ctx.n_sigma) if cfg.plots else []
+    images = figures(inputs, results, out.path, ctx.n_sigma, pool) if cfg.plots else []
     md = markdown_report(inputs, results, images, notes) + report_section(study, cfg, TABLE_I_LABELS)
     out.write_text(art.REPORT_MD.file, md)
     out.write_text(art.REPORT_HTML.file, html_report(md, out.path))

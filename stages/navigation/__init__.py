@@ -6,6 +6,7 @@ Public API:
     visibility_schedule(step_stamps_ns, obs_stamps_ns, obs_ids, window_s): landmarks seen per step.
     simulate(path, gains, landmark_map, true_landmarks, visibility, obstacles, params, seed) -> NavigationResult:
         Monte Carlo LQG trials (EKF with eq.-26 noise + LQR), collisions counted, Wilson interval.
+    simulate_in_worker(args, kwargs) -> NavigationResult: simulate() on one BLAS thread, for a worker process.
     wilson_interval(successes, trials, confidence) -> (low, high).
     SegmentWalls, OccupancyGrid, occupancy_grid(endpoints, ...), scan_endpoints(...): obstacles.
     ray_cast_grid(origins, ends, hit, ...): log-odds occupancy grid with free space carved along each beam.
@@ -23,6 +24,7 @@ from stages.navigation.lqg import (
     lqr_gains,
     nominal_path,
     simulate,
+    simulate_in_worker,
     visibility_schedule,
 )
 from stages.navigation.stats import wilson_interval
@@ -57,6 +59,7 @@ __all__ = [
     "scan_endpoints",
     "se2",
     "simulate",
+    "simulate_in_worker",
     "transform_points",
     "visibility_schedule",
     "wilson_interval",

@@ -33,11 +33,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
+from stages.estimation.blas import single_threaded_blas
 from stages.estimation.collision import range_bearing_jacobians
 from stages.estimation.robot import PathSteps, RobotModel, resample_path, unicycle_jacobians, unicycle_step
 from stages.geometry import wrap_angle
@@ -251,16 +252,14 @@ def simulate(
         P = A @ P @ A.transpose(0, 2, 1) + B @ Qu @ B.transpose(0, 2, 1) + 1e-12 * np.eye(3)
         # EKF update, one landmark of the map at a time (eq. 26 noise, the landmark as seen from this keyframe)
         C = A @ C
-        zs, js = [], []
-        for lid in visibility[k + 1]:
-            noise = meas_rng.standard_normal((N, 2))  # drawn for every visible landmark: the same world for every map
-            j = index.get(int(lid))
-            if j is None or int(lid) not in truth:
-                continue
-            zs.append(_measure(x, truth[int(lid)], R, noise))
-            js.append(j)
-        if js:  # every landmark measured at this step in one update
-            xh, P, C = schmidt_update(xh, P, C, np.stack(zs, axis=1), landmark_map.positions[js], js, Lam, R)
+        seen = visibility[k + 1]
+        noise = meas_rng.standard_normal((len(seen), N, 2))  # for every visible landmark: the same world for every map
+        used = [(i, index[int(lid)]) for i, lid in enumerate(seen) if int(lid) in index and int(lid) in truth]
+        if used:  # every landmark measured at this step in one update
+            rows, js = [i for i, _ in used], [j for _, j in used]
+            true_xy = np.stack([truth[int(seen[i])] for i in rows])
+            z = _measure(x, true_xy, R, noise[rows].transpose(1, 0, 2))
+            xh, P, C = schmidt_update(xh, P, C, z, landmark_map.positions[js], js, Lam, R)
         active = ~collided
         if active.any():
             stats.add(active, x, xh, P, truth_path[k + 1])
@@ -288,6 +287,13 @@ def simulate(
         step_ekf_sigma_m=np.where(stats.step_n > 0, stats.step_sig / np.maximum(stats.step_n, 1), np.nan),
         nees_per_dof=stats.nees_sum / (3.0 * denom) if stats.n_active else float("nan"),
     )
+
+
+def simulate_in_worker(args: tuple[Any, ...], kwargs: dict[str, Any]) -> NavigationResult:
+    """``simulate(*args, **kwargs)`` with numpy's BLAS on one thread, as a worker process runs it (evaluate runs
+    each case's trials in one while it selects and solves the next case; the same inputs give the same numbers)."""
+    with single_threaded_blas():
+        return simulate(*args, **kwargs)
 
 
 class _TrialStats:
@@ -341,10 +347,12 @@ def _control(xh: FloatArray, path: NominalPath, gains: FloatArray, k: int, param
     return u
 
 
-def _measure(x: FloatArray, landmark: FloatArray, R: FloatArray, noise: FloatArray) -> FloatArray:
-    """Noisy bearing and range of the true ``landmark`` from each true pose (``noise`` standard normal (N, 2))."""
-    d = landmark - x[:, :2]
-    z = np.column_stack([wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - x[:, 2]), np.hypot(d[:, 0], d[:, 1])])
+def _measure(x: FloatArray, landmarks: FloatArray, R: FloatArray, noise: FloatArray) -> FloatArray:
+    """Noisy bearing and range (N, m, 2) of the true ``landmarks`` (m, 2) from each true pose (``noise`` standard
+    normal (N, m, 2))."""
+    d = landmarks[None] - x[:, None, :2]
+    bearing = wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - x[:, None, 2])
+    z = np.stack([bearing, np.hypot(d[..., 0], d[..., 1])], axis=-1)
     return z + noise * np.sqrt(np.diag(R))
 
 
@@ -391,25 +399,28 @@ def schmidt_update(
     # (N, m, ·): every trial's estimate against each measured landmark; M w.r.t. each landmark's own position
     zh, H, M = range_bearing_jacobians(xh[:, None, :], np.asarray(lh, dtype=float)[None])
     cols = np.stack([2 * np.asarray(js), 2 * np.asarray(js) + 1], axis=1).ravel()
-    Hs = H.reshape(N, 2 * m, 3)
-    MLam = np.matmul(M, Lam[cols].reshape(1, m, 2, -1)).reshape(N, 2 * m, -1)  # M Λ_J·
-    Mt = M.transpose(0, 1, 3, 2)
-
-    def times_Mt(X: FloatArray) -> FloatArray:  # X (N, a, 2m) @ blockdiag(M_i)ᵀ
-        a = X.shape[1]
-        blocks = np.matmul(X.reshape(N, a, m, 2).transpose(0, 2, 1, 3), Mt)  # (N, m, a, 2)
-        return blocks.transpose(0, 2, 1, 3).reshape(N, a, 2 * m)
-
-    HC = Hs @ C
-    HCM = times_Mt(HC[:, :, cols])
+    diag = np.arange(m)
+    # the measurement Jacobian of the robot's error and the measured landmarks' errors, J = [H, blockdiag(M_i)],
+    # and their joint covariance Σ = [[P, C_J], [C_Jᵀ, Λ_JJ]]: every per-trial product below is (N, ·, 3 + 2m)
+    J = np.zeros((N, 2 * m, 3 + 2 * m))
+    J[:, :, :3] = H.reshape(N, 2 * m, 3)
+    J[:, :, 3:].reshape(N, m, 2, m, 2)[:, diag, :, diag, :] = M.transpose(1, 0, 2, 3)
+    LamJ = Lam[cols]  # Λ_J· (2m, 2L), the same for every trial
+    Sig = np.empty((N, 3 + 2 * m, 3 + 2 * m))
+    Sig[:, :3, :3] = P
+    Sig[:, :3, 3:] = C[:, :, cols]
+    Sig[:, 3:, :3] = Sig[:, :3, 3:].transpose(0, 2, 1)
+    Sig[:, 3:, 3:] = LamJ[:, cols]
+    SigJt = Sig @ J.transpose(0, 2, 1)
+    S = J @ SigJt
+    S.reshape(N, m, 2, m, 2)[:, diag, :, diag, :] += R
     nu = (z - zh).reshape(N, 2 * m)
     nu[:, 0::2] = wrap_angle(nu[:, 0::2])
-    S = Hs @ P @ Hs.transpose(0, 2, 1) + HCM + HCM.transpose(0, 2, 1) + times_Mt(MLam[:, :, cols])
-    S += np.kron(np.eye(m), R)
-    # innovation gate, per measurement on its own block of S
-    blocks = S.reshape(N, m, 2, m, 2)[:, np.arange(m), :, np.arange(m), :]  # (m, N, 2, 2)
-    nu_m = nu.reshape(N, m, 2).transpose(1, 0, 2)
-    nis = np.einsum("mni,mni->mn", nu_m, np.linalg.solve(blocks, nu_m[..., None])[..., 0])
+    # innovation gate, per measurement on its own 2x2 block of S (inverted in closed form)
+    b = S.reshape(N, m, 2, m, 2)[:, diag, :, diag, :]  # (m, N, 2, 2)
+    n0, n1 = nu[:, 0::2].T, nu[:, 1::2].T
+    det = b[..., 0, 0] * b[..., 1, 1] - b[..., 0, 1] * b[..., 1, 0]
+    nis = (b[..., 1, 1] * n0 * n0 - (b[..., 0, 1] + b[..., 1, 0]) * n0 * n1 + b[..., 0, 0] * n1 * n1) / det
     rejected = (nis > GATE_CHI2).T  # (N, m)
     if rejected.any():
         big = np.repeat(rejected, 2, axis=1)
@@ -417,10 +428,13 @@ def schmidt_update(
         idx = np.flatnonzero(big.any(axis=0))
         for c in idx:
             S[big[:, c], c, c] += 1e12
-    G = P @ Hs.transpose(0, 2, 1) + times_Mt(C[:, :, cols])
-    Kg = G @ np.linalg.inv(S)
+    G = SigJt[:, :3]  # P Hᵀ + C_J Mᵀ
+    Kg = np.linalg.solve(S, G.transpose(0, 2, 1)).transpose(0, 2, 1)  # G S⁻¹ (S symmetric)
     xh = xh + np.einsum("nij,nj->ni", Kg, nu)
-    P = P - Kg @ S @ Kg.transpose(0, 2, 1)
+    P = P - Kg @ G.transpose(0, 2, 1)  # K S Kᵀ
     P = 0.5 * (P + P.transpose(0, 2, 1))
-    C = C - Kg @ (HC + MLam)
+    # C ← C − K (H C + M Λ_J·); K M Λ_J· is one (3N, 2m) x (2m, 2L) product, Λ_J· being the same for every trial
+    KJ = Kg @ J
+    KM = np.ascontiguousarray(KJ[:, :, 3:]).reshape(3 * N, 2 * m)  # a strided view would miss BLAS (10x slower)
+    C = C - KJ[:, :, :3] @ C - (KM @ LamJ).reshape(N, 3, -1)
     return xh, P, C

@@ -147,3 +147,29 @@ def test_the_downstream_stages_write_what_they_declare(evaluated) -> None:
                 assert spec.read(inp).schema == spec.schema
             elif isinstance(spec, JsonSpec):
                 assert isinstance(spec.read(inp), spec.model)
+
+
+def test_the_worker_process_changes_no_number_and_no_picture(evaluated, tmp_path) -> None:
+    """evaluate.workers=2 (the default: navigation trials and two figures in a worker process) and 1 (everything in
+    the stage's process) write the same cases, bit for bit apart from the timing columns, and the same PNGs."""
+    alone = evaluated_synthetic_run(
+        tmp_path,
+        [
+            "select_landmarks.budget=5",
+            "select_measurements.budget=15",
+            "evaluate.trials=6",
+            "evaluate.extra_pairs=[random+random]",
+            "evaluate.workers=1",
+        ],
+    )
+    both = pq.read_table(evaluated.stage_dir("evaluate") / "cases.parquet").to_pydict()
+    one = pq.read_table(alone.stage_dir("evaluate") / "cases.parquet").to_pydict()
+    assert both.keys() == one.keys()
+    for column, values in both.items():
+        if not column.endswith("_s"):  # the selection and solve timings
+            assert [repr(v) for v in values] == [repr(v) for v in one[column]], column
+    pictures = sorted(p.name for p in evaluated.stage_dir("evaluate").glob("*.png"))
+    assert "navigation.png" in pictures and "maps.png" in pictures
+    for name in pictures:
+        drawn = (evaluated.stage_dir("evaluate") / name).read_bytes()
+        assert drawn == (alone.stage_dir("evaluate") / name).read_bytes(), name

@@ -276,3 +276,53 @@ def test_the_schmidt_update_equals_the_augmented_kalman_update() -> None:
         np.testing.assert_allclose(a[0], b[0], rtol=1e-6, atol=1e-9)
     for a, b in zip(gated, got, strict=True):
         np.testing.assert_allclose(a[1:], b[1:], rtol=1e-12)
+
+
+def test_the_schmidt_update_of_many_landmarks_equals_the_augmented_update_to_1e_10() -> None:
+    """The update forms one (3 + 2m) joint block per trial and a single product for the map part of ``C``
+    (instead of per-landmark products): with a dozen landmarks at once, some gated out, it still equals the
+    augmented Kalman update trial by trial."""
+    from stages.navigation.lqg import schmidt_update
+    from tests.oracles.schmidt import augmented_update
+
+    rng = np.random.default_rng(11)
+    N, L = 8, 20
+    xh = rng.normal(size=(N, 3)) * [0.1, 0.1, 0.05]
+    A = rng.normal(size=(3 + 2 * L, 3 + 2 * L)) * 0.05
+    full = A @ A.T + 1e-3 * np.eye(3 + 2 * L)
+    P = np.repeat(full[None, :3, :3], N, 0) + np.einsum("n,ij->nij", rng.uniform(0, 1e-3, N), np.eye(3))
+    C = np.repeat(full[None, :3, 3:], N, 0) * rng.uniform(0.5, 1.0, size=(N, 1, 1))
+    Lam = full[3:, 3:]
+    lh = rng.uniform(-4, 4, size=(L, 2))
+    lh[:, 0] += 5.0
+    js = [17, 3, 8, 0, 12, 5, 19, 9, 1, 14, 6, 11]
+    R = np.diag([0.02, 0.05]) ** 2
+    d = lh[js][None] - xh[:, None, :2]
+    z = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], np.hypot(d[..., 0], d[..., 1])], axis=2)
+    z += rng.normal(size=z.shape) * 0.01
+    got = schmidt_update(xh, P, C, z, lh[js], js, Lam, R)
+    want = augmented_update(xh, P, C, z, lh[js], js, Lam, R)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-13 * np.abs(b).max())
+    # wild measurements in two trials are gated out there only
+    z_bad = z.copy()
+    z_bad[2, 4, 1] += 5.0
+    z_bad[5, 0, 1] -= 4.0
+    gated = schmidt_update(xh, P, C, z_bad, lh[js], js, Lam, R)
+    for n, drop in ((2, 4), (5, 0)):
+        keep = [i for i in range(len(js)) if i != drop]
+        kept = augmented_update(
+            xh[n : n + 1],
+            P[n : n + 1],
+            C[n : n + 1],
+            z[n : n + 1, keep],
+            lh[[js[i] for i in keep]],
+            [js[i] for i in keep],
+            Lam,
+            R,
+        )
+        for a, b in zip(gated, kept, strict=True):
+            np.testing.assert_allclose(a[n], b[0], rtol=1e-6, atol=1e-9)
+    others = [n for n in range(N) if n not in (2, 5)]
+    for a, b in zip(gated, got, strict=True):
+        np.testing.assert_allclose(a[others], b[others], rtol=1e-12)
