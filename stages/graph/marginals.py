@@ -123,7 +123,7 @@ def sparse_joint_covariance(
 
     rows, cols, vals = (np.asarray(a) for a in linear.sparseJacobian_())
     ri, ci = rows.astype(np.int64) - 1, cols.astype(np.int64) - 1
-    ordered = sorted(int(k) for k in linear.keys())  # noqa: SIM118 (a gtsam KeySet)
+    ordered = sorted(int(k) for k in linear.keyVector())
     offset = dict(zip(ordered, np.cumsum([0] + [dims[k] for k in ordered[:-1]]).tolist(), strict=True))
     n = sum(dims[k] for k in ordered)
     inside = ci < n  # the last column is the right-hand side
