@@ -208,6 +208,11 @@ class EvalInputs:
         return params
 
     @property
+    def trajectory_dim(self) -> int:
+        """Poses x pose dimension: what the dense landmark strategies' limits are in."""
+        return len(self.loaded.pose_keys) * self.loaded.graph_model.pose.dim
+
+    @property
     def alpha(self) -> int:
         """Landmark budget."""
         return self.cfg.landmark_budget if self.cfg.landmark_budget is not None else self.sl_cfg.budget
@@ -378,31 +383,21 @@ def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
     reused = inputs.upstream_landmarks(strategy)
     if reused is not None:
         return reused
-    if strategy in DENSE_STRATEGIES:
-        loaded = inputs.loaded
-        dim = len(loaded.pose_keys) * loaded.graph_model.pose.dim
-        if _dense_too_large(inputs, inputs.cfg.extra_max_trajectory_dim):
-            raise StageError(
-                f"{strategy} works on the dense trajectory information ({dim} dimensions here), above "
-                f"evaluate.extra_max_trajectory_dim={inputs.cfg.extra_max_trajectory_dim}; raise it to compare "
-                "anyway (time and memory grow with its square)"
-            )
+    if strategy in DENSE_STRATEGIES and inputs.trajectory_dim > inputs.cfg.extra_max_trajectory_dim:
+        raise StageError(
+            f"{strategy} works on the dense trajectory information ({inputs.trajectory_dim} dimensions here), above "
+            f"evaluate.extra_max_trajectory_dim={inputs.cfg.extra_max_trajectory_dim}; raise it to compare "
+            "anyway (time and memory grow with its square)"
+        )
     cfg = inputs.sl_cfg.model_copy(update={"strategy": strategy, "budget": inputs.alpha, "seed": inputs.cfg.seed})
     choice = choose_landmarks(inputs.landmarks, cfg, with_risk=False)
     return list(choice.tag_ids), choice.seconds
 
 
-def _dense_too_large(inputs: EvalInputs, limit: int) -> bool:
-    """Whether the trajectory is above a dense strategy's limit (poses x pose dimension)."""
-    loaded = inputs.loaded
-    return len(loaded.pose_keys) * loaded.graph_model.pose.dim > limit
-
-
 def _fallback_focus(inputs: EvalInputs) -> tuple[list[int], float]:
     """The focus of a run without laser whose trajectory is too long for mutual information: select_landmarks' own
     pick at α when there is one (the strategy the user ran), else the spatially uniform α, with a warning line."""
-    loaded = inputs.loaded
-    dim = len(loaded.pose_keys) * loaded.graph_model.pose.dim
+    dim = inputs.trajectory_dim
     why = (
         f"this run has no laser for the collision focus, and mutual information's time and memory grow up to the "
         f"square of its trajectory ({dim} dimensions, above select_landmarks.max_trajectory_dim="
@@ -426,7 +421,7 @@ def prepare(inputs: EvalInputs) -> None:
         has_laser = inputs.landmarks.geometry.has_laser
         strategy = "collision" if has_laser else "mutual-information"
         reused = inputs.upstream_landmarks(strategy)
-        if reused is None and not has_laser and _dense_too_large(inputs, inputs.sl_cfg.max_trajectory_dim):
+        if reused is None and not has_laser and inputs.trajectory_dim > inputs.sl_cfg.max_trajectory_dim:
             reused = _fallback_focus(inputs)
         if reused is not None:
             inputs.focus, inputs.focus_seconds = reused

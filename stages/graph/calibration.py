@@ -33,12 +33,12 @@ from typing import Any
 
 import gtsam
 import numpy as np
-import scipy.sparse as sp
 
 from stages.estimation.sparse_cov import SPDSolver
 from stages.geometry import pose3_from_vector, pose3_to_vector
 from stages.graph.config import GraphConfig
 from stages.graph.factors import FactorRow, build_graph
+from stages.graph.marginals import whitened_system
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, optimise
 
@@ -434,14 +434,8 @@ def _noise_statistics(
     ``H = JᵀJ``; the odometry rows' part of ``tr(J H⁻¹ Jᵀ)`` comes from one sparse factorisation and solves
     with those rows as right-hand sides, and the tag rows' part is the rest of ``tr(H⁻¹ H) = n``.
     """
-    trip = joint.sparseJacobian_()
-    ri, ci, v = trip[0].astype(np.int64) - 1, trip[1].astype(np.int64) - 1, trip[2]
-    n = int(ci.max())  # the last column is b
-    keep = ci < n
-    m = int(ri.max()) + 1
-    J = sp.csr_matrix((v[keep], (ri[keep], ci[keep])), shape=(m, n))
-    b = np.zeros(m)
-    np.add.at(b, ri[~keep], v[~keep])
+    J, b = whitened_system(joint)
+    m, n = J.shape
     solver = SPDSolver((J.T @ J).tocsc())
     starts = np.concatenate([[0], np.cumsum([r.dim for r in problem.rows] + [3])])
 

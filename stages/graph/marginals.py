@@ -19,8 +19,10 @@ from collections.abc import Iterable, Mapping
 import gtsam
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 
 from stages.estimation.blas import single_threaded_blas
+from stages.estimation.sparse_cov import SingularInformationError, SPDSolver
 
 
 def key_dims(values: gtsam.Values) -> dict[int, int]:
@@ -108,32 +110,38 @@ def tree_marginals(
     return {k: out[k] for k in order}  # in the order asked
 
 
+def whitened_system(linear: gtsam.GaussianFactorGraph) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The whitened Jacobian ``J`` (rows in factor order, columns by sorted key as ``sparseJacobian_`` lays them
+    out) and right-hand side ``b`` of a Gaussian factor graph."""
+    trip = linear.sparseJacobian_()
+    ri, ci, v = trip[0].astype(np.int64) - 1, trip[1].astype(np.int64) - 1, trip[2]
+    n = int(ci.max())  # the last column is b
+    keep = ci < n
+    m = int(ri.max()) + 1
+    b = np.zeros(m)
+    np.add.at(b, ri[~keep], v[~keep])
+    return sp.csr_matrix((v[keep], (ri[keep], ci[keep])), shape=(m, n)), b
+
+
 def sparse_joint_covariance(
     linear: gtsam.GaussianFactorGraph, dims: Mapping[int, int], keys: Iterable[int]
 ) -> np.ndarray:
     """The joint covariance of ``keys`` (blocks in their order) from the sparse information ``JᵀJ`` of ``linear``,
-    by a sparse LU and one solve per column asked: for when GTSAM's elimination stops (``gtsam.Marginals`` has no
-    ordering to change). ``sparseJacobian_`` lays the columns out by sorted key.
+    one factorisation and one solve per column asked: for when GTSAM's elimination stops (``gtsam.Marginals`` has
+    no ordering to change).
 
     Raises:
         RuntimeError: the information is singular.
     """
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
-    rows, cols, vals = (np.asarray(a) for a in linear.sparseJacobian_())
-    ri, ci = rows.astype(np.int64) - 1, cols.astype(np.int64) - 1
+    J, _ = whitened_system(linear)
     ordered = sorted(int(k) for k in linear.keyVector())
     offset = dict(zip(ordered, np.cumsum([0] + [dims[k] for k in ordered[:-1]]).tolist(), strict=True))
-    n = sum(dims[k] for k in ordered)
-    inside = ci < n  # the last column is the right-hand side
-    J = sp.csr_matrix((vals[inside], (ri[inside], ci[inside])), shape=(int(ri.max()) + 1, n))
     want = np.concatenate([np.arange(offset[int(k)], offset[int(k)] + dims[int(k)]) for k in keys])
     try:
-        lu = spla.splu((J.T @ J).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0)
-    except RuntimeError as err:  # "Factor is exactly singular"
+        solver = SPDSolver((J.T @ J).tocsc())
+    except SingularInformationError as err:
         raise RuntimeError(f"indeterminant linear system: {err}") from err
-    rhs = np.zeros((n, len(want)))
+    rhs = np.zeros((J.shape[1], len(want)))
     rhs[want, np.arange(len(want))] = 1.0
-    cov = np.asarray(lu.solve(rhs))[want]
+    cov = np.asarray(solver.solve(rhs))[want]
     return 0.5 * (cov + cov.T)

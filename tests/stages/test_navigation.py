@@ -242,6 +242,26 @@ def test_the_filter_is_consistent_with_an_honest_map(corridor) -> None:
     assert 0.5 < float(np.mean(nees)) < 2.0, nees
 
 
+def _trials_and_map(rng: np.random.Generator, N: int, L: int) -> tuple[np.ndarray, np.ndarray]:
+    """``N`` trials' robot estimates and one joint (robot + ``L`` landmarks) covariance for the Schmidt tests."""
+    xh = rng.normal(size=(N, 3)) * [0.1, 0.1, 0.05]
+    A = rng.normal(size=(3 + 2 * L, 3 + 2 * L)) * 0.05
+    return xh, A @ A.T + 1e-3 * np.eye(3 + 2 * L)
+
+
+def _landmarks_and_measurements(
+    rng: np.random.Generator, xh: np.ndarray, L: int, js: list[int], spread: float, ahead: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Landmark estimates ``ahead`` m in front within ±``spread``, each trial's noisy bearing-range of ``js``, R."""
+    lh = rng.uniform(-spread, spread, size=(L, 2))
+    lh[:, 0] += ahead
+    R = np.diag([0.02, 0.05]) ** 2
+    d = lh[js][None] - xh[:, None, :2]
+    z = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], np.hypot(d[..., 0], d[..., 1])], axis=2)
+    z += rng.normal(size=z.shape) * 0.01
+    return lh, z, R
+
+
 def test_the_schmidt_update_equals_the_augmented_kalman_update() -> None:
     """The robot part of one Schmidt update, every landmark of the step at once, is the textbook Kalman update of the
     state augmented with the map's landmark errors; the gate leaves out only the measurement that fails it."""
@@ -250,19 +270,12 @@ def test_the_schmidt_update_equals_the_augmented_kalman_update() -> None:
 
     rng = np.random.default_rng(3)
     N, L = 6, 5
-    xh = rng.normal(size=(N, 3)) * [0.1, 0.1, 0.05]
-    A = rng.normal(size=(3 + 2 * L, 3 + 2 * L)) * 0.05
-    full = A @ A.T + 1e-3 * np.eye(3 + 2 * L)
+    xh, full = _trials_and_map(rng, N, L)
     P = np.repeat(full[None, :3, :3], N, 0)
     C = np.repeat(full[None, :3, 3:], N, 0)
     Lam = full[3:, 3:]
-    lh = rng.uniform(-3, 3, size=(L, 2))
-    lh[:, 0] += 4.0
     js = [4, 1, 2]
-    R = np.diag([0.02, 0.05]) ** 2
-    d = lh[js][None] - xh[:, None, :2]
-    z = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], np.hypot(d[..., 0], d[..., 1])], axis=2)
-    z += rng.normal(size=z.shape) * 0.01
+    lh, z, R = _landmarks_and_measurements(rng, xh, L, js, 3.0, 4.0)
     got = schmidt_update(xh, P, C, z, lh[js], js, Lam, R)
     want = augmented_update(xh, P, C, z, lh[js], js, Lam, R)
     for a, b in zip(got, want, strict=True):
@@ -287,19 +300,12 @@ def test_the_schmidt_update_of_many_landmarks_equals_the_augmented_update_to_1e_
 
     rng = np.random.default_rng(11)
     N, L = 8, 20
-    xh = rng.normal(size=(N, 3)) * [0.1, 0.1, 0.05]
-    A = rng.normal(size=(3 + 2 * L, 3 + 2 * L)) * 0.05
-    full = A @ A.T + 1e-3 * np.eye(3 + 2 * L)
+    xh, full = _trials_and_map(rng, N, L)
     P = np.repeat(full[None, :3, :3], N, 0) + np.einsum("n,ij->nij", rng.uniform(0, 1e-3, N), np.eye(3))
     C = np.repeat(full[None, :3, 3:], N, 0) * rng.uniform(0.5, 1.0, size=(N, 1, 1))
     Lam = full[3:, 3:]
-    lh = rng.uniform(-4, 4, size=(L, 2))
-    lh[:, 0] += 5.0
     js = [17, 3, 8, 0, 12, 5, 19, 9, 1, 14, 6, 11]
-    R = np.diag([0.02, 0.05]) ** 2
-    d = lh[js][None] - xh[:, None, :2]
-    z = np.stack([np.arctan2(d[..., 1], d[..., 0]) - xh[:, None, 2], np.hypot(d[..., 0], d[..., 1])], axis=2)
-    z += rng.normal(size=z.shape) * 0.01
+    lh, z, R = _landmarks_and_measurements(rng, xh, L, js, 4.0, 5.0)
     got = schmidt_update(xh, P, C, z, lh[js], js, Lam, R)
     want = augmented_update(xh, P, C, z, lh[js], js, Lam, R)
     for a, b in zip(got, want, strict=True):
