@@ -268,7 +268,7 @@ def covariance_blocks(
                 p += dims[j]
             for i, j in pending:
                 if j in local:
-                    out[(i, j)] = local[j][offsets[i] : offsets[i + 1], :]
+                    out[(i, j)] = local[j][offsets[i] : offsets[i + 1], :].copy()  # not a view: frees the chunk
     return out
 
 

@@ -260,11 +260,11 @@ class EvalInputs:
         wanted = {int(i) for i in selected if rows[int(i)].kind == "tag" and rows[int(i)].tag_id in tagset}
         return red if kept == wanted else None
 
-    def reference_positions(self, optimal: ReducedMap | None) -> tuple[dict[int, FloatArray], str]:
+    def reference_positions(self, optimal: LandmarkMap | None) -> tuple[dict[int, FloatArray], str]:
         """Where landmarks really are: the ground truth, else case 1's map."""
         if self.truth is not None and self.truth.has_tags:
             return dict(self.truth.tags), "ground_truth"
-        lmap = optimal.landmark_map if optimal is not None else self.landmarks.landmarks
+        lmap = optimal if optimal is not None else self.landmarks.landmarks
         return dict(zip(lmap.tag_ids.tolist(), lmap.positions, strict=True)), "optimal"
 
 
@@ -304,7 +304,7 @@ def _check_grid_size(endpoints: npt.NDArray[np.float64], resolution_m: float, ma
         )
 
 
-def navigation_setup(inputs: EvalInputs, optimal: ReducedMap) -> NavigationSetup:
+def navigation_setup(inputs: EvalInputs, optimal: LandmarkMap) -> NavigationSetup:
     """The world every case navigates in: the true path, landmarks and walls (the ground truth, else the full map:
     its path, its landmarks and the laser grid at its poses), which landmarks are visible at each step, the robot."""
     cfg = inputs.cfg
@@ -364,7 +364,8 @@ class CaseResult:
     case: Case
     landmark_tag_ids: list[int]
     measurement: MeasurementChoice | None
-    reduced: ReducedMap
+    solved: ReducedMap | None
+    """The case's solved reduced graph (``None`` once :meth:`release` dropped it)."""
     risk: PathRisk
     navigation: NavigationResult | None
     row: dict[str, Any]
@@ -373,6 +374,24 @@ class CaseResult:
     """What was taken from the upstream stages' artifacts instead of recomputed (landmarks, measurements, map)."""
     local_map: LandmarkMap | None = None
     """The case's map with each landmark's covariance as seen from the keyframes that see it (risk, navigation)."""
+    landmark_map: LandmarkMap = field(init=False)
+    """The case's landmark map (positions and marginal covariances): what the tables, report and recording read."""
+
+    def __post_init__(self) -> None:
+        self.landmark_map = self.reduced.landmark_map
+
+    @property
+    def reduced(self) -> ReducedMap:
+        """The case's solved reduced graph (its problem, solution and marginals)."""
+        if self.solved is None:
+            raise RuntimeError(f"case {self.case.name}: its solved graph was released after its navigation")
+        return self.solved
+
+    def release(self) -> None:
+        """Drop the solved graph and the per-keyframe covariances once the navigation has what it needs: on an hour's
+        recording each case held about 50 MB of them, and ten cases are kept to the end of the stage."""
+        self.solved = None
+        self.local_map = None
 
 
 def _landmark_set(inputs: EvalInputs, strategy: str) -> tuple[list[int], float]:
@@ -448,8 +467,9 @@ def prepare(inputs: EvalInputs) -> None:
         inputs.by_range = residuals_by_range(inputs.loaded, inputs.truth)
 
 
-def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None, navigation: bool = True) -> CaseResult:
-    """Select, solve, score and (``navigation``) navigate one case."""
+def run_case(inputs: EvalInputs, case: Case, optimal: LandmarkMap | None = None, navigation: bool = True) -> CaseResult:
+    """Select, solve, score and (``navigation``) navigate one case (``optimal``: case 1's map, the reference
+    without ground truth)."""
     prepare(inputs)
     loaded = inputs.loaded
     tags, lm_seconds = _landmark_set(inputs, case.landmark_strategy)
@@ -482,7 +502,7 @@ def run_case(inputs: EvalInputs, case: Case, optimal: ReducedMap | None = None, 
         reused.append("reduced map")
     else:
         reduced = solve_reduced(loaded, tags, selected, inputs.heights, "dead_reckoning", entropy_tag_ids=inputs.focus)
-    reference, ref_name = inputs.reference_positions(optimal if optimal is not None else reduced)
+    reference, ref_name = inputs.reference_positions(optimal if optimal is not None else reduced.landmark_map)
     errs = landmark_errors(reduced.landmark_map, reference)
     focus = set(inputs.focus)
     geo = inputs.landmarks.geometry
@@ -652,10 +672,14 @@ def run_all(
     def navigate_case(result: CaseResult) -> None:
         if pool is None:
             navigate(inputs, result)
+            if inputs.cfg.trials > 0:
+                result.release()
             return
         call = navigation_call(inputs, result)
         if call is not None:
             pending.append((result, pool.submit(simulate_in_worker, *call)))
+        if inputs.cfg.trials > 0:  # navigated or sent (the call holds its arguments); nothing else needs the graph
+            result.release()
 
     results: list[CaseResult] = []
     try:
@@ -663,7 +687,7 @@ def run_all(
             first = run_case(inputs, todo[0], navigation=False)
         except StageError as err:
             raise StageError(f"case {todo[0].name}: {err}") from err
-        optimal = first.reduced
+        optimal = first.landmark_map
         if inputs.cfg.trials > 0:
             inputs.navigation = navigation_setup(inputs, optimal)
             navigate_case(first)
@@ -695,7 +719,7 @@ def map_rows(results: Sequence[CaseResult]) -> pa.Table:
     """:data:`~stages.evaluate.artifacts.MAPS`: per case, every landmark of its map with its covariance."""
     out: dict[str, list[Any]] = {c: [] for c in art.MAPS.names}
     for r in results:
-        lm: LandmarkMap = r.reduced.landmark_map
+        lm: LandmarkMap = r.landmark_map
         focus = set(r.landmark_tag_ids)
         for t, p, c in zip(lm.tag_ids.tolist(), lm.positions, lm.covariances, strict=True):
             out[art.CASE].append(r.case.name)

@@ -253,7 +253,7 @@ def run_cases(inputs: EvalInputs, todo: Sequence[Case], trials: int, navigation_
     results = run_all(inputs, todo)
     if trials > 0:
         inputs.cfg = sel_cfg.model_copy(update={"trials": trials, "seed": navigation_seed})
-        inputs.navigation = navigation_setup(inputs, results[0].reduced)
+        inputs.navigation = navigation_setup(inputs, results[0].landmark_map)
         for r in results:
             navigate(inputs, r)
     inputs.cfg = sel_cfg

@@ -141,9 +141,9 @@ def _maps_spec(inputs: EvalInputs, results: Sequence[CaseResult], n_sigma: float
     """What maps.png draws: each case's landmark map with its ellipses, collision-focused landmarks in red."""
     panels = [
         MapPanel(
-            r.reduced.landmark_map.tag_ids,
-            r.reduced.landmark_map.positions,
-            r.reduced.landmark_map.covariances,
+            r.landmark_map.tag_ids,
+            r.landmark_map.positions,
+            r.landmark_map.covariances,
             f"{r.row['label']}: H={r.row['focused_entropy']:.1f}, {r.row['measurements']} meas.",
         )
         for r in results

@@ -209,7 +209,7 @@ def log_recording(rec: rr.RecordingStream, inputs: EvalInputs, results: list[Any
     focus = set(inputs.focus)
     for r in results:
         base = f"{ENTITY}/cases/{r.case.name}"
-        lm = r.reduced.landmark_map
+        lm = r.landmark_map
         if len(lm.tag_ids):
             covs = []
             for c in lm.covariances:

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import gtsam
 import numpy as np
@@ -74,9 +74,12 @@ FACTOR_DIMS = {
 }
 
 
-@dataclass
+@dataclass(slots=True)
 class FactorRow:
-    """One factor of the graph as plain data (one row of ``factors.parquet``)."""
+    """One factor of the graph as plain data (one row of ``factors.parquet``).
+
+    Slotted: an hour's graph holds about 80,000 of them in every stage that loads it (without slots each carried
+    its own attribute dict)."""
 
     kind: str
     type: str
@@ -279,19 +282,27 @@ def rows_to_table(rows: Sequence[FactorRow]) -> pa.Table:
 
 
 def table_to_rows(table: pa.Table) -> list[FactorRow]:
-    """Inverse of :func:`rows_to_table` (rows in ``index`` order)."""
-    cols = table.sort_by(INDEX).to_pydict()
+    """Inverse of :func:`rows_to_table` (rows in ``index`` order).
+
+    Every row's measurement and covariance are read-only views into one array per column (an hour's graph has
+    about 80,000 rows: one small array each, with its own buffer, cost twice the memory)."""
+    table = table.sort_by(INDEX)
+    meas, meas_at = _flat_lists(table.column(MEASUREMENT))
+    cov, cov_at = _flat_lists(table.column(FACTOR_COVARIANCE))
+    scalar = [KIND, TYPE, KEYS, DIM, ROBUST, ROBUST_K, FACTOR_TAG_ID, FACTOR_FRAME, FACTOR_STAMP_NS]
+    cols = table.select(scalar).to_pydict()
     rows = []
+    names: dict[str, str] = {}  # one string object per distinct kind, type and robust loss, not one per row
     for i in range(table.num_rows):
         d = int(cols[DIM][i])
         rows.append(
             FactorRow(
-                kind=cols[KIND][i],
-                type=cols[TYPE][i],
+                kind=names.setdefault(cols[KIND][i], cols[KIND][i]),
+                type=names.setdefault(cols[TYPE][i], cols[TYPE][i]),
                 keys=tuple(int(k) for k in cols[KEYS][i]),
-                measurement=np.asarray(cols[MEASUREMENT][i], dtype=float),
-                covariance=np.asarray(cols[FACTOR_COVARIANCE][i], dtype=float).reshape(d, d),
-                robust=cols[ROBUST][i],
+                measurement=meas[meas_at[i] : meas_at[i + 1]],
+                covariance=cov[cov_at[i] : cov_at[i + 1]].reshape(d, d),
+                robust=names.setdefault(cols[ROBUST][i], cols[ROBUST][i]),
                 robust_k=float(cols[ROBUST_K][i]),
                 tag_id=cols[FACTOR_TAG_ID][i],
                 frame=cols[FACTOR_FRAME][i],
@@ -299,3 +310,12 @@ def table_to_rows(table: pa.Table) -> list[FactorRow]:
             )
         )
     return rows
+
+
+def _flat_lists(column: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
+    """A list<double> column as (all values in one read-only float array, each row's start and end offsets)."""
+    lists = cast("pa.ListArray[Any]", column.combine_chunks())
+    offsets = np.asarray(lists.offsets, dtype=np.int64)
+    values = np.array(lists.values.to_numpy(zero_copy_only=False)[offsets[0] : offsets[-1]], dtype=np.float64)
+    values.setflags(write=False)
+    return values, offsets - offsets[0]
