@@ -108,23 +108,41 @@ def _quad_thresh_params(detector: Any) -> Any:
 
 
 _K4 = np.ones((4, 4), np.uint8)
+# Quantile of the tile contrasts that stands for the frame's strong edges (edge_white_black_diff): 5 % of the
+# tiles, so a few bright spots (lamps, specular highlights) do not set it.
+EDGE_QUANTILE = 0.95
 _K3 = np.ones((3, 3), np.uint8)
 
 
-def median_tile_contrast(gray: npt.NDArray[np.uint8]) -> int:
-    """Median over the image of the grey range (max - min) of each 4x4 tile with its 8 neighbours: the quantity
+def tile_contrast_quantiles(gray: npt.NDArray[np.uint8], quantiles: tuple[float, ...]) -> list[int]:
+    """Quantiles over the image of the grey range (max - min) of each 4x4 tile with its 8 neighbours: the quantity
     the AprilTag 3 library compares with ``min_white_black_diff`` (approximately: tiles taken on a 4-px grid).
 
-    Pixel noise and fine texture set it (about 5 sigma for Gaussian noise of sigma); a tag's edge adds its own
-    contrast on top, and tags cover a small part of a frame, so they do not move the median.
+    The median is set by pixel noise and fine texture (about 5 sigma for Gaussian noise of sigma): tags cover a
+    small part of a frame, so they do not move it. The high quantiles are set by the frame's strong edges.
     """
     import cv2
 
     mx = np.ascontiguousarray(cv2.dilate(gray, _K4)[::4, ::4])
     mn = np.ascontiguousarray(cv2.erode(gray, _K4)[::4, ::4])
     rng = cv2.dilate(mx, _K3) - cv2.erode(mn, _K3)
-    hist = cv2.calcHist([rng], [0], None, [256], [0, 256]).ravel()
-    return int(np.searchsorted(np.cumsum(hist), rng.size / 2))
+    cum = np.cumsum(cv2.calcHist([rng], [0], None, [256], [0, 256]).ravel())
+    return [int(np.searchsorted(cum, q * rng.size)) for q in quantiles]
+
+
+def median_tile_contrast(gray: npt.NDArray[np.uint8]) -> int:
+    """Median of :func:`tile_contrast_quantiles`: the frame's pixel noise or fine texture."""
+    return tile_contrast_quantiles(gray, (0.5,))[0]
+
+
+def frame_white_black_diff(
+    gray: npt.NDArray[np.uint8], lo: int, noise_factor: float, edge_factor: float, edge_quantile: float, hi: int
+) -> int:
+    """The per-frame ``min_white_black_diff``: ``noise_factor`` times the median tile contrast (above the noise and
+    texture), or ``edge_factor`` times its ``edge_quantile`` quantile (a fraction of the frame's strong edges)
+    when that is larger, at least ``lo`` and at most ``hi``."""
+    med, strong = tile_contrast_quantiles(gray, (0.5, edge_quantile))
+    return int(min(max(lo, round(noise_factor * med), round(edge_factor * strong)), max(hi, lo)))
 
 
 class AprilTag3Detector:
@@ -145,6 +163,7 @@ class AprilTag3Detector:
             cfg.min_white_black_diff,
             cfg.adaptive_white_black_diff,
             cfg.max_white_black_diff,
+            cfg.edge_white_black_diff,
             cfg.min_cluster_pixels,
         )
         if key not in _AT3_DETECTORS:
@@ -162,7 +181,13 @@ class AprilTag3Detector:
             _AT3_DETECTORS[key] = det
         self._detector: Any = _AT3_DETECTORS[key]
         self._qtp = _quad_thresh_params(self._detector) if cfg.adaptive_white_black_diff > 0 else None
-        self._wb = (cfg.min_white_black_diff, cfg.adaptive_white_black_diff, cfg.max_white_black_diff)
+        self._wb = (
+            cfg.min_white_black_diff,
+            cfg.adaptive_white_black_diff,
+            cfg.edge_white_black_diff,
+            EDGE_QUANTILE,
+            cfg.max_white_black_diff,
+        )
         self.white_black_diff = cfg.min_white_black_diff
         """The ``min_white_black_diff`` used on the last image."""
 
@@ -171,8 +196,7 @@ class AprilTag3Detector:
         out = []
         gray = np.ascontiguousarray(gray, dtype=np.uint8)
         if self._qtp is not None:
-            lo, factor, hi = self._wb
-            self.white_black_diff = int(min(max(lo, round(factor * median_tile_contrast(gray))), max(hi, lo)))
+            self.white_black_diff = frame_white_black_diff(gray, *self._wb)
             self._qtp.min_white_black_diff = self.white_black_diff
         for det in self._detector.detect(gray):
             corners = np.asarray(det.corners, float)[_AT3_TO_CV] + _AT3_PIXEL_OFFSET

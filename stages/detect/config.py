@@ -54,8 +54,17 @@ class DetectConfig(SettingsModel):
         "noisy frames as fast as clean ones (pixel noise 4 or 5: 3x faster than the fixed 15) and finds as many "
         "tags as AprilTag 3 on every generated world; 1.5 and more lose faint tags in noise (docs/detect.md).",
     )
+    edge_white_black_diff: float = Field(
+        0.6,
+        ge=0.0,
+        description="apriltag3: the per-frame threshold (adaptive_white_black_diff > 0) is also at least this times "
+        "the 95th percentile of the frame's tile contrasts (its strong edges), up to max_white_black_diff: textured "
+        "frames (asphalt, clutter) then skip their texture (real photos 1.13x faster). On every frame of the "
+        "generated worlds and the sample every tag the library finds survives thresholds up to 0.71 x that "
+        "percentile (docs/detect.md); 0 = noise and texture only.",
+    )
     max_white_black_diff: int = Field(
-        50, ge=0, le=255, description="apriltag3: ceiling of the per-frame threshold of adaptive_white_black_diff."
+        64, ge=0, le=255, description="apriltag3: ceiling of the per-frame threshold (a quarter of the grey range)."
     )
     min_cluster_pixels: int = Field(
         5, ge=1, description="apriltag3: smallest edge cluster (pixels) considered for a quad (library default 5)."

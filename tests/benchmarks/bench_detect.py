@@ -7,6 +7,7 @@ Plain script (not a test; wall times are never asserted):
     python tests/benchmarks/bench_detect.py --skip sim photos --speed-frames 40 --repeats 5
     python tests/benchmarks/bench_detect.py --skip sim photos speed --repeats 5   # pose + covariance share only
     python tests/benchmarks/bench_detect.py --worlds --skip sim photos posecov speed   # recall on generated worlds
+    python tests/benchmarks/bench_detect.py --worlds --threshold-survival --skip sim photos posecov speed recall
 
 Data: the committed sample ``sample_data/office/office.bag`` with ``office.ground_truth.json`` (tags
 0.16 m), simulator runs of other seeds (``--fit-seeds``, in memory), ../shared/data/apriltag-photos (real
@@ -39,10 +40,14 @@ from stages.ingest.artifacts import CameraModel  # noqa: E402
 from tests.fixtures.tag_render import TagPlacement, look_at_tag, render_frame  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
-DEFAULT = "apriltag3 dec1 adaptive1.2 (default)"
+DEFAULT = "apriltag3 dec1 adaptive1.2 edge0.6 (default)"
 REFERENCE = "apriltag3 dec2 (library defaults)"
 VARIANTS: dict[str, dict[str, Any]] = {
     DEFAULT: {},
+    "apriltag3 dec1 adaptive1.2 (the default before the edge term)": {
+        "edge_white_black_diff": 0,
+        "max_white_black_diff": 50,
+    },
     "apriltag3 dec1 (library defaults)": {
         "decimation": 1.0,
         "min_white_black_diff": 5,
@@ -245,6 +250,68 @@ def bench_worlds(
             cells.append(cell(run_variant(DetectConfig(tag_size_m=TAG_SIZE_M, **kw), f, t, cam)[2]))
         h, n, x = photo_recall(kw)
         print(f"| {name} | " + " | ".join(cells) + f" | {h}/{n} = {h / n:.3f}" + (f" ({x} extra)" if x else "") + " |")
+
+
+SURVIVAL_THRESHOLDS = (15, 20, 25, 30, 35, 40, 50, 60, 70, 80, 90, 100, 120, 150)
+
+
+def bench_threshold_survival(sets: dict[str, list[np.ndarray]]) -> None:
+    """What justifies the edge term of the per-frame threshold (``edge_white_black_diff``): for every tag the
+    AprilTag 3 library finds at decimation 1 (its defaults), the largest ``min_white_black_diff`` of
+    :data:`SURVIVAL_THRESHOLDS` at which it still finds it (matched by id and centre within 3 px), against the
+    frame's 95th percentile of tile contrast; and the thresholds the default's rule gives, with and without it."""
+    import pupil_apriltags
+
+    from stages.detect.backends import (
+        EDGE_QUANTILE,
+        _quad_thresh_params,
+        frame_white_black_diff,
+        tile_contrast_quantiles,
+    )
+
+    cfg = DetectConfig()
+    lib = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
+    det = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
+    qtp = _quad_thresh_params(det)
+    print(
+        f"\n## Threshold survival: the largest min_white_black_diff at which the library (dec 1) still finds each of "
+        f"its tags, over the frame's {EDGE_QUANTILE:.0%} tile-contrast percentile q"
+    )
+    print(
+        "| set | frames | tags | lowest (survival / q) over frames | threshold without -> with the edge term | raised |"
+    )
+    print("| --- | --- | --- | --- | --- | --- |")
+    for name, frames in sets.items():
+        ratios, old, new, tags = [], [], [], 0
+        for img in frames:
+            img = np.ascontiguousarray(img)
+            q = tile_contrast_quantiles(img, (EDGE_QUANTILE,))[0]
+            wb = (cfg.min_white_black_diff, cfg.adaptive_white_black_diff)
+            old.append(frame_white_black_diff(img, *wb, 0.0, EDGE_QUANTILE, 50))
+            new.append(
+                frame_white_black_diff(img, *wb, cfg.edge_white_black_diff, EDGE_QUANTILE, cfg.max_white_black_diff)
+            )
+            alive = {(int(d.tag_id), float(d.center[0]), float(d.center[1])) for d in lib.detect(img)}
+            tags += len(alive)
+            survived = dict.fromkeys(alive, 0)
+            for threshold in SURVIVAL_THRESHOLDS:
+                if not alive:
+                    break
+                qtp.min_white_black_diff = threshold
+                got = [(int(d.tag_id), d.center) for d in det.detect(img)]
+                for tag in list(alive):
+                    if any(i == tag[0] and np.hypot(tag[1] - c[0], tag[2] - c[1]) < 3 for i, c in got):
+                        survived[tag] = threshold
+                    else:
+                        alive.discard(tag)
+            if survived:
+                ratios.append(min(survived.values()) / max(q, 1))
+        print(
+            f"| {name} | {len(frames)} | {tags} | {min(ratios):.2f} | {min(old)}-{max(old)} (median "
+            f"{np.median(old):.0f}) -> {min(new)}-{max(new)} (median {np.median(new):.0f}) | "
+            f"{np.mean(np.array(new) > np.array(old)):.0%} |"
+        )
+    lib.tag_detector_ptr = det.tag_detector_ptr = None  # pupil-apriltags 1.0.4 corrupts the heap when it frees one
 
 
 def run_variant(
@@ -740,6 +807,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--worlds-dir", type=Path, default=None, help="keep / reuse the generated worlds here")
     parser.add_argument(
+        "--threshold-survival",
+        action="store_true",
+        help="per tag, the largest quad threshold the library keeps it at (generated worlds, sample, photos)",
+    )
+    parser.add_argument(
         "--variants", nargs="*", default=None, help="only the settings whose name contains one of these words"
     )
     args = parser.parse_args(argv)
@@ -757,6 +829,17 @@ def main(argv: list[str] | None = None) -> int:
             folder = args.worlds_dir or Path(tmp)
             folder.mkdir(parents=True, exist_ok=True)
             worlds = generated_worlds(folder)
+        if args.threshold_survival:
+            photos = sorted((SHARED / "apriltag-photos").glob("*.jpg")) + sorted(
+                (SHARED / "apriltag-multi").glob("*.png")
+            )
+            bench_threshold_survival(
+                {
+                    **{name.split(":")[0]: f for name, (f, _, _) in worlds.items()},
+                    f"sample {args.bag.name} (every 2nd frame)": frames[::2],
+                    "photos": [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in photos],
+                }
+            )
         if "recall" not in args.skip:
             bench_worlds({**worlds, f"sample {args.bag.name}": (frames, truth, camera)}, VARIANTS)
     if "sim" not in args.skip:

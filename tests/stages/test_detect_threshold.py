@@ -96,3 +96,61 @@ def test_adaptive_threshold_rises_with_noise_and_keeps_the_tags() -> None:
     fixed = make_detector(DetectConfig(adaptive_white_black_diff=0))
     fixed.detect(noisy)
     assert fixed.white_black_diff == 15  # type: ignore[attr-defined]
+
+
+def _textured_frame(seed: int) -> np.ndarray:
+    """Strong tags (contrast ~120) on a background whose left 40 % carry a real-photo-like texture: grey
+    blotches of 2-8 px and +-40 grey levels (asphalt, clutter), as on the apriltag-photos / apriltag-multi images."""
+    import cv2
+
+    cam = colmap_camera(CAMERA)
+    rng = np.random.default_rng(seed)
+    tags = [
+        TagPlacement(30 + k, "tag36h11", 0.16, look_at_tag(d, a, 5, 0, ((k % 3 - 1) * 0.9, (k // 3 - 0.5) * 0.5)))
+        for k, (d, a) in enumerate([(2.0, 10), (2.5, 30), (3.0, 0), (2.2, 45), (2.8, 20), (1.8, 50)])
+    ]
+    frame = render_frame(cam, tags, background=140.0, noise_sigma=1.5, rng=rng).astype(float)
+    h, w = frame.shape
+    blotches = cv2.resize(rng.uniform(-40, 40, (h // 3, w // 3)), (w, h), interpolation=cv2.INTER_NEAREST)
+    blotches = cv2.GaussianBlur(blotches, (0, 0), 0.8)
+    background = np.abs(frame - 140.0) < 8  # leave the tags (and their white quiet zone) as rendered
+    texture = np.zeros_like(frame, bool)
+    texture[:, : 2 * w // 5] = True
+    frame[background & texture] += blotches[background & texture]
+    return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+
+
+def test_edge_term_raises_the_threshold_on_textured_frames_and_keeps_the_tags() -> None:
+    """A textured frame gets 0.6 x the 95th percentile of its tile contrasts (its strong edges: the tags, the
+    texture), capped at max_white_black_diff, where the noise term alone gives less; every tag the library finds at
+    its own threshold of 5 is still found."""
+    from stages.detect.backends import frame_white_black_diff, tile_contrast_quantiles
+
+    frame = _textured_frame(7)
+    med, q95 = tile_contrast_quantiles(frame, (0.5, 0.95))
+    assert med == median_tile_contrast(frame)
+    det = make_detector(DetectConfig())
+    found = {o.tag_id for o in det.detect(frame)}
+    assert det.white_black_diff == min(64, round(0.6 * q95)) > max(15, round(1.2 * med))  # type: ignore[attr-defined]
+    library = {
+        o.tag_id for o in make_detector(DetectConfig(min_white_black_diff=5, adaptive_white_black_diff=0)).detect(frame)
+    }
+    assert len(library) >= 5 and found >= library
+    # without the edge term, the noise / texture term (the median) alone
+    noise_only = make_detector(DetectConfig(edge_white_black_diff=0))
+    noise_only.detect(frame)
+    assert noise_only.white_black_diff == max(15, min(64, round(1.2 * med)))  # type: ignore[attr-defined]
+    assert frame_white_black_diff(frame, 15, 1.2, 0.6, 0.95, 40) == 40  # the ceiling
+
+
+def test_edge_term_leaves_faint_noisy_frames_to_the_noise_term() -> None:
+    """On faint tags in noise (contrast 40, noise 4) the strong edges are the tags themselves: 0.6 x their 95th
+    percentile stays below 1.2 x the noise, so the threshold is the noise term's, as before."""
+    from stages.detect.backends import tile_contrast_quantiles
+
+    noisy = _faint_tags(4.0, 40.0, 6)
+    med, q95 = tile_contrast_quantiles(noisy, (0.5, 0.95))
+    assert round(0.6 * q95) <= round(1.2 * med)
+    det = make_detector(DetectConfig())
+    det.detect(noisy)
+    assert det.white_black_diff == round(1.2 * med)  # type: ignore[attr-defined]
