@@ -64,13 +64,18 @@ def test_median_tile_contrast_follows_the_noise() -> None:
         assert 4.5 * sigma <= median_tile_contrast(img) <= 6.2 * sigma
 
 
+def _six_tags(first_id: int) -> list[TagPlacement]:
+    """Six 0.16 m tags 1.8-3 m in front of the camera, seen at 0-50 degrees."""
+    return [
+        TagPlacement(first_id + k, "tag36h11", 0.16, look_at_tag(d, a, 5, 0, ((k % 3 - 1) * 0.9, (k // 3 - 0.5) * 0.5)))
+        for k, (d, a) in enumerate([(2.0, 10), (2.5, 30), (3.0, 0), (2.2, 45), (2.8, 20), (1.8, 50)])
+    ]
+
+
 def _faint_tags(noise_sigma: float, contrast: float, seed: int) -> np.ndarray:
     cam = colmap_camera(CAMERA)
     rng = np.random.default_rng(seed)
-    tags = [
-        TagPlacement(20 + k, "tag36h11", 0.16, look_at_tag(d, a, 5, 0, ((k % 3 - 1) * 0.9, (k // 3 - 0.5) * 0.5)))
-        for k, (d, a) in enumerate([(2.0, 10), (2.5, 30), (3.0, 0), (2.2, 45), (2.8, 20), (1.8, 50)])
-    ]
+    tags = _six_tags(20)
     frame = render_frame(cam, tags, background=140.0, noise_sigma=0.0, rng=rng).astype(float)
     frame = 140.0 + (frame - 140.0) * contrast / 200.0 + rng.normal(0, noise_sigma, frame.shape)
     return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
@@ -105,10 +110,7 @@ def _textured_frame(seed: int) -> np.ndarray:
 
     cam = colmap_camera(CAMERA)
     rng = np.random.default_rng(seed)
-    tags = [
-        TagPlacement(30 + k, "tag36h11", 0.16, look_at_tag(d, a, 5, 0, ((k % 3 - 1) * 0.9, (k // 3 - 0.5) * 0.5)))
-        for k, (d, a) in enumerate([(2.0, 10), (2.5, 30), (3.0, 0), (2.2, 45), (2.8, 20), (1.8, 50)])
-    ]
+    tags = _six_tags(30)
     frame = render_frame(cam, tags, background=140.0, noise_sigma=1.5, rng=rng).astype(float)
     h, w = frame.shape
     blotches = cv2.resize(rng.uniform(-40, 40, (h // 3, w // 3)), (w, h), interpolation=cv2.INTER_NEAREST)
