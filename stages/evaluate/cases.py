@@ -672,11 +672,7 @@ def run_all(
     def navigate_case(result: CaseResult) -> None:
         if pool is None:
             navigate(inputs, result)
-            if inputs.cfg.trials > 0:
-                result.release()
-            return
-        call = navigation_call(inputs, result)
-        if call is not None:
+        elif (call := navigation_call(inputs, result)) is not None:
             pending.append((result, pool.submit(simulate_in_worker, *call)))
         if inputs.cfg.trials > 0:  # navigated or sent (the call holds its arguments); nothing else needs the graph
             result.release()

@@ -27,6 +27,7 @@ covariance columns keep their meaning, so a reader that ignores the third key ge
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, cast
@@ -285,24 +286,24 @@ def table_to_rows(table: pa.Table) -> list[FactorRow]:
     """Inverse of :func:`rows_to_table` (rows in ``index`` order).
 
     Every row's measurement and covariance are read-only views into one array per column (an hour's graph has
-    about 80,000 rows: one small array each, with its own buffer, cost twice the memory)."""
+    about 80,000 rows: one small array each, with its own buffer, cost twice the memory); the kind, type and robust
+    loss are interned, one string object per distinct value."""
     table = table.sort_by(INDEX)
     meas, meas_at = _flat_lists(table.column(MEASUREMENT))
     cov, cov_at = _flat_lists(table.column(FACTOR_COVARIANCE))
     scalar = [KIND, TYPE, KEYS, DIM, ROBUST, ROBUST_K, FACTOR_TAG_ID, FACTOR_FRAME, FACTOR_STAMP_NS]
     cols = table.select(scalar).to_pydict()
     rows = []
-    names: dict[str, str] = {}  # one string object per distinct kind, type and robust loss, not one per row
     for i in range(table.num_rows):
         d = int(cols[DIM][i])
         rows.append(
             FactorRow(
-                kind=names.setdefault(cols[KIND][i], cols[KIND][i]),
-                type=names.setdefault(cols[TYPE][i], cols[TYPE][i]),
+                kind=sys.intern(cols[KIND][i]),
+                type=sys.intern(cols[TYPE][i]),
                 keys=tuple(int(k) for k in cols[KEYS][i]),
                 measurement=meas[meas_at[i] : meas_at[i + 1]],
                 covariance=cov[cov_at[i] : cov_at[i + 1]].reshape(d, d),
-                robust=names.setdefault(cols[ROBUST][i], cols[ROBUST][i]),
+                robust=sys.intern(cols[ROBUST][i]),
                 robust_k=float(cols[ROBUST_K][i]),
                 tag_id=cols[FACTOR_TAG_ID][i],
                 frame=cols[FACTOR_FRAME][i],
