@@ -630,7 +630,7 @@ def map_covariances(
     Cross blocks come from sparse solves on the graph's information matrix
     (:func:`stages.estimation.sparse_cov.covariance_blocks`), ``Σ_tt`` from the pose's marginal.
     """
-    from stages.estimation.linear_system import LinearSystem
+    from stages.estimation.linear_system import information_from_gtsam
     from stages.estimation.sparse_cov import covariance_blocks
 
     T, L = len(geometry.stamps_ns), len(landmarks.tag_ids)
@@ -640,8 +640,7 @@ def map_covariances(
         joint[2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = landmarks.covariances[r]
     if T == 0 or L == 0 or len(problem.pose_keys) != T:
         return local, joint
-    landmark_keys = set(problem.landmark_keys.values())
-    system = LinearSystem.from_gtsam(graph, values, is_landmark=landmark_keys.__contains__)
+    system = information_from_gtsam(graph, values)
     col = {int(t): c for c, t in enumerate(geometry.tag_ids)}
     var = system.index_of_key
     rows: list[tuple[int, int, list[int]]] = []  # map row, landmark variable, keyframes that see it
@@ -653,7 +652,8 @@ def map_covariances(
         rows.append((r, var(key), ts))
     pairs = [(lv_i, lv_j) for _, lv_i, _ in rows for _, lv_j, _ in rows]
     pairs += [(var(problem.pose_keys[t]), lv) for _, lv, ts in rows for t in ts]
-    blocks = covariance_blocks(system.information(), system.offsets, pairs)
+    blocks = covariance_blocks(system.information, system.offsets, pairs)
+    del system
     jac: dict[int, FloatArray] = {}
     for r, _, _ in rows:
         key = problem.landmark_keys[int(landmarks.tag_ids[r])]

@@ -245,6 +245,47 @@ class LinearSystem:
         return sp.diags(d, format="csc")
 
 
+@dataclass(frozen=True)
+class GraphInformation:
+    """The information matrix ``Λ = AᵀA`` of a linearised graph, with its variables' keys and columns."""
+
+    information: sp.csc_matrix
+    keys: list[int]
+    """The graph's keys, sorted: variable ``i`` is ``keys[i]``."""
+    offsets: IntArray
+    """``offsets[i]`` is the first column of variable ``i``; ``offsets[-1]`` the total dimension."""
+
+    def index_of_key(self, key: int) -> int:
+        """Variable index of a key."""
+        return int(np.searchsorted(self.keys, key))
+
+
+def information_from_gtsam(nfg: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> GraphInformation:
+    """``Λ = AᵀA`` of ``nfg`` linearised at ``values``, from GTSAM's sparse whitened Jacobian in one call.
+
+    :meth:`LinearSystem.from_gtsam` keeps every factor's Jacobian as a Python object, which the selection greedies
+    need; a covariance query needs only ``Λ``, and on an hour's graph (79,000 factors) the per-factor objects and
+    their scatter indices cost about as much as the rest of evaluate's working set. ``sparseJacobian_`` returns the
+    augmented Jacobian as (row, column, value) triplets, one-based, over the graph's keys in sorted order, the right-
+    hand side ``b`` as its last column (dropped here).
+    """
+    dims = values.dims()
+    lin = nfg.linearize(values)
+    key_set = lin.keys()  # keep the KeySet alive while iterating it (a temporary's iterator crashes)
+    keys = sorted(int(k) for k in key_set)
+    ijs = lin.sparseJacobian_()
+    del lin
+    offsets = np.concatenate([[0], np.cumsum([int(dims[k]) for k in keys])]).astype(np.int64)
+    n = int(offsets[-1])
+    r = ijs[0].astype(np.int64) - 1
+    c = ijs[1].astype(np.int64) - 1
+    keep = c < n
+    n_rows = int(r.max()) + 1 if r.size else 0
+    A = sp.csr_matrix((ijs[2][keep], (r[keep], c[keep])), shape=(n_rows, n))
+    del ijs, r, c, keep
+    return GraphInformation(sp.csc_matrix(A.T @ A), keys, offsets)
+
+
 def unanchored_poses(sub: LinearSystem, base: Sequence[int], anchors: Sequence[int]) -> list[int]:
     """The first pose of every group of variables that the ``base`` factors link but do not anchor: no unary base
     factor and no variable of ``anchors`` (landmarks whose weak prior anchors them) among them.

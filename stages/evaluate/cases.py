@@ -17,7 +17,7 @@ LQG navigation with the case's map (``stages.navigation.simulate``).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -160,8 +160,19 @@ class Upstream:
 
     landmarks: FocusedLandmarks | None = None
     measurements: MeasurementChoice | None = None
-    reduced: ReducedMap | None = None
+    reduced: UpstreamReduced | None = None
     """optimize's reduced map (solved as evaluate solves), of ``landmarks.tag_ids`` and ``measurements``."""
+
+
+@dataclass(frozen=True)
+class UpstreamReduced:
+    """optimize's reduced map, read only for the case it matches: it is a second graph as large as the full one (all
+    the poses), which an hour's evaluate cannot afford to hold through every case."""
+
+    focused_tag_ids: list[int]
+    full_index: npt.NDArray[np.int64]
+    """Its factors' full-graph indices (optimize's ``kept.parquet``)."""
+    read: Callable[[], ReducedMap]
 
 
 @dataclass
@@ -258,7 +269,7 @@ class EvalInputs:
         rows, tagset = self.loaded.rows, set(red.focused_tag_ids)
         kept = {int(i) for i in red.full_index if i >= 0 and rows[int(i)].kind == "tag"}
         wanted = {int(i) for i in selected if rows[int(i)].kind == "tag" and rows[int(i)].tag_id in tagset}
-        return red if kept == wanted else None
+        return red.read() if kept == wanted else None
 
     def reference_positions(self, optimal: LandmarkMap | None) -> tuple[dict[int, FloatArray], str]:
         """Where landmarks really are: the ground truth, else case 1's map."""

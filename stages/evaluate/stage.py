@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
@@ -17,6 +18,7 @@ from stages.evaluate.cases import (
     TABLE_I_LABELS,
     EvalInputs,
     Upstream,
+    UpstreamReduced,
     cases,
     cases_table,
     greedy_rows,
@@ -30,7 +32,8 @@ from stages.evaluate.report import expectation_checks, figures, html_report, mar
 from stages.evaluate.risk_check import check_columns
 from stages.graph.load import LoadedGraph, load_graph
 from stages.navigation.truth import load_truth
-from stages.optimize import OptimizeConfig, ReducedMap, read_reduced, solve_settings
+from stages.optimize import OptimizeConfig, read_reduced, solve_settings
+from stages.optimize.artifacts import FULL_INDEX, KEPT
 from stages.risk import read_path_inputs
 from stages.select_landmarks import LandmarkInputs
 from stages.select_landmarks.artifacts import FOCUSED
@@ -189,14 +192,20 @@ def _realisations_summary(study: Study | None) -> dict[str, Any] | None:
     }
 
 
-def _optimized(ctx: StageContext, loaded: LoadedGraph, focused_tag_ids: list[int]) -> ReducedMap | None:
-    """optimize's reduced map, when it has run and solved as evaluate does (else None: evaluate solves itself)."""
+def _optimized(ctx: StageContext, loaded: LoadedGraph, focused_tag_ids: list[int]) -> UpstreamReduced | None:
+    """optimize's reduced map, when it has run and solved as evaluate does (else None: evaluate solves itself); read
+    when a case matches it."""
     if not ctx.has_input("optimize"):
         return None
     inp = ctx.input("optimize")
     if inp.summary.get("solve") != solve_settings(OptimizeConfig()):
         return None
-    return read_reduced(inp, loaded, focused_tag_ids)
+    kept = KEPT.read(inp, columns=[FULL_INDEX]).column(FULL_INDEX).to_numpy()
+    return UpstreamReduced(
+        sorted({int(t) for t in focused_tag_ids}),
+        np.asarray(kept, dtype=np.int64),
+        functools.partial(read_reduced, inp, loaded, focused_tag_ids),
+    )
 
 
 def log_recording(rec: rr.RecordingStream, inputs: EvalInputs, results: list[Any], n_sigma: float) -> None:
