@@ -43,7 +43,7 @@ def landmark_prior_sigmas(dim: int, sigma: float) -> FloatArray:
     return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Variable:
     """One block of the state vector."""
 
@@ -55,7 +55,7 @@ class Variable:
     """``pose`` or ``landmark``."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Factor:
     """One whitened linear factor ``‖A x − b‖²`` (only ``A`` matters for information)."""
 
