@@ -254,10 +254,14 @@ class GraphInformation:
     """The graph's keys, sorted: variable ``i`` is ``keys[i]``."""
     offsets: IntArray
     """``offsets[i]`` is the first column of variable ``i``; ``offsets[-1]`` the total dimension."""
+    _index: dict[int, int] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_index", {k: i for i, k in enumerate(self.keys)})
 
     def index_of_key(self, key: int) -> int:
         """Variable index of a key."""
-        return int(np.searchsorted(self.keys, key))
+        return self._index[key]
 
 
 def information_from_gtsam(nfg: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> GraphInformation:
