@@ -20,6 +20,7 @@ from pipeline.code import code_digest, package_dirs
 from pipeline.config import Settings
 from pipeline.context import StageContext
 from pipeline.errors import StageError, write_error
+from pipeline.memory import release_freed_memory
 from pipeline.recording import close_recording, log_summary, open_recording, run_blueprint, save_blueprint
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder, SourceEntry, outside_identity, source_identity, write_json_atomic
@@ -181,17 +182,6 @@ def stale_inputs(run: RunFolder, registry: Registry, name: str) -> list[str]:
     return lines
 
 
-def _give_back_arrow_memory() -> None:
-    """Return the memory of the stage's freed Arrow tables to the system before its recording is encoded.
-
-    Arrow's allocator (mimalloc) keeps freed memory for reuse: the tables a stage read and dropped stay held while its
-    recording is encoded on top (ingest of a 16-minute recording, when it still read its frames back: 140 MiB).
-    """
-    import pyarrow as pa
-
-    pa.default_memory_pool().release_unused()
-
-
 def run_stage(
     run: RunFolder, registry: Registry, name: str, settings: Settings, force: bool = False, progress: bool = False
 ) -> StageResult:
@@ -233,7 +223,7 @@ def run_stage(
             show_progress=progress,
         )
         summary = dict(stage.run(ctx, settings[stage.name]) or {})
-        _give_back_arrow_memory()
+        release_freed_memory()
         seconds = time.perf_counter() - start
         summary.setdefault("seconds", round(seconds, 3))
         log_summary(rec, stage.name, summary)

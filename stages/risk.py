@@ -594,6 +594,7 @@ def read_path_inputs(ctx: StageContext) -> PathInputs:
         ingest = ctx.input("ingest")
         if ingest.exists(SCANS.file):
             scans = SCANS.read(ingest)
+            pa.default_memory_pool().release_unused()  # the reader's buffers: ~60 MB kept after an hour's scans
             if scans.num_rows == 0:
                 note = "ingest found no laser scans in the recording"
         else:

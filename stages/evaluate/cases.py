@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, Future
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,6 +27,7 @@ import numpy.typing as npt
 import pyarrow as pa
 
 from pipeline.errors import ConfigError, StageError
+from pipeline.memory import release_freed_memory
 from stages.columns import STAMP_NS, TAG_ID, X, Y
 from stages.evaluate import artifacts as art
 from stages.evaluate.analysis import (
@@ -463,7 +464,9 @@ def prepare(inputs: EvalInputs) -> None:
             inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
     if inputs.cfg.focused_poses > 0 and not inputs.risky_keyframes and inputs.landmarks.geometry.has_laser:
         geo = inputs.landmarks.geometry
-        full = full_local_map(inputs.loaded, geo)
+        full = inputs.landmarks.landmarks  # its local covariances are the full graph's (LandmarkInputs made them)
+        if full.local is None:
+            full = full_local_map(inputs.loaded, geo)
         risk = path_risk(geo, full, inputs.focus, inputs.risk_params)
         window = inputs.sl_cfg.visibility_window_s
         inputs.risky_keyframes = riskiest_keyframes(risk.mahalanobis, geo.stamps_ns, inputs.cfg.focused_poses, window)
@@ -668,6 +671,10 @@ def _oracle_rows(inputs: EvalInputs, truth: MapTruth, kept: Sequence[int]) -> di
     return {i: inputs.oracle[seed, i] for i in kept if (seed, i) in inputs.oracle}
 
 
+MAX_QUEUED_NAVIGATIONS = 2
+"""Navigations sent to the worker and not finished (one running, one waiting) before the next case waits."""
+
+
 def run_all(
     inputs: EvalInputs, todo: Sequence[Case], progress: Any = None, pool: Executor | None = None
 ) -> list[CaseResult]:
@@ -684,6 +691,11 @@ def run_all(
         if pool is None:
             navigate(inputs, result)
         elif (call := navigation_call(inputs, result)) is not None:
+            # a queued navigation holds its arguments (the case's path, gains and local covariances: tens of MB on
+            # an hour's recording) until the worker takes it; when the worker is the slower side, wait for it rather
+            # than queue every case
+            while sum(not f.done() for _, f in pending) >= MAX_QUEUED_NAVIGATIONS:
+                wait([f for _, f in pending if not f.done()], return_when=FIRST_COMPLETED)
             pending.append((result, pool.submit(simulate_in_worker, *call)))
         if inputs.cfg.trials > 0:  # navigated or sent (the call holds its arguments); nothing else needs the graph
             result.release()
@@ -701,6 +713,7 @@ def run_all(
         results.append(first)
         rest = todo[1:] if progress is None else progress(todo[1:], "cases")
         for case in rest:
+            release_freed_memory()  # the last case's graph, solves and selection (hundreds of MB at an hour)
             try:
                 result = run_case(inputs, case, optimal, navigation=False)
                 navigate_case(result)

@@ -1,0 +1,38 @@
+"""Give memory that was freed back to the operating system between the large steps of a long stage.
+
+A stage that works through an hour's recording in steps (evaluate's cases) frees hundreds of MB after each step, but
+the allocators keep it: glibc's heap cannot shrink below a live block and keeps freed chunks for reuse, pyarrow's
+pool keeps its pages. The process's resident size then only grows, although what is live does not (measured on an
+hour's evaluate: about 300 MB held after the first case). :func:`release_freed_memory` asks both to give back what
+they hold unused; it changes no result and costs a few milliseconds.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import functools
+import gc
+
+import pyarrow as pa
+
+
+@functools.cache
+def _malloc_trim() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
+    """glibc's ``malloc_trim`` (None elsewhere: musl, macOS, Windows)."""
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return None
+    try:
+        return ctypes.CDLL(name).malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def release_freed_memory() -> None:
+    """Collect garbage, then return the freed memory of glibc's heap and pyarrow's pool to the system."""
+    gc.collect()
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+    pa.default_memory_pool().release_unused()
