@@ -1036,17 +1036,24 @@ def _greedy(
     prob: _Problem,
     c: _Candidates,
     g: _Gains,
-    Yt: FloatArray | None,
+    XF: FloatArray,
     budget: int,
     refactor_every: int | None,
     options: TrackerOptions,
     delta0: float,
 ) -> tuple[list[int], list[float], dict[str, float]]:
-    """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain."""
+    """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain.
+
+    ``XF`` is ``Σ`` at the focused columns (``n × f``); the window tracker with a small focus keeps ``W Σ`` at the
+    tracked rows (``f × rows``) current, ``W Σ −= w T⁻¹ Vᵀ`` (4·f·m·rows flops per step), instead of a second solve
+    per step; the capacitance tracker gets ``Σ Wᵀ p`` from its second solve and keeps nothing (on an hour's graph
+    the copy is tens of MB, held through the greedy)."""
     fcols = prob.system.columns(prob.focused)
     t_red = time.perf_counter()
     capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
     stats = {"reduce_s": time.perf_counter() - t_red}
+    Yt = np.ascontiguousarray(XF[c.rows].T) if not capacitance and len(fcols) <= options.track_focused_max else None
+    del XF
 
     def add_info(js: list[int]) -> SparseMatrix:
         info = prob.system.information([c.index[i] for i in js])
@@ -1060,7 +1067,6 @@ def _greedy(
     with single_threaded_blas():
         tracker: _Tracker | _CapacitanceTracker
         if capacitance:
-            Yt = None  # Σ Wᵀ p comes with the second solve at no extra cost
             tracker = _capacitance_tracker(prob, add_info, g.m, c.Ac.shape[2], fcols, refactor_every, options)
         else:
             tracker = _Tracker(info_t, rows_t, g.m, add_info, refactor_every)
@@ -1210,14 +1216,10 @@ def select_information(
         return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget, h0, after, stats)
     c = _candidates(prob.system, prob.candidates, fcols)
     g = _initial_gains(prob, solver, XF, SF, c)
-    # Small focus: keep W Σ at the tracked rows (f × rows) current, W Σ −= w T⁻¹ Vᵀ (4·f·m·rows flops
-    # per step), instead of a second solve per step (a sparse solve plus a Woodbury window).
-    Yt = np.ascontiguousarray(XF[c.rows].T) if len(fcols) <= options.track_focused_max else None
-    del XF
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
-    js, gains, loop_stats = _greedy(
-        prob, c, g, Yt, budget, refactor_every, options, _solve_accuracy(prob.info0, solver)
-    )
+    accuracy = _solve_accuracy(prob.info0, solver)
+    del solver
+    js, gains, loop_stats = _greedy(prob, c, g, XF, budget, refactor_every, options, accuracy)
     stats |= loop_stats
     picks = [cand[j] for j in js]
     # the running entropy is h0 - Σ gains; the exact one takes one more factorisation. They differ when rounding in the
