@@ -156,11 +156,25 @@ def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:
     return [i for i, f in enumerate(system.factors) if i not in cand and f.kind != "landmark" and f.rows]
 
 
-def _focused_cov(solver: SPDSolver, n: int, fcols: IntArray) -> tuple[FloatArray, FloatArray]:
-    E = np.zeros((n, len(fcols)))
-    E[fcols, np.arange(len(fcols))] = 1.0
-    XF = solver.solve(E)
-    SF = XF[fcols]
+FOCUSED_SOLVE_COLUMNS = 32
+"""Identity columns solved at once for ``Σ`` at the focused columns: the right-hand side, the solution and the
+solver's buffer are each ``n ×`` this many, not ``n × f`` (an hour's graph with focused poses: f of several
+hundred, 150 MB each)."""
+
+
+def _focused_cov(solver: SPDSolver, n: int, fcols: IntArray, keep: bool = True) -> tuple[FloatArray, FloatArray]:
+    """``(XF, Σ_F)``: ``Σ`` at the focused columns (``n × f``; ``n × 0`` unless ``keep``) and its focused block."""
+    f = len(fcols)
+    XF = np.empty((n, f)) if keep else np.empty((n, 0))
+    SF = np.empty((f, f))
+    for j in range(0, f, FOCUSED_SOLVE_COLUMNS):
+        cols = np.arange(j, min(f, j + FOCUSED_SOLVE_COLUMNS))
+        E = np.zeros((n, len(cols)))
+        E[fcols[cols], np.arange(len(cols))] = 1.0
+        X = solver.solve(E)
+        SF[:, cols] = X[fcols]
+        if keep:
+            XF[:, cols] = X
     return XF, 0.5 * (SF + SF.T)
 
 
@@ -195,7 +209,7 @@ def focused_entropy(
     if len(fcols) > DENSE_FOCUS_MAX:
         return _sparse_focused_entropy(prob.info0, fcols)
     solver = SPDSolver(prob.info0)
-    _, SF = _focused_cov(solver, prob.system.dim, fcols)
+    _, SF = _focused_cov(solver, prob.system.dim, fcols, keep=False)
     return entropy_from_logdet(logdet_spd(SF), len(fcols))
 
 
@@ -1308,7 +1322,7 @@ def select_leverage(
                     break
         order = list(chosen)
         info = prob.info0 + prob.system.information([prob.candidates[i] for i in order])
-        _, SF = _focused_cov(SPDSolver(info), prob.system.dim, fcols)
+        _, SF = _focused_cov(SPDSolver(info), prob.system.dim, fcols, keep=False)
         value = _measure(SF, measure)
         if best is None or value < best[0]:
             best = (value, order)
