@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Final
 
 from pipeline.lazy import lazy_exports
-from pipeline.stage import Stage, Summary, lazy
+from pipeline.stage import Stage, Summary, lazy, summary_notes
 from stages.evaluate.config import EvaluateConfig
 from stages.optimize import TRUTH
 
@@ -37,6 +37,13 @@ def blueprint() -> Any:
             column_shares=[3, 1],
         ),
     )
+
+
+def remarks(summary: Summary) -> list[tuple[str, str]]:
+    """The notes, then one ``warning`` per line of the summary's ``warnings`` (cases skipped, risk model against the
+    simulation)."""
+    warnings = summary.get("warnings")
+    return summary_notes(summary) + ([("warning", str(w)) for w in warnings] if isinstance(warnings, list) else [])
 
 
 def report_lines(summary: Summary) -> list[str]:
@@ -78,6 +85,7 @@ STAGE: Final = Stage(
     blueprint=blueprint,
     help="Compare the six cases of Mu et al. Table I (and other strategy pairs), navigate on each map, report.",
     report_lines=report_lines,
+    remarks=remarks,
     options=(TRUTH,),
 )
 

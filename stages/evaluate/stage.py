@@ -158,8 +158,34 @@ def _run(
         "realisations": _realisations_summary(study),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
         **({"notes": inputs.truth.missing_notes()} if inputs.truth is not None and inputs.truth.missing else {}),
-        **({"warnings": list(inputs.skipped)} if inputs.skipped else {}),
+        **({"warnings": warnings} if (warnings := [*inputs.skipped, *risk_warnings(results)]) else {}),
     }
+
+
+def risk_warnings(results: list[Any]) -> list[str]:
+    """One line when simulated navigations disagree with the risk model by orders of magnitude (``risk_disagrees``):
+    the headline's collision rate is then doubtful, and a user reading only it would not know."""
+    above = [r.row for r in results if r.row.get(art.RISK_DISAGREES) and r.row[art.COLLISION_CI_LOW] > 0]
+    below = [r.row for r in results if r.row.get(art.RISK_DISAGREES) and r.row[art.COLLISION_CI_LOW] <= 0]
+    out = []
+    if above:
+        names = ", ".join(str(r[art.CASE]) for r in above)
+        rate = max(float(r[art.COLLISION_RATE]) for r in above)
+        predicted = max(float(r[art.PREDICTED_COLLISION_HIGH]) for r in above)
+        track = max(float(r[art.RMS_TRACKING_ERROR_M]) for r in above)
+        out.append(
+            f"the simulated robots collide far more often than the risk model predicts in case(s) {names} (rate up "
+            f"to {rate:.2f} against a predicted path probability of at most {predicted:.2g}; RMS tracking error up "
+            f"to {track:.2f} m): these collision rates are doubtful (the risk model leaves out how far the robot "
+            "strays from its planned path); see the report's 'Risk model against the simulation'"
+        )
+    if below:
+        names = ", ".join(str(r[art.CASE]) for r in below)
+        out.append(
+            f"the simulated robots collide far less often than the risk model predicts in case(s) {names}: the "
+            "model's probabilities are doubtful there; see the report's 'Risk model against the simulation'"
+        )
+    return out
 
 
 def _realisations(inputs: EvalInputs, todo: list[Any], cfg: EvaluateConfig, detections: Any) -> Study | None:

@@ -42,3 +42,33 @@ def test_without_trials_or_risk_there_is_no_verdict() -> None:
 def test_the_entropy_split_counts_the_unobserved_and_the_priors_part() -> None:
     assert entropy_split(-10.0, -48.0, 5, 3) == (2, 38.0)
     assert entropy_split(-48.0, -48.0, 5, 5) == (0, 0.0)
+
+
+def test_risk_disagreements_become_warning_lines_the_cli_prints() -> None:
+    """A case that collides in every trial where the model predicts ~0 (an hour's corridor with 90 measurements) and
+    one that never collides where the model predicts certain collision each give a warning; a consistent case none."""
+    from types import SimpleNamespace
+
+    from stages.evaluate import STAGE
+    from stages.evaluate.stage import risk_warnings
+
+    def case(name: str, rate: float, lo: float, hi: float, high_pred: float) -> SimpleNamespace:
+        row = {"collision_rate": rate, "collision_ci_low": lo, "collision_ci_high": hi, "rms_tracking_error_m": 0.11}
+        row |= {"case": name, "predicted_collision_low": high_pred / 10, "predicted_collision_high": high_pred}
+        row["risk_disagrees"] = disagrees(high_pred / 10, high_pred, lo, hi)
+        return SimpleNamespace(row=row)
+
+    results = [
+        case("optimal", 0.0, 0.0, 0.037, 0.0),  # no prediction at all: not comparable
+        case("focus_info", 1.0, 0.963, 1.0, 3.6e-14),
+        case("full_ds", 0.02, 0.006, 0.07, 0.05),
+        case("random+random", 0.0, 0.0, 0.005, 1.0),
+    ]
+    lines = risk_warnings(results)
+    assert len(lines) == 2
+    assert "more often" in lines[0] and "focus_info" in lines[0] and "full_ds" not in lines[0]
+    assert "3.6e-14" in lines[0] and "0.11 m" in lines[0]
+    assert "less often" in lines[1] and "random+random" in lines[1]
+    remarks = STAGE.remarks({"warnings": [*lines, "case x skipped: why"], "notes": ["n"]})
+    assert [label for label, _ in remarks] == ["note", "warning", "warning", "warning"]
+    assert risk_warnings(results[2:3]) == []
