@@ -62,11 +62,13 @@ def test_risk_disagreements_become_warning_lines_the_cli_prints() -> None:
         case("optimal", 0.0, 0.0, 0.037, 0.0),  # no prediction at all: not comparable
         case("focus_info", 1.0, 0.963, 1.0, 3.6e-14),
         case("full_ds", 0.02, 0.006, 0.07, 0.05),
+        case("focus_ds", 0.01, 0.002, 0.054, 1e-19),  # flagged in the report; one collision in 100: no warning
         case("random+random", 0.0, 0.0, 0.005, 1.0),
     ]
     lines = risk_warnings(results)
     assert len(lines) == 2
-    assert "more often" in lines[0] and "focus_info" in lines[0] and "full_ds" not in lines[0]
+    assert "more often" in lines[0] and "focus_info" in lines[0]
+    assert "full_ds" not in lines[0] and "focus_ds" not in lines[0]
     assert "3.6e-14" in lines[0] and "0.11 m" in lines[0]
     assert "less often" in lines[1] and "random+random" in lines[1]
     remarks = STAGE.remarks({"warnings": [*lines, "case x skipped: why"], "notes": ["n"]})
