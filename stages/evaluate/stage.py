@@ -10,6 +10,7 @@ import numpy as np
 import rerun as rr
 
 from pipeline.context import StageContext
+from pipeline.memory import release_freed_memory
 from pipeline.recording import colormap, ellipsoids
 from pipeline.workers import WorkerPool
 from stages.estimation.blas import blas_single
@@ -117,6 +118,7 @@ def _run(
 ) -> dict[str, Any]:
     landmarks = inputs.landmarks
     results = run_all(inputs, todo, ctx.progress, pool)
+    release_freed_memory()  # the last case's solves, before the tables, figures and recording are made on top
     for r in results:  # the entropy split and the risk model against the simulation, from what each case measured
         r.row.update(check_columns(r.row, r.risk.p_collision, len(inputs.focus)))
     out = ctx.output
