@@ -46,6 +46,7 @@ import numpy.typing as npt
 import pyarrow as pa
 from scipy.stats import norm
 
+from pipeline.memory import release_freed_memory
 from stages.columns import STAMP_NS, TAG_ID
 from stages.detect.artifacts import DETECTIONS
 from stages.estimation.collision import (
@@ -594,7 +595,7 @@ def read_path_inputs(ctx: StageContext) -> PathInputs:
         ingest = ctx.input("ingest")
         if ingest.exists(SCANS.file):
             scans = SCANS.read(ingest)
-            pa.default_memory_pool().release_unused()  # the reader's buffers: ~60 MB kept after an hour's scans
+            release_freed_memory()  # the reader's buffers: ~60 MB kept after an hour's scans
             if scans.num_rows == 0:
                 note = "ingest found no laser scans in the recording"
         else:

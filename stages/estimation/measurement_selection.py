@@ -158,8 +158,7 @@ def default_base(system: LinearSystem, candidates: Sequence[int]) -> list[int]:
 
 FOCUSED_SOLVE_COLUMNS = 32
 """Identity columns solved at once for ``Σ`` at the focused columns: the right-hand side, the solution and the
-solver's buffer are each ``n ×`` this many, not ``n × f`` (an hour's graph with focused poses: f of several
-hundred, 150 MB each)."""
+solver's buffer are each ``n ×`` this many, not ``n × f``, whatever the focus."""
 
 
 def _focused_cov(solver: SPDSolver, n: int, fcols: IntArray, keep: bool = True) -> tuple[FloatArray, FloatArray]:

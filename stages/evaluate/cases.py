@@ -60,7 +60,6 @@ from stages.navigation import (
 from stages.navigation.truth import MapTruth
 from stages.optimize import (
     ReducedMap,
-    full_local_map,
     landmark_errors,
     local_map,
     map_size,
@@ -464,9 +463,7 @@ def prepare(inputs: EvalInputs) -> None:
             inputs.focus, inputs.focus_seconds = list(choice.tag_ids), choice.seconds
     if inputs.cfg.focused_poses > 0 and not inputs.risky_keyframes and inputs.landmarks.geometry.has_laser:
         geo = inputs.landmarks.geometry
-        full = inputs.landmarks.landmarks  # its local covariances are the full graph's (LandmarkInputs made them)
-        if full.local is None:
-            full = full_local_map(inputs.loaded, geo)
+        full = inputs.landmarks.landmarks  # with a laser, LandmarkInputs made the full graph's local covariances
         risk = path_risk(geo, full, inputs.focus, inputs.risk_params)
         window = inputs.sl_cfg.visibility_window_s
         inputs.risky_keyframes = riskiest_keyframes(risk.mahalanobis, geo.stamps_ns, inputs.cfg.focused_poses, window)

@@ -30,7 +30,7 @@ from stages.evaluate.cases import (
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.realisations import Study, report_section, run_realisations, statistics_rows, study_table
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
-from stages.evaluate.risk_check import check_columns
+from stages.evaluate.risk_check import check_columns, direction
 from stages.graph.load import LoadedGraph, load_graph
 from stages.navigation.truth import load_truth
 from stages.optimize import OptimizeConfig, read_reduced, solve_settings
@@ -171,11 +171,16 @@ WARN_COLLISION_RATE = 0.05
 def risk_warnings(results: list[Any]) -> list[str]:
     """One line when simulated navigations disagree with the risk model by orders of magnitude (``risk_disagrees``):
     the headline's collision rate is then doubtful, and a user reading only it would not know."""
-    flagged = [r.row for r in results if r.row.get(art.RISK_DISAGREES)]
+    sides = [
+        (r.row, direction(*(float(r.row[k]) for k in (art.PREDICTED_COLLISION_LOW, art.PREDICTED_COLLISION_HIGH,
+                                                        art.COLLISION_CI_LOW, art.COLLISION_CI_HIGH))))
+        for r in results
+        if r.row.get(art.RISK_DISAGREES)
+    ]  # fmt: skip
     # above: only where collisions are a share a user would act on (the sample's extra cases collide once in 100
     # trials against a predicted 1e-19: flagged in the report, not worth a warning on every run)
-    above = [r for r in flagged if r[art.COLLISION_CI_LOW] >= WARN_COLLISION_RATE]
-    below = [r for r in flagged if r[art.COLLISION_CI_LOW] <= 0]
+    above = [row for row, side in sides if side == "above" and row[art.COLLISION_CI_LOW] >= WARN_COLLISION_RATE]
+    below = [row for row, side in sides if side == "below"]
     out = []
     if above:
         names = ", ".join(str(r[art.CASE]) for r in above)
