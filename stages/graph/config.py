@@ -77,12 +77,12 @@ class GraphConfig(SettingsModel):
         "auto: odometry when the odometry calibration runs, else off.",
     )
     calibration_test_threshold: float = Field(
-        13.8,
+        5.99,
         gt=0,
         description="odometry_calibration=auto turns the calibration on when the Wald statistic of the yaw-rate "
         "scale and yaw bias (one joint step from the uncalibrated solution, divided by the odometry's chi-square per "
-        "redundancy with the calibration free) exceeds this (13.8: the 99.9 % point of chi-square with 2 degrees "
-        "of freedom).",
+        "redundancy with the calibration free) exceeds this (5.99: the 95 % point of chi-square with 2 degrees "
+        "of freedom; a missed wheel error costs the map far more than a needless calibration, docs/graph.md).",
     )
     calibration_test_max_poses: int = Field(
         6000,
