@@ -35,7 +35,7 @@ STAGE: Final = Stage(
     config_type=DetectConfig,
     run=lazy("stages.detect.stage:run"),
     inputs=("ingest",),
-    version="1",
+    version="2",
     blueprint=blueprint,
     help="Detect AprilTags in the ingested frames; each tag's pose in the camera with its 6x6 covariance.",
 )

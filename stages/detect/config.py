@@ -111,6 +111,23 @@ class DetectConfig(SettingsModel):
         "show). Corner noise = corner_sigma^2 I + corner_bias^2 s s^T. Fitted on simulator seeds 1-2: 0 "
         "(docs/detect.md); raise it for blurred or strongly compressed images.",
     )
+    corner_shift_px: float | Literal["auto"] = Field(
+        "auto",
+        description="Move every side of each detected quad outwards by this, px, before its pose is estimated: "
+        "overexposure or blooming moves the tags' edges inwards, so they look small and their ranges read long. "
+        "auto: measured from the tags' own black borders (a one-cell border that reads narrower than a cell) on "
+        "up to edge_frames frames, and applied when it is at least edge_shift_min_px (stages/detect/edges.py); "
+        "0: never.",
+    )
+    edge_shift_min_px: float = Field(
+        0.03,
+        ge=0,
+        description="corner_shift_px=auto applies the measured shift from this size on, px (measured: -0.01 at "
+        "the sample's exposure, 0.015 at 1.15x, where the map is as good, 0.07 at 1.3x, where it is not).",
+    )
+    edge_frames: int = Field(
+        300, ge=1, description="corner_shift_px=auto measures the tags of at most this many frames, spread evenly."
+    )
     ambiguity_mixture: bool = Field(
         True,
         description="Report the covariance of the two-mode mixture of both planar (IPPE) solutions, weighted by "

@@ -7,7 +7,7 @@ corner noise of 1 px (:attr:`TagPose.cov_unit`); the stage scales them once the 
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -16,6 +16,7 @@ import numpy.typing as npt
 from stages.camera import colmap_camera
 from stages.detect.backends import Detector, TagObservation, make_detector, shortest_side_px
 from stages.detect.config import DetectConfig
+from stages.detect.edges import BORDER_CELLS, edge_shifts, shift_corners
 from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import TagPose, estimate_tag_poses
 from stages.ingest.artifacts import CameraModel
@@ -40,6 +41,8 @@ class FrameJob:
     step: int = 0
     data: bytes | None = None
     observations: list[TagObservation] | None = None
+    measure_edges: bool = False
+    """Measure where the edges of this frame's tags lie (``corner_shift_px: auto``, :mod:`stages.detect.edges`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,6 +97,8 @@ class BatchResult:
     corrupt: list[tuple[int, str]] = field(default_factory=list)
     dropped: Counter[str] = field(default_factory=Counter)
     frames: int = 0
+    edge_shifts: list[float] = field(default_factory=list)
+    """The measured tags' edge shifts, px (:func:`stages.detect.edges.edge_shifts`)."""
 
 
 def observations_to_rows(
@@ -134,6 +139,25 @@ def kept_observations(
     return kept
 
 
+def _shifted(obs: TagObservation, shift_px: float) -> TagObservation:
+    """The observation with each side of its quad moved outwards by ``shift_px``."""
+    return replace(obs, corners=shift_corners(obs.corners, shift_px))
+
+
+def reposed(
+    rows: list[DetectionRow], shift_px: float, cfg: DetectConfig, processor: FrameProcessor
+) -> tuple[list[DetectionRow], Counter[str]]:
+    """The rows with their quads moved outwards by ``shift_px`` and their poses estimated again; those whose pose
+    now fails or fits badly are left out and counted."""
+    frames = []
+    for r in rows:
+        job = FrameJob(frame=r.frame, stamp_ns=r.stamp_ns, camera=r.camera)
+        obs = TagObservation(r.tag_id, r.family, np.reshape(r.corners, (4, 2)), r.decision_margin, r.hamming)
+        frames.append((job, processor.camera_of(job), [(obs, r.side_px)]))
+    dropped: Counter[str] = Counter()
+    return rows_with_poses(frames, cfg.model_copy(update={"corner_shift_px": shift_px}), dropped), dropped
+
+
 def rows_with_poses(
     frames: list[tuple[FrameJob, pycolmap.Camera, list[tuple[TagObservation, float]]]],
     cfg: DetectConfig,
@@ -141,6 +165,9 @@ def rows_with_poses(
 ) -> list[DetectionRow]:
     """Rows of the kept observations (:func:`kept_observations`) of several frames, in order; the poses of each
     camera's tags are estimated in one batch. Those whose pose fails or fits badly are counted in ``dropped``."""
+    if cfg.corner_shift_px != "auto" and cfg.corner_shift_px:
+        for _, _, kept in frames:
+            kept[:] = [(_shifted(o, cfg.corner_shift_px), side) for o, side in kept]
     by_camera: dict[int, list[tuple[TagObservation, float]]] = {}
     cameras: dict[int, pycolmap.Camera] = {}
     for _, camera, kept in frames:
@@ -231,13 +258,12 @@ class FrameProcessor:
                 result.corrupt.append((job.frame, str(err)))
                 continue
             assert self.detector is not None
-            frames.append(
-                (
-                    job,
-                    self.camera_of(job),
-                    kept_observations(self.detector.detect(gray), self.cfg, result.dropped, True),
-                )
-            )
+            kept = kept_observations(self.detector.detect(gray), self.cfg, result.dropped, True)
+            if job.measure_edges and kept:
+                cells = [BORDER_CELLS.get(o.family, 0) for o, _ in kept]
+                shifts = edge_shifts(gray, [o.corners for o, _ in kept], cells)
+                result.edge_shifts += [float(v) for v in shifts if np.isfinite(v)]
+            frames.append((job, self.camera_of(job), kept))
         result.rows = rows_with_poses(frames, self.cfg, result.dropped)
         return result
 

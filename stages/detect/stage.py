@@ -44,7 +44,9 @@ from stages.detect.core import (
     FrameProcessor,
     init_worker,
     process_in_worker,
+    reposed,
 )
+from stages.detect.edges import run_shift
 from stages.detect.pose import pose_covariance
 from stages.ingest.artifacts import CAMERA as CAMERA_MODEL
 from stages.ingest.artifacts import (
@@ -67,9 +69,12 @@ log = logging.getLogger(__name__)
 _APRILTAG_TO_OPENCV = [1, 0, 3, 2]
 
 
-def _frame_jobs(ingest: StageInput, batch_frames: int) -> Iterator[list[FrameJob]]:
+def _frame_jobs(ingest: StageInput, batch_frames: int, edge_stride: int = 0) -> Iterator[list[FrameJob]]:
+    """The frames in batches; every ``edge_stride``-th (0: none) has its tags' edges measured."""
+    n = 0
     for batch in FRAMES.batches(ingest, batch_size=batch_frames):
         d = batch.to_pydict()
+        n += batch.num_rows
         yield [
             FrameJob(
                 frame=int(d[FRAME][i]),
@@ -80,6 +85,7 @@ def _frame_jobs(ingest: StageInput, batch_frames: int) -> Iterator[list[FrameJob
                 height=int(d[HEIGHT][i]),
                 step=int(d[STEP][i] or 0),
                 data=d[DATA][i],
+                measure_edges=bool(edge_stride) and (n - batch.num_rows + i) % edge_stride == 0,
             )
             for i in range(batch.num_rows)
         ]
@@ -143,6 +149,7 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
     _log_static(ctx.rec, camera)
     batches, total, workers = _batches(ingest, cfg, from_bag)
     found = _detect(ctx, cfg, (camera, cameras), from_bag, batches, total, workers)
+    edges = _edge_correction(found, cfg, camera, cameras, from_bag)
     sigma, sigma_source = _corner_sigma(found.rows, cfg)
     table, n_ambiguous, n_dropped_ambiguous = _table(found.rows, sigma, cfg)
     found.rows.clear()  # the table holds them now
@@ -186,8 +193,50 @@ def run(ctx: StageContext, cfg: DetectConfig) -> dict[str, Any]:
         "detect_seconds": round(seconds, 3),
         "frames_per_second": round(found.frames / seconds, 2) if seconds > 0 else None,
         "workers": workers,
+        "edges": edges,
+        **({"notes": [edges["note"]]} if "note" in edges else {}),
         **sizes,
     }
+
+
+EDGE_MIN_TAGS = 30
+"""``corner_shift_px: auto`` needs at least this many measured tags to apply a shift."""
+
+
+def _edge_correction(
+    found: BatchResult,
+    cfg: DetectConfig,
+    camera: CameraModel,
+    cameras: dict[str, CameraModel] | None,
+    from_bag: bool,
+) -> dict[str, Any]:
+    """``corner_shift_px: auto``: the run's edge shift from the measured tags and, when it reaches
+    ``edge_shift_min_px``, the rows' quads moved outwards by it and their poses estimated again (in place). The
+    summary's ``edges`` block says what was measured and done."""
+    if cfg.corner_shift_px != "auto":
+        return {"setting": cfg.corner_shift_px, "applied_px": float(cfg.corner_shift_px)}
+    if from_bag:
+        return {"setting": "auto", "applied_px": 0.0, "reason": "detections from the bag: no images to measure"}
+    shift, n = run_shift(np.asarray(found.edge_shifts, dtype=float))
+    out: dict[str, Any] = {"setting": "auto", "measured_tags": n, "shift_px": round(shift, 4) if n else None}
+    if n < EDGE_MIN_TAGS or abs(shift) < cfg.edge_shift_min_px:
+        few = n < EDGE_MIN_TAGS
+        why = f"{n} tags measured (< {EDGE_MIN_TAGS})" if few else f"|{shift:.3f}| px < {cfg.edge_shift_min_px:g}"
+        return out | {"applied_px": 0.0, "reason": f"not applied: {why}"}
+    processor = FrameProcessor(cfg, camera, with_detector=False, cameras=cameras)
+    before = len(found.rows)
+    found.rows, dropped = reposed(found.rows, shift, cfg, processor)
+    lost = before - len(found.rows)
+    found.dropped.update(dropped)
+    side = "thinner" if shift > 0 else "thicker"
+    cause = "overexposure or blooming" if shift > 0 else "crushed blacks or strong sharpening"
+    note = (
+        f"detect moved every tag's sides {'out' if shift > 0 else 'in'}wards by {abs(shift):.3f} px "
+        f"(detect.corner_shift_px=auto): the black borders of {n} tags read {2 * abs(shift):.2f} px {side} than a "
+        f"cell, as {cause} makes them, which would make every range read {'long' if shift > 0 else 'short'}"
+        + (f"; {lost} detections no longer fit and were dropped" if lost else "")
+    )
+    return out | {"applied_px": round(shift, 4), "note": note}
 
 
 def sizes_from_tags(cfg: DetectConfig, tags: TagsInfo) -> DetectConfig:
@@ -214,7 +263,8 @@ def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Ite
     if total_frames == 0:
         raise InputError(f"no frames in {ingest.file(FRAMES.file)}; check the camera topic given to ingest")
     total = (total_frames + cfg.batch_frames - 1) // cfg.batch_frames
-    return _frame_jobs(ingest, cfg.batch_frames), total, cfg.workers
+    stride = max(1, -(-total_frames // cfg.edge_frames)) if cfg.corner_shift_px == "auto" else 0
+    return _frame_jobs(ingest, cfg.batch_frames, stride), total, cfg.workers
 
 
 def _detect(
@@ -248,6 +298,7 @@ def _detect(
             found.rows += result.rows
             found.corrupt += result.corrupt
             found.dropped.update(result.dropped)
+            found.edge_shifts += result.edge_shifts
             _log_frames(ctx.rec, jobs_done, result, ctx.settings.rerun.image_stride)
     finally:
         if pool is not None:
