@@ -81,7 +81,7 @@ def test_edge_shift_reads_clipped_paper_and_only_that(gain: float, exposed: bool
     for img, _, found in frames:
         obs = list(found.values())
         shifts += list(edge_shifts(img, [o.corners for o in obs], [BORDER_CELLS[o.family] for o in obs]))
-    shift, n = run_shift(np.asarray(shifts))
+    shift, _, n = run_shift(np.asarray(shifts))
     assert n >= 15
     for _, tags, found in frames:
         for tag in tags:
@@ -126,3 +126,15 @@ def test_the_stage_measures_overexposed_tags_and_moves_their_corners(tmp_path: P
             assert summary["edges"] == {"setting": 0.0, "applied_px": 0.0}
     assert errors["off"] > 0.001  # the clipped tags look small: ranges read long by millimetres at ~1 m
     assert abs(errors["auto"]) < 0.5 * errors["off"]
+
+
+def test_the_run_shifts_standard_error_matches_the_spread_of_its_median() -> None:
+    """``auto`` applies a shift only 3 standard errors from none; the error ``run_shift`` gives is the spread of the
+    median over repeated runs of 200 tags (Monte Carlo, heavy-tailed tags: Student t with 4 dof)."""
+    rng = np.random.default_rng(3)
+    draws = [run_shift(0.04 + 0.05 * rng.standard_t(4, size=200)) for _ in range(400)]
+    medians = np.array([m for m, _, _ in draws])
+    se = np.median([s for _, s, _ in draws])
+    assert all(n == 200 for _, _, n in draws)
+    assert se == pytest.approx(np.std(medians), rel=0.2)
+    assert abs(np.mean(medians) - 0.04) < 3 * se / np.sqrt(len(draws)) + 1e-3
