@@ -464,8 +464,8 @@ def _import_hint(run: RunFolder) -> str:
     loops = loops if isinstance(loops, int) else 0
     if landmarks:
         return (
-            f"next: focusmap select-landmarks {run.path} --set select_landmarks.strategy=mutual-information "
-            "(no laser here: collision needs one), then select-measurements and optimize"
+            f"next: focusmap select-landmarks {run.path} (no laser here: its strategy auto runs mutual information, "
+            "or uniform on long trajectories), then select-measurements and optimize"
         )
     if loops:
         return (

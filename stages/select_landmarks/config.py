@@ -12,7 +12,7 @@ from stages.limits import MAX_RATE_SIGMA, MAX_ROBOT_RADIUS_M, MAX_SIGMA_M
 if TYPE_CHECKING:  # stages.risk imports the estimation maths; settings must load without it
     from stages.risk import RiskParams
 
-LandmarkStrategy = Literal["collision", "mutual-information", "leverage", "uniform", "random", "all"]
+LandmarkStrategy = Literal["auto", "collision", "mutual-information", "leverage", "uniform", "random", "all"]
 STRATEGIES: tuple[str, ...] = ("collision", "mutual-information", "leverage", "uniform", "random", "all")
 NEEDS_LASER: tuple[str, ...] = ("collision",)
 
@@ -21,9 +21,11 @@ class SelectLandmarksConfig(SettingsModel):
     """Stage one of focused inference: which landmarks to keep, and the collision-risk model."""
 
     strategy: LandmarkStrategy = Field(
-        "collision",
+        "auto",
         description="collision: Mu et al. Alg. 2 (needs laser scans); mutual-information: Beinhofer et al. greedy; "
-        "leverage: Mousavi & Motee sampling; uniform: spatially even; random: seeded; all: every landmark.",
+        "leverage: Mousavi & Motee sampling; uniform: spatially even; random: seeded; all: every landmark. auto: "
+        "collision when the run has laser scans, else mutual-information up to max_trajectory_dim, else uniform "
+        "(the summary's notes say which and why).",
     )
     budget: int = Field(30, ge=0, description="Number of landmarks to keep (alpha); 0 keeps none.")
     seed: int = Field(0, description="Seed of the random and leverage strategies.")

@@ -215,6 +215,20 @@ def _message(status: str, budget: int, n: int, picked: int, strategy: str) -> st
     return f"{picked} of {n} landmarks selected by {strategy}"
 
 
+def auto_strategy(inputs: LandmarkInputs, cfg: SelectLandmarksConfig) -> tuple[str, str]:
+    """The strategy ``auto`` runs, and why: collision with laser scans; without, mutual information while the
+    trajectory is within ``max_trajectory_dim`` (its dense information grows with the square), else uniform."""
+    if inputs.has_laser:
+        return "collision", "the run has laser scans"
+    dim = len(inputs.loaded.pose_keys) * inputs.loaded.graph_model.pose.dim
+    if dim <= cfg.max_trajectory_dim:
+        return "mutual-information", f"no laser scans for collision ({inputs.laser_note})"
+    return "uniform", (
+        f"no laser scans for collision ({inputs.laser_note}), and the trajectory's {dim} dimensions are above "
+        f"select_landmarks.max_trajectory_dim={cfg.max_trajectory_dim} for mutual-information"
+    )
+
+
 def choose(inputs: LandmarkInputs, cfg: SelectLandmarksConfig, with_risk: bool = True) -> LandmarkChoice:
     """Run one landmark-selection strategy on loaded inputs.
 
@@ -230,7 +244,7 @@ def choose(inputs: LandmarkInputs, cfg: SelectLandmarksConfig, with_risk: bool =
     t0 = time.perf_counter()
     lm = inputs.landmarks
     L = len(lm.tag_ids)
-    strategy = cfg.strategy
+    strategy = auto_strategy(inputs, cfg)[0] if cfg.strategy == "auto" else cfg.strategy
     if strategy in NEEDS_LASER and not inputs.has_laser:
         others = "mutual-information, leverage, uniform, random or all"
         raise StageError(

@@ -12,7 +12,7 @@ from pipeline.recording import colormap, ellipses_2d, ellipsoids, set_stamp, set
 from stages.risk import path_risk
 from stages.select_landmarks.artifacts import FOCUSED, RISK, FocusedLandmarks, risk_table
 from stages.select_landmarks.config import SelectLandmarksConfig
-from stages.select_landmarks.core import LandmarkChoice, LandmarkInputs, choose
+from stages.select_landmarks.core import LandmarkChoice, LandmarkInputs, auto_strategy, choose
 
 ENTITY = "/select_landmarks"
 SELECTED = [40, 200, 80]
@@ -56,6 +56,8 @@ def run(ctx: StageContext, cfg: SelectLandmarksConfig) -> dict[str, Any]:
         summary["min_clearance_m"] = _finite(float(np.min(inputs.geometry.clearance_m)))
     else:
         summary["note"] = f"no collision risk: {inputs.laser_note}; only the non-collision strategies can run"
+    if cfg.strategy == "auto" and choice.strategy != "collision":
+        summary["notes"] = [f"select_landmarks.strategy=auto ran {choice.strategy}: {auto_strategy(inputs, cfg)[1]}"]
     geo = inputs.geometry
     summary["risk_model"] = {
         "robot_radius_m": inputs.params.robot_radius_m,

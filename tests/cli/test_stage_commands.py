@@ -57,7 +57,7 @@ def test_selection_options_set_the_stage_settings(recorded: dict[str, Any], tmp_
     result = invoke("select-landmarks", str(tmp_path), "--budget", "3", "--set", "select_landmarks.seed=4", "-f")
     assert result.exit_code == 0, result.output
     cfg = recorded["settings"]["select_landmarks"]
-    assert (cfg.budget, cfg.seed, cfg.strategy, recorded["force"]) == (3, 4, "collision", True)
+    assert (cfg.budget, cfg.seed, cfg.strategy, recorded["force"]) == (3, 4, "auto", True)
 
 
 def test_an_option_is_checked_like_its_setting(recorded: dict[str, Any], tmp_path: Path) -> None:

@@ -238,3 +238,23 @@ def test_alg2_on_the_sample_equals_the_reference(inputs: LandmarkInputs) -> None
     print(f"local / marginal trace: median {np.median(tr_local / tr_marg):.3f}")
     assert np.all(tr_local <= tr_marg * (1 + 1e-6))  # conditioning never adds uncertainty
     assert np.median(tr_local / tr_marg) < 0.9
+
+
+def test_auto_runs_collision_with_laser_and_mutual_information_or_uniform_without(inputs: LandmarkInputs) -> None:
+    """The default strategy needs no second run on a camera-only recording: collision where the run has laser
+    scans, mutual information without, uniform when the trajectory is too long for mutual information; each the
+    same pick as the strategy set by hand."""
+    from stages.select_landmarks.core import auto_strategy
+
+    with_laser = choose(inputs, SelectLandmarksConfig(budget=3), with_risk=False)
+    by_hand = choose(inputs, SelectLandmarksConfig(strategy="collision", budget=3), with_risk=False)
+    assert with_laser.strategy == "collision" and with_laser.tag_ids == by_hand.tag_ids
+    no_laser = LandmarkInputs.from_pieces(inputs.loaded, None)
+    mi = choose(no_laser, SelectLandmarksConfig(budget=3), with_risk=False)
+    assert mi.strategy == "mutual-information"
+    assert mi.tag_ids == choose(no_laser, SelectLandmarksConfig(strategy="mutual-information", budget=3)).tag_ids
+    short = SelectLandmarksConfig(budget=3, max_trajectory_dim=10)
+    uniform = choose(no_laser, short, with_risk=False)
+    assert uniform.strategy == "uniform"
+    assert uniform.tag_ids == choose(no_laser, short.model_copy(update={"strategy": "uniform"})).tag_ids
+    assert "max_trajectory_dim=10" in auto_strategy(no_laser, short)[1]
