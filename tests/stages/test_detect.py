@@ -8,7 +8,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -24,27 +23,12 @@ from stages.detect.config import DetectConfig
 from stages.detect.core import detect_image
 from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import estimate_tag_pose
-from stages.ingest.artifacts import CameraModel
+from tests.fixtures.detect_runs import camera_model as _camera
+from tests.fixtures.detect_runs import fake_ingest as _fake_ingest
 from tests.fixtures.shared_data import need_shared
 from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag, render_frame
 
 BACKENDS = ("apriltag3", "opencv")
-
-
-def _camera(model: str = "plumb_bob", width: int = 640, height: int = 480) -> CameraModel:
-    D = {"none": [], "plumb_bob": [-0.12, 0.02, 0.0008, -0.0005, 0.0], "equidistant": [-0.02, 0.015, -0.009, 0.0017]}[
-        model
-    ]
-    f = 420.0 if model != "equidistant" else 300.0
-    return CameraModel(
-        width=width,
-        height=height,
-        K=[f, 0, 318.3, 0, f * 1.002, 241.7, 0, 0, 1],
-        distortion_model=model,
-        D=D,
-        frame_id="cam",
-        topic="/cam",
-    )
 
 
 # --------------------------------------------------------------------------- frames
@@ -256,32 +240,6 @@ def test_a_calibration_that_is_no_camera_names_the_file(tmp_path: Path) -> None:
 
 
 # --------------------------------------------------------------------------- the stage on a run folder
-
-
-def _fake_ingest(tmp_path: Path, jobs: list[tuple[str, bytes]], camera: CameraModel, w: int, h: int) -> RunFolder:
-    """A run whose ingest stage 'finished' with the given frames (format, bytes) and camera."""
-    run = RunFolder.create(tmp_path / "run", None)
-    folder = run.stage_dir("ingest")
-    folder.mkdir(parents=True, exist_ok=True)
-    n = len(jobs)
-    pq.write_table(
-        pa.table(
-            {
-                "frame": pa.array(range(n), pa.int64()),
-                "stamp_ns": pa.array([10**18 + i * 10**8 for i in range(n)], pa.int64()),
-                "topic": ["/cam/image"] * n,
-                "format": [f for f, _ in jobs],
-                "width": pa.array([w] * n, pa.int32()),
-                "height": pa.array([h] * n, pa.int32()),
-                "step": pa.array([0] * n, pa.int32()),
-                "data": pa.array([d for _, d in jobs], pa.binary()),
-            }
-        ),
-        folder / "frames.parquet",
-    )
-    (folder / "camera.json").write_text(camera.model_dump_json())
-    run.record("ingest", {"fingerprint": "test", "summary": {}})
-    return run
 
 
 def _rendered_run(tmp_path: Path) -> tuple[RunFolder, list[TagPlacement]]:

@@ -21,8 +21,9 @@ from stages.camera import colmap_camera
 from stages.detect.backends import make_detector
 from stages.detect.config import DetectConfig
 from stages.detect.edges import BORDER_CELLS, edge_shifts, run_shift, shift_corners
+from tests.fixtures.detect_runs import camera_model as _camera
+from tests.fixtures.detect_runs import fake_ingest as _fake_ingest
 from tests.fixtures.tag_render import TagPlacement, corners_of, look_at_tag, render_frame
-from tests.stages.test_detect import _camera, _fake_ingest
 
 
 def _exposed(img: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:
