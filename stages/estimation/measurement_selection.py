@@ -53,6 +53,7 @@ from stages.estimation.blas import single_threaded_blas
 from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import Factor, LinearSystem, SparseMatrix, unanchored_poses
 from stages.estimation.sparse_cov import (
+    CovarianceBlocks,
     SPDSolver,
     _variable_graph,
     covariance_blocks,
@@ -232,6 +233,36 @@ def _padded_candidates(sub: LinearSystem, cand: Sequence[int]) -> tuple[FloatArr
     return Ac, cols
 
 
+def _clique_pairs(sub: LinearSystem, cand: Sequence[int]) -> Iterator[tuple[int, int]]:
+    """Every (variable, variable) pair of every candidate's clique, in order."""
+    for c in cand:
+        vs = sub.factors[c].variables
+        for a in vs:
+            for b in vs:
+                yield a, b
+
+
+def _fill_cliques(
+    blocks: CovarianceBlocks | dict[tuple[int, int], FloatArray], sub: LinearSystem, cand: Sequence[int], d: int
+) -> FloatArray:
+    """``Σ[cols_c, cols_c]`` for every candidate (padded to ``d × d``) from the blocks of its variable pairs."""
+    out = np.zeros((len(cand), d, d))
+    for k, c in enumerate(cand):
+        vs = sub.factors[c].variables
+        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
+        for ia, a in enumerate(vs):
+            for ib, b in enumerate(vs):
+                out[k, off[ia] : off[ia + 1], off[ib] : off[ib + 1]] = blocks[(a, b)]
+    return out
+
+
+def _clique_blocks(info: sp.csc_matrix, sub: LinearSystem, cand: Sequence[int], solver: SPDSolver) -> CovarianceBlocks:
+    """The covariance blocks of ``info⁻¹`` at the candidates' cliques, read pair by pair (:class:`CovarianceBlocks`:
+    no small array per pair is kept)."""
+    variables = {v for c in cand for v in sub.factors[c].variables}
+    return CovarianceBlocks(info, sub.offsets, variables, _clique_pairs(sub, cand), solver=solver)
+
+
 def _clique_covariances(
     info: sp.csc_matrix,
     sub: LinearSystem,
@@ -241,22 +272,12 @@ def _clique_covariances(
     solver: SPDSolver | None = None,
 ) -> FloatArray:
     """``Σ[cols_c, cols_c]`` for every candidate (padded to ``d × d``)."""
-    pairs = []
-    for c in cand:
-        vs = sub.factors[c].variables
-        pairs += [(a, b) for a in vs for b in vs]
+    pairs = list(_clique_pairs(sub, cand))
     if separator:
         blocks = covariance_blocks_schur(info, sub.offsets, pairs, separator)
     else:
         blocks = covariance_blocks(info, sub.offsets, pairs, solver=solver)
-    out = np.zeros((len(cand), d, d))
-    for k, c in enumerate(cand):
-        vs = sub.factors[c].variables
-        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
-        for ia, a in enumerate(vs):
-            for ib, b in enumerate(vs):
-                out[k, off[ia] : off[ia + 1], off[ib] : off[ib + 1]] = blocks[(a, b)]
-    return out
+    return _fill_cliques(blocks, sub, cand, d)
 
 
 @dataclass(frozen=True)
@@ -858,23 +879,32 @@ def _store_gains(g: _Gains, k: IntArray, M: FloatArray, U: FloatArray, full_focu
         g.Ku[q, k] = 0.0 if full_focus else 0.5 * (K[:, a, b] + K[:, b, a])
 
 
+GAIN_CHUNK = 2048
+"""Candidates whose ``Σ`` at their columns, ``M_c`` and ``U_c`` :func:`_gain_blocks` holds at once (all of an hour's
+61,000 tag measurements at once, with a small array per variable pair, held a few hundred MB)."""
+
+
 def _gain_blocks(
     prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Upper triangles of ``M_c = A_c Σ A_cᵀ`` and ``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c`` (``U_c = W Σ A_cᵀ``, from the focused
-    columns ``XF``) for ``Σ = prob.info0⁻¹``, and ``P = Σ_F⁻¹``."""
+    columns ``XF``) for ``Σ = prob.info0⁻¹``, and ``P = Σ_F⁻¹``; :data:`GAIN_CHUNK` candidates at a time."""
     Ac, cols = c.Ac, c.cols
     N, m, d = Ac.shape
-    Sig_c = _clique_covariances(prob.info0, prob.system, c.index, d, None, solver=solver)
-    M0 = Ac @ Sig_c @ np.swapaxes(Ac, 1, 2)
+    blocks = _clique_blocks(prob.info0, prob.system, c.index, solver)
     P = _sym_inv(SF)
-    K0 = np.empty_like(M0)
-    for s in range(0, N, 2048):
-        U = np.einsum("ndf,nad->nfa", XF[cols[s : s + 2048]], Ac[s : s + 2048])  # (n_c, f, m)
-        K0[s : s + 2048] = M0[s : s + 2048] - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
     pairs = _sym_pairs(m)
-    Mu = np.ascontiguousarray(np.stack([M0[:, a, b] for a, b in pairs]))
-    Ku = np.ascontiguousarray(np.stack([K0[:, a, b] for a, b in pairs]))
+    Mu = np.empty((len(pairs), N))
+    Ku = np.empty((len(pairs), N))
+    for s in range(0, N, GAIN_CHUNK):
+        k = slice(s, s + GAIN_CHUNK)
+        Sig_c = _fill_cliques(blocks, prob.system, c.index[k], d)
+        M0 = Ac[k] @ Sig_c @ np.swapaxes(Ac[k], 1, 2)
+        U = np.einsum("ndf,nad->nfa", XF[cols[k]], Ac[k])  # (n_c, f, m)
+        K0 = M0 - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
+        for q, (a, b) in enumerate(pairs):
+            Mu[q, k] = M0[:, a, b]
+            Ku[q, k] = K0[:, a, b]
     if prob.full_focus:
         Ku[:] = 0.0  # K_c = A_c Σ_{·|F} A_cᵀ = 0: the candidates touch only focused columns
     return Mu, Ku, P
