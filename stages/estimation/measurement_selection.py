@@ -762,33 +762,73 @@ def _schur_clique_gains(
     C = np.linalg.inv(L_ss - np.asarray(L_rs.T @ X))
     del L_rs
     C = 0.5 * (C + C.T)
-    Y = X @ C  # −Σ_rs
+    XC = _RowProduct(X, C)  # −Σ_rs, by row blocks: only the rows a chunk reads are held
     fs = s_pos[fcols]
     XF = np.empty((n, len(fcols)))
     XF[s_cols] = C[:, fs]
-    XF[r_cols] = -Y[:, fs]
+    for i in range(len(XC.bounds) - 1):
+        XF[r_cols[XC.bounds[i] : XC.bounds[i + 1]]] = -XC.block(i)[:, fs]
     SF = C[np.ix_(fs, fs)]
-    # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks
+    # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks, read chunk by chunk
     r_var = np.full(len(sub.variables), -1, dtype=np.int64)
     r_var[rest] = np.arange(len(rest))
     r_off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in rest])]).astype(np.int64)
-    pairs: list[tuple[int, int]] = []
-    per_cand: list[list[tuple[int, int, int, int]]] = []
-    for i in which:
+
+    def own(i: int) -> list[tuple[int, int, int, int]]:
+        """The candidate's rest-rest variable pairs (positions among the rest) with their offsets in its clique."""
         vs = sub.factors[c.index[i]].variables
         off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
-        own = [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
-               enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
-        per_cand.append(own)
-        pairs += [(u, v) for u, v, _, _ in own]
-    blocks = covariance_blocks(L_rr, r_off, pairs, solver=solver_r) if pairs else {}
+        return [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
+                enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
+
+    variables = {int(r_var[v]) for i in which for v in sub.factors[c.index[i]].variables if r_var[v] >= 0}
+    pairs = ((u, v) for i in which for u, v, _, _ in own(int(i)))
+    blocks = CovarianceBlocks(L_rr, r_off, variables, pairs, solver=solver_r) if variables else None
 
     def chunks() -> Iterator[tuple[IntArray, FloatArray, FloatArray]]:
         for start in range(0, len(which), SCHUR_CHUNK):
             k = which[start : start + SCHUR_CHUNK]
-            yield k, *_schur_chunk(c, k, per_cand[start : start + SCHUR_CHUNK], blocks, s_pos, r_pos, C, X, Y, XF)
+            per_cand = [own(int(i)) for i in k]
+            yield k, *_schur_chunk(c, k, per_cand, blocks, s_pos, r_pos, C, X, XC, XF)
 
     return XF, SF, chunks()
+
+
+class _RowProduct:
+    """``X C`` (``X`` tall) read by rows: computed by row blocks of :data:`ROW_BLOCK` (the last one takes a short
+    remainder), the same numbers as the whole product, of which only the last two blocks read are kept."""
+
+    def __init__(self, X: FloatArray, C: FloatArray) -> None:
+        self.X, self.C = X, C
+        b = [*range(0, len(X), ROW_BLOCK), len(X)]
+        if len(b) > 2 and b[-1] - b[-2] < ROW_BLOCK // 2:
+            del b[-2]
+        self.bounds = np.asarray(b, dtype=np.int64)
+        self._kept: dict[int, FloatArray] = {}
+
+    def block(self, i: int) -> FloatArray:
+        """Rows ``bounds[i]`` to ``bounds[i + 1]`` of ``X C``."""
+        blk = self._kept.pop(i, None)
+        if blk is None:
+            blk = self.X[self.bounds[i] : self.bounds[i + 1]] @ self.C
+        self._kept[i] = blk
+        while len(self._kept) > 2:
+            del self._kept[next(iter(self._kept))]
+        return blk
+
+    def rows(self, idx: IntArray) -> FloatArray:
+        """Rows ``idx`` of ``X C``."""
+        out = np.empty((len(idx), self.C.shape[1]))
+        which = np.searchsorted(self.bounds, idx, side="right") - 1
+        for i in np.unique(which):
+            sel = which == i
+            out[sel] = self.block(int(i))[idx[sel] - self.bounds[i]]
+        return out
+
+
+ROW_BLOCK = 2048
+"""Rows of ``X C`` computed at once by :class:`_RowProduct`. Rows of a product of a few rows can differ in the last
+bit from the same rows of the whole product (other BLAS kernels); blocks of this many rows give the same numbers."""
 
 
 SCHUR_CHUNK = 2048
@@ -800,12 +840,12 @@ def _schur_chunk(
     c: _Candidates,
     k: IntArray,
     per_cand: list[list[tuple[int, int, int, int]]],
-    blocks: dict[tuple[int, int], FloatArray],
+    blocks: CovarianceBlocks | None,
     s_pos: IntArray,
     r_pos: IntArray,
     C: FloatArray,
     X: FloatArray,
-    Y: FloatArray,
+    XC: _RowProduct,
     XF: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """``M_c`` and ``U_c`` of the candidates ``k`` from the Schur pieces of :func:`_schur_clique_gains`: ``Σ`` at
@@ -814,20 +854,24 @@ def _schur_chunk(
     nk, d = cols.shape
     valid = np.arange(d)[None, :] < width[:, None]
     sp_, rp = np.where(valid, s_pos[cols], -1), np.where(valid, r_pos[cols], -1)
+    need = np.unique(rp[rp >= 0])
+    Y = XC.rows(need)  # the rows of X C this chunk reads
+    yp = np.searchsorted(need, rp)
     Sig = np.zeros((nk, d, d))
     ss = (sp_[:, :, None] >= 0) & (sp_[:, None, :] >= 0)
     a, b = np.broadcast_arrays(sp_[:, :, None], sp_[:, None, :])
     Sig[ss] = C[a[ss], b[ss]]
     rs = (rp[:, :, None] >= 0) & (sp_[:, None, :] >= 0)
-    a, b = np.broadcast_arrays(rp[:, :, None], sp_[:, None, :])
+    a, b = np.broadcast_arrays(yp[:, :, None], sp_[:, None, :])
     Sig[rs] = -Y[a[rs], b[rs]]
     sr = np.swapaxes(rs, 1, 2)
     Sig[sr] = np.swapaxes(Sig, 1, 2)[sr]
     rr = (rp[:, :, None] >= 0) & (rp[:, None, :] >= 0)
-    a, b = np.broadcast_arrays(rp[:, :, None], rp[:, None, :])
+    a, b = np.broadcast_arrays(rp[:, :, None], yp[:, None, :])
     Sig[rr] = np.einsum("qk,qk->q", X[a[rr]], Y[b[rr]])
     for q, own in enumerate(per_cand):
         for u, v, ou, ov in own:
+            assert blocks is not None
             blk = blocks[(u, v)]
             Sig[q, ou : ou + blk.shape[0], ov : ov + blk.shape[1]] += blk
     M = Ac @ Sig @ np.swapaxes(Ac, 1, 2)

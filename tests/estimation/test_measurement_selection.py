@@ -24,6 +24,7 @@ from stages.estimation.measurement_selection import (
     _compact_problem,
     _focused_cov,
     _gain_blocks,
+    _RowProduct,
     _schur_clique_gains,
     default_base,
     focused_entropy,
@@ -475,6 +476,7 @@ def test_recomputation_through_the_chain_separator_equals_the_inverse(
     c = _candidates(system, meas, fcols)
     monkeypatch.setattr(measurement_selection, "SCHUR_CHUNK", 7)  # the candidates in chunks of 7
     monkeypatch.setattr(measurement_selection, "SCHUR_SOLVE_COLUMNS", 3)  # the separator's solves 3 columns at a time
+    monkeypatch.setattr(measurement_selection, "ROW_BLOCK", 16)  # X C by row blocks of 16 (the last one longer)
     which = np.arange(len(meas))
     XF, SF, chunks = _schur_clique_gains(info, system, sep, fcols, c, which)
     parts = list(chunks)
@@ -514,3 +516,17 @@ def test_initial_gains_in_chunks_equal_one_piece(loop: bool, monkeypatch: pytest
         A, cols = prob.system.factors[f].jacobian, prob.system.factor_columns(f)
         M = A @ dense[np.ix_(cols, cols)] @ A.T
         np.testing.assert_allclose([M[i, j] for i, j in pairs], whole[0][:, k], rtol=1e-8, atol=1e-10)
+
+
+def test_row_product_reads_the_rows_of_the_whole_product(monkeypatch: pytest.MonkeyPatch) -> None:
+    """_RowProduct gives rows of ``X C`` block by block, the last block taking a short remainder."""
+    rng = np.random.default_rng(3)
+    X, C = rng.standard_normal((4100, 40)), rng.standard_normal((40, 40))
+    xc = _RowProduct(X, C)
+    assert xc.bounds.tolist() == [0, 2048, 4100]
+    idx = rng.choice(4100, 300)
+    np.testing.assert_allclose(xc.rows(idx), (X @ C)[idx], rtol=1e-13, atol=1e-13)
+    monkeypatch.setattr(measurement_selection, "ROW_BLOCK", 64)
+    xc = _RowProduct(X, C)
+    assert len(xc.bounds) == 4100 // 64 + 1 and xc.bounds[-1] - xc.bounds[-2] == 64 + 4
+    np.testing.assert_allclose(xc.rows(idx), (X @ C)[idx], rtol=1e-13, atol=1e-13)
