@@ -1123,7 +1123,7 @@ def _greedy(
     prob: _Problem,
     c: _Candidates,
     g: _Gains,
-    XF: FloatArray,
+    held: list[FloatArray],
     budget: int,
     refactor_every: int | None,
     options: TrackerOptions,
@@ -1131,14 +1131,16 @@ def _greedy(
 ) -> tuple[list[int], list[float], dict[str, float]]:
     """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain.
 
-    ``XF`` is ``Σ`` at the focused columns (``n × f``); the window tracker with a small focus keeps ``W Σ`` at the
-    tracked rows (``f × rows``) current, ``W Σ −= w T⁻¹ Vᵀ`` (4·f·m·rows flops per step), instead of a second solve
-    per step; the capacitance tracker gets ``Σ Wᵀ p`` from its second solve and keeps nothing (on an hour's graph
-    the copy is tens of MB, held through the greedy)."""
+    ``held`` holds ``XF``, ``Σ`` at the focused columns (``n × f``), taken out of it so that the caller keeps no
+    reference and it is freed once read (an hour's graph: 80 MB, and a recomputation makes a second one). The window
+    tracker with a small focus keeps ``W Σ`` at the tracked rows (``f × rows``) current, ``W Σ −= w T⁻¹ Vᵀ``
+    (4·f·m·rows flops per step), instead of a second solve per step; the capacitance tracker gets ``Σ Wᵀ p`` from its
+    second solve and keeps nothing (on an hour's graph the copy is tens of MB, held through the greedy)."""
     fcols = prob.system.columns(prob.focused)
     t_red = time.perf_counter()
     capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
     stats = {"reduce_s": time.perf_counter() - t_red}
+    XF = held.pop()
     Yt = np.ascontiguousarray(XF[c.rows].T) if not capacitance and len(fcols) <= options.track_focused_max else None
     del XF
 
@@ -1306,7 +1308,10 @@ def select_information(
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
     accuracy = _solve_accuracy(prob.info0, solver)
     del solver
-    js, gains, loop_stats = _greedy(prob, c, g, XF, budget, refactor_every, options, accuracy)
+    held = [XF]
+    del XF, SF
+    js, gains, loop_stats = _greedy(prob, c, g, held, budget, refactor_every, options, accuracy)
+    del prob, c, g  # before the last factorisation
     stats |= loop_stats
     picks = [cand[j] for j in js]
     # the running entropy is h0 - Σ gains; the exact one takes one more factorisation. They differ when rounding in the
