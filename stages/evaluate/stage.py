@@ -10,7 +10,7 @@ import numpy as np
 import rerun as rr
 
 from pipeline.context import StageContext
-from pipeline.memory import release_freed_memory
+from pipeline.memory import map_large_blocks, release_freed_memory
 from pipeline.recording import colormap, ellipsoids
 from pipeline.workers import WorkerPool
 from stages.estimation.blas import blas_single
@@ -73,6 +73,7 @@ PER_CASE = (
 def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
     t0 = time.perf_counter()
+    map_large_blocks()
     # α, K, the strategies and the risk model are what the selection stages used, read from their artifacts
     focused = FOCUSED.read(ctx.input("select_landmarks"))
     selection = SELECTION.read(ctx.input("select_measurements"))
