@@ -718,6 +718,8 @@ def run_all(
         if inputs.cfg.trials > 0:
             inputs.navigation = navigation_setup(inputs, optimal)
             navigate_case(first)
+        if inputs.cfg.realisations <= 0:
+            inputs.scans = None  # read only by the laser grid above and the realisations: not held through the cases
         results.append(first)
         rest = todo[1:] if progress is None else progress(todo[1:], "cases")
         for case in rest:
