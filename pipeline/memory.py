@@ -29,6 +29,33 @@ def _malloc_trim() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
         return None
 
 
+@functools.cache
+def _mallopt() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
+    """glibc's ``mallopt`` (None elsewhere)."""
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return None
+    try:
+        return ctypes.CDLL(name).mallopt
+    except (OSError, AttributeError):
+        return None
+
+
+M_MMAP_THRESHOLD = -3
+LARGE_BLOCK_BYTES = 1 << 20
+
+
+def map_large_blocks(threshold: int = LARGE_BLOCK_BYTES) -> None:
+    """Have glibc give every allocation of ``threshold`` bytes or more its own mapping, unmapped when it is freed.
+
+    By default glibc raises that threshold to the size of the largest block freed so far (up to 32 MB), so that the
+    numpy arrays of a long stage land on the heap, where what they leave free stays resident until
+    :func:`release_freed_memory`. Changes no result."""
+    fn = _mallopt()
+    if fn is not None:
+        fn(M_MMAP_THRESHOLD, threshold)
+
+
 def release_freed_memory() -> None:
     """Collect garbage, then return the freed memory of glibc's heap and pyarrow's pool to the system."""
     gc.collect()

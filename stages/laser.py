@@ -100,7 +100,14 @@ def scan_beams(
     parts = [_chunk_beams(sub.slice(a, b - a), a, traj, P, mount, deskew) for a, b in pairwise(cuts)]
     if not parts:
         return Beams(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=bool))
-    return Beams(*(np.concatenate([getattr(b, f) for b in parts]) for f in ("scan", "origins", "ends", "hit")))
+    # joined field by field, each field's pieces freed once joined: the pieces and the whole are not held together
+    pieces = [list(field) for field in zip(*((b.scan, b.origins, b.ends, b.hit) for b in parts), strict=True)]
+    del parts
+    joined = []
+    for field in pieces:
+        joined.append(np.concatenate(field))
+        field.clear()
+    return Beams(*joined)
 
 
 CHUNK_BEAMS = 1 << 16

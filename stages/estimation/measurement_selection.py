@@ -53,6 +53,7 @@ from stages.estimation.blas import single_threaded_blas
 from stages.estimation.gaussian import entropy_from_logdet
 from stages.estimation.linear_system import Factor, LinearSystem, SparseMatrix, unanchored_poses
 from stages.estimation.sparse_cov import (
+    CovarianceBlocks,
     SPDSolver,
     _variable_graph,
     covariance_blocks,
@@ -232,6 +233,36 @@ def _padded_candidates(sub: LinearSystem, cand: Sequence[int]) -> tuple[FloatArr
     return Ac, cols
 
 
+def _clique_pairs(sub: LinearSystem, cand: Sequence[int]) -> Iterator[tuple[int, int]]:
+    """Every (variable, variable) pair of every candidate's clique, in order."""
+    for c in cand:
+        vs = sub.factors[c].variables
+        for a in vs:
+            for b in vs:
+                yield a, b
+
+
+def _fill_cliques(
+    blocks: CovarianceBlocks | dict[tuple[int, int], FloatArray], sub: LinearSystem, cand: Sequence[int], d: int
+) -> FloatArray:
+    """``Σ[cols_c, cols_c]`` for every candidate (padded to ``d × d``) from the blocks of its variable pairs."""
+    out = np.zeros((len(cand), d, d))
+    for k, c in enumerate(cand):
+        vs = sub.factors[c].variables
+        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
+        for ia, a in enumerate(vs):
+            for ib, b in enumerate(vs):
+                out[k, off[ia] : off[ia + 1], off[ib] : off[ib + 1]] = blocks[(a, b)]
+    return out
+
+
+def _clique_blocks(info: sp.csc_matrix, sub: LinearSystem, cand: Sequence[int], solver: SPDSolver) -> CovarianceBlocks:
+    """The covariance blocks of ``info⁻¹`` at the candidates' cliques, read pair by pair (:class:`CovarianceBlocks`:
+    no small array per pair is kept)."""
+    variables = {v for c in cand for v in sub.factors[c].variables}
+    return CovarianceBlocks(info, sub.offsets, variables, _clique_pairs(sub, cand), solver=solver)
+
+
 def _clique_covariances(
     info: sp.csc_matrix,
     sub: LinearSystem,
@@ -241,22 +272,12 @@ def _clique_covariances(
     solver: SPDSolver | None = None,
 ) -> FloatArray:
     """``Σ[cols_c, cols_c]`` for every candidate (padded to ``d × d``)."""
-    pairs = []
-    for c in cand:
-        vs = sub.factors[c].variables
-        pairs += [(a, b) for a in vs for b in vs]
+    pairs = list(_clique_pairs(sub, cand))
     if separator:
         blocks = covariance_blocks_schur(info, sub.offsets, pairs, separator)
     else:
         blocks = covariance_blocks(info, sub.offsets, pairs, solver=solver)
-    out = np.zeros((len(cand), d, d))
-    for k, c in enumerate(cand):
-        vs = sub.factors[c].variables
-        off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
-        for ia, a in enumerate(vs):
-            for ib, b in enumerate(vs):
-                out[k, off[ia] : off[ia + 1], off[ib] : off[ib + 1]] = blocks[(a, b)]
-    return out
+    return _fill_cliques(blocks, sub, cand, d)
 
 
 @dataclass(frozen=True)
@@ -741,33 +762,73 @@ def _schur_clique_gains(
     C = np.linalg.inv(L_ss - np.asarray(L_rs.T @ X))
     del L_rs
     C = 0.5 * (C + C.T)
-    Y = X @ C  # −Σ_rs
+    XC = _RowProduct(X, C)  # −Σ_rs, by row blocks: only the rows a chunk reads are held
     fs = s_pos[fcols]
     XF = np.empty((n, len(fcols)))
     XF[s_cols] = C[:, fs]
-    XF[r_cols] = -Y[:, fs]
+    for i in range(len(XC.bounds) - 1):
+        XF[r_cols[XC.bounds[i] : XC.bounds[i + 1]]] = -XC.block(i)[:, fs]
     SF = C[np.ix_(fs, fs)]
-    # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks
+    # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks, read chunk by chunk
     r_var = np.full(len(sub.variables), -1, dtype=np.int64)
     r_var[rest] = np.arange(len(rest))
     r_off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in rest])]).astype(np.int64)
-    pairs: list[tuple[int, int]] = []
-    per_cand: list[list[tuple[int, int, int, int]]] = []
-    for i in which:
+
+    def own(i: int) -> list[tuple[int, int, int, int]]:
+        """The candidate's rest-rest variable pairs (positions among the rest) with their offsets in its clique."""
         vs = sub.factors[c.index[i]].variables
         off = np.concatenate([[0], np.cumsum([sub.variables[v].dim for v in vs])])
-        own = [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
-               enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
-        per_cand.append(own)
-        pairs += [(u, v) for u, v, _, _ in own]
-    blocks = covariance_blocks(L_rr, r_off, pairs, solver=solver_r) if pairs else {}
+        return [(int(r_var[u]), int(r_var[v]), int(off[x]), int(off[y])) for x, u in enumerate(vs) for y, v in
+                enumerate(vs) if r_var[u] >= 0 and r_var[v] >= 0]  # fmt: skip
+
+    variables = {int(r_var[v]) for i in which for v in sub.factors[c.index[i]].variables if r_var[v] >= 0}
+    pairs = ((u, v) for i in which for u, v, _, _ in own(int(i)))
+    blocks = CovarianceBlocks(L_rr, r_off, variables, pairs, solver=solver_r) if variables else None
 
     def chunks() -> Iterator[tuple[IntArray, FloatArray, FloatArray]]:
         for start in range(0, len(which), SCHUR_CHUNK):
             k = which[start : start + SCHUR_CHUNK]
-            yield k, *_schur_chunk(c, k, per_cand[start : start + SCHUR_CHUNK], blocks, s_pos, r_pos, C, X, Y, XF)
+            per_cand = [own(int(i)) for i in k]
+            yield k, *_schur_chunk(c, k, per_cand, blocks, s_pos, r_pos, C, X, XC, XF)
 
     return XF, SF, chunks()
+
+
+class _RowProduct:
+    """``X C`` (``X`` tall) read by rows: computed by row blocks of :data:`ROW_BLOCK` (the last one takes a short
+    remainder), the same numbers as the whole product, of which only the last two blocks read are kept."""
+
+    def __init__(self, X: FloatArray, C: FloatArray) -> None:
+        self.X, self.C = X, C
+        b = [*range(0, len(X), ROW_BLOCK), len(X)]
+        if len(b) > 2 and b[-1] - b[-2] < ROW_BLOCK // 2:
+            del b[-2]
+        self.bounds = np.asarray(b, dtype=np.int64)
+        self._kept: dict[int, FloatArray] = {}
+
+    def block(self, i: int) -> FloatArray:
+        """Rows ``bounds[i]`` to ``bounds[i + 1]`` of ``X C``."""
+        blk = self._kept.pop(i, None)
+        if blk is None:
+            blk = self.X[self.bounds[i] : self.bounds[i + 1]] @ self.C
+        self._kept[i] = blk
+        while len(self._kept) > 2:
+            del self._kept[next(iter(self._kept))]
+        return blk
+
+    def rows(self, idx: IntArray) -> FloatArray:
+        """Rows ``idx`` of ``X C``."""
+        out = np.empty((len(idx), self.C.shape[1]))
+        which = np.searchsorted(self.bounds, idx, side="right") - 1
+        for i in np.unique(which):
+            sel = which == i
+            out[sel] = self.block(int(i))[idx[sel] - self.bounds[i]]
+        return out
+
+
+ROW_BLOCK = 2048
+"""Rows of ``X C`` computed at once by :class:`_RowProduct`. Rows of a product of a few rows can differ in the last
+bit from the same rows of the whole product (other BLAS kernels); blocks of this many rows give the same numbers."""
 
 
 SCHUR_CHUNK = 2048
@@ -779,12 +840,12 @@ def _schur_chunk(
     c: _Candidates,
     k: IntArray,
     per_cand: list[list[tuple[int, int, int, int]]],
-    blocks: dict[tuple[int, int], FloatArray],
+    blocks: CovarianceBlocks | None,
     s_pos: IntArray,
     r_pos: IntArray,
     C: FloatArray,
     X: FloatArray,
-    Y: FloatArray,
+    XC: _RowProduct,
     XF: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """``M_c`` and ``U_c`` of the candidates ``k`` from the Schur pieces of :func:`_schur_clique_gains`: ``Σ`` at
@@ -793,20 +854,24 @@ def _schur_chunk(
     nk, d = cols.shape
     valid = np.arange(d)[None, :] < width[:, None]
     sp_, rp = np.where(valid, s_pos[cols], -1), np.where(valid, r_pos[cols], -1)
+    need = np.unique(rp[rp >= 0])
+    Y = XC.rows(need)  # the rows of X C this chunk reads
+    yp = np.searchsorted(need, rp)
     Sig = np.zeros((nk, d, d))
     ss = (sp_[:, :, None] >= 0) & (sp_[:, None, :] >= 0)
     a, b = np.broadcast_arrays(sp_[:, :, None], sp_[:, None, :])
     Sig[ss] = C[a[ss], b[ss]]
     rs = (rp[:, :, None] >= 0) & (sp_[:, None, :] >= 0)
-    a, b = np.broadcast_arrays(rp[:, :, None], sp_[:, None, :])
+    a, b = np.broadcast_arrays(yp[:, :, None], sp_[:, None, :])
     Sig[rs] = -Y[a[rs], b[rs]]
     sr = np.swapaxes(rs, 1, 2)
     Sig[sr] = np.swapaxes(Sig, 1, 2)[sr]
     rr = (rp[:, :, None] >= 0) & (rp[:, None, :] >= 0)
-    a, b = np.broadcast_arrays(rp[:, :, None], rp[:, None, :])
+    a, b = np.broadcast_arrays(rp[:, :, None], yp[:, None, :])
     Sig[rr] = np.einsum("qk,qk->q", X[a[rr]], Y[b[rr]])
     for q, own in enumerate(per_cand):
         for u, v, ou, ov in own:
+            assert blocks is not None
             blk = blocks[(u, v)]
             Sig[q, ou : ou + blk.shape[0], ov : ov + blk.shape[1]] += blk
     M = Ac @ Sig @ np.swapaxes(Ac, 1, 2)
@@ -858,23 +923,32 @@ def _store_gains(g: _Gains, k: IntArray, M: FloatArray, U: FloatArray, full_focu
         g.Ku[q, k] = 0.0 if full_focus else 0.5 * (K[:, a, b] + K[:, b, a])
 
 
+GAIN_CHUNK = 2048
+"""Candidates whose ``Σ`` at their columns, ``M_c`` and ``U_c`` :func:`_gain_blocks` holds at once (all of an hour's
+61,000 tag measurements at once, with a small array per variable pair, held a few hundred MB)."""
+
+
 def _gain_blocks(
     prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Upper triangles of ``M_c = A_c Σ A_cᵀ`` and ``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c`` (``U_c = W Σ A_cᵀ``, from the focused
-    columns ``XF``) for ``Σ = prob.info0⁻¹``, and ``P = Σ_F⁻¹``."""
+    columns ``XF``) for ``Σ = prob.info0⁻¹``, and ``P = Σ_F⁻¹``; :data:`GAIN_CHUNK` candidates at a time."""
     Ac, cols = c.Ac, c.cols
     N, m, d = Ac.shape
-    Sig_c = _clique_covariances(prob.info0, prob.system, c.index, d, None, solver=solver)
-    M0 = Ac @ Sig_c @ np.swapaxes(Ac, 1, 2)
+    blocks = _clique_blocks(prob.info0, prob.system, c.index, solver)
     P = _sym_inv(SF)
-    K0 = np.empty_like(M0)
-    for s in range(0, N, 2048):
-        U = np.einsum("ndf,nad->nfa", XF[cols[s : s + 2048]], Ac[s : s + 2048])  # (n_c, f, m)
-        K0[s : s + 2048] = M0[s : s + 2048] - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
     pairs = _sym_pairs(m)
-    Mu = np.ascontiguousarray(np.stack([M0[:, a, b] for a, b in pairs]))
-    Ku = np.ascontiguousarray(np.stack([K0[:, a, b] for a, b in pairs]))
+    Mu = np.empty((len(pairs), N))
+    Ku = np.empty((len(pairs), N))
+    for s in range(0, N, GAIN_CHUNK):
+        k = slice(s, s + GAIN_CHUNK)
+        Sig_c = _fill_cliques(blocks, prob.system, c.index[k], d)
+        M0 = Ac[k] @ Sig_c @ np.swapaxes(Ac[k], 1, 2)
+        U = np.einsum("ndf,nad->nfa", XF[cols[k]], Ac[k])  # (n_c, f, m)
+        K0 = M0 - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
+        for q, (a, b) in enumerate(pairs):
+            Mu[q, k] = M0[:, a, b]
+            Ku[q, k] = K0[:, a, b]
     if prob.full_focus:
         Ku[:] = 0.0  # K_c = A_c Σ_{·|F} A_cᵀ = 0: the candidates touch only focused columns
     return Mu, Ku, P
@@ -1049,7 +1123,7 @@ def _greedy(
     prob: _Problem,
     c: _Candidates,
     g: _Gains,
-    XF: FloatArray,
+    held: list[FloatArray],
     budget: int,
     refactor_every: int | None,
     options: TrackerOptions,
@@ -1057,14 +1131,16 @@ def _greedy(
 ) -> tuple[list[int], list[float], dict[str, float]]:
     """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain.
 
-    ``XF`` is ``Σ`` at the focused columns (``n × f``); the window tracker with a small focus keeps ``W Σ`` at the
-    tracked rows (``f × rows``) current, ``W Σ −= w T⁻¹ Vᵀ`` (4·f·m·rows flops per step), instead of a second solve
-    per step; the capacitance tracker gets ``Σ Wᵀ p`` from its second solve and keeps nothing (on an hour's graph
-    the copy is tens of MB, held through the greedy)."""
+    ``held`` holds ``XF``, ``Σ`` at the focused columns (``n × f``), taken out of it so that the caller keeps no
+    reference and it is freed once read (an hour's graph: 80 MB, and a recomputation makes a second one). The window
+    tracker with a small focus keeps ``W Σ`` at the tracked rows (``f × rows``) current, ``W Σ −= w T⁻¹ Vᵀ``
+    (4·f·m·rows flops per step), instead of a second solve per step; the capacitance tracker gets ``Σ Wᵀ p`` from its
+    second solve and keeps nothing (on an hour's graph the copy is tens of MB, held through the greedy)."""
     fcols = prob.system.columns(prob.focused)
     t_red = time.perf_counter()
     capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
     stats = {"reduce_s": time.perf_counter() - t_red}
+    XF = held.pop()
     Yt = np.ascontiguousarray(XF[c.rows].T) if not capacitance and len(fcols) <= options.track_focused_max else None
     del XF
 
@@ -1232,7 +1308,10 @@ def select_information(
     stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
     accuracy = _solve_accuracy(prob.info0, solver)
     del solver
-    js, gains, loop_stats = _greedy(prob, c, g, XF, budget, refactor_every, options, accuracy)
+    held = [XF]
+    del XF, SF
+    js, gains, loop_stats = _greedy(prob, c, g, held, budget, refactor_every, options, accuracy)
+    del prob, c, g  # before the last factorisation
     stats |= loop_stats
     picks = [cand[j] for j in js]
     # the running entropy is h0 - Σ gains; the exact one takes one more factorisation. They differ when rounding in the

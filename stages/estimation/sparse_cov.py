@@ -15,7 +15,6 @@ wheels. Covariance *blocks* are computed without forming the inverse:
 
 from __future__ import annotations
 
-from collections import defaultdict
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -197,6 +196,100 @@ def _tridiagonal_blocks(
     return diag, off
 
 
+class CovarianceBlocks:
+    """Blocks ``Σ[i, j]`` (``Σ = info⁻¹``) for variable pairs, without the full inverse, answered one pair at a time.
+
+    The work is done once at construction for every pair that may be asked: the block-tridiagonal recursion of each
+    path component that ``variables`` touch, and the sparse solves for the requested ``pairs`` not given by the
+    recursions. Asking for a pair then only reads (pairs in different components are zero blocks), so a caller can
+    gather the blocks of many pairs in bounded pieces instead of holding one small array per pair.
+
+    Args:
+        info: sparse SPD information matrix.
+        offsets: column offsets of the variable blocks (``len = n_variables + 1``).
+        variables: every variable the pairs name.
+        pairs: the requested pairs ``(i, j)``, in order (may be a generator: it is walked once,
+            and only the pairs that need solves are kept).
+        solver: a factorisation of ``info`` to reuse for blocks not given by the recursions.
+    """
+
+    def __init__(
+        self,
+        info: SparseMatrix,
+        offsets: IntArray,
+        variables: Iterable[int],
+        pairs: Iterable[tuple[int, int]],
+        solver: SPDSolver | None = None,
+    ) -> None:
+        info = sp.csc_matrix(info)
+        graph = _variable_graph(info, offsets)
+        _, label = csgraph.connected_components(graph, directed=False)
+        self.label = label
+        self.dims = np.diff(offsets)
+        needed_comp = np.unique(label[np.asarray(list(variables), dtype=np.int64)]).tolist()
+        order_all = np.argsort(label, kind="stable")
+        bounds = np.searchsorted(label[order_all], np.arange(int(label.max(initial=-1)) + 2))
+        self._tri: dict[int, tuple[dict[int, int], list[FloatArray], list[FloatArray]]] = {}
+        for c in needed_comp:
+            members = order_all[bounds[c] : bounds[c + 1]].astype(np.int64)
+            if len(members) == 1:
+                v = int(members[0])
+                blk = info[offsets[v] : offsets[v + 1], :][:, offsets[v] : offsets[v + 1]].toarray()
+                self._tri[c] = ({v: 0}, [np.linalg.inv(blk)], [])
+                continue
+            order = _path_order(graph, members)
+            if order is not None:
+                diag, off = _tridiagonal_blocks(info, offsets, order)
+                self._tri[c] = ({v: k for k, v in enumerate(order)}, diag, off)
+        self._solved: dict[tuple[int, int], FloatArray] = {}
+        pending = list(dict.fromkeys((int(i), int(j)) for i, j in pairs if not self._recursive(int(i), int(j))))
+        if pending:
+            if solver is None:
+                solver = SPDSolver(info)
+            dims = self.dims
+            cols_needed = sorted({j for _, j in pending})
+            for chunk in _column_chunks(cols_needed, dims, int(info.shape[0])):
+                rhs_cols = np.concatenate([np.arange(offsets[j], offsets[j + 1]) for j in chunk])
+                E = np.zeros((info.shape[0], len(rhs_cols)))
+                E[rhs_cols, np.arange(len(rhs_cols))] = 1.0
+                X = solver.solve(E)
+                local = {}
+                p = 0
+                for j in chunk:
+                    local[j] = X[:, p : p + dims[j]]
+                    p += dims[j]
+                for i, j in pending:
+                    if j in local:
+                        self._solved[(i, j)] = local[j][offsets[i] : offsets[i + 1], :].copy()  # frees the chunk
+
+    def _recursive(self, i: int, j: int) -> bool:
+        """The block comes from the recursions (or is zero across components): no solve."""
+        if self.label[i] != self.label[j]:
+            return True
+        tri = self._tri.get(int(self.label[i]))
+        return tri is not None and abs(tri[0][i] - tri[0][j]) <= 1
+
+    def _read(self, i: int, j: int) -> FloatArray | None:
+        """The block from the recursions (or zero across components), else None (solved for)."""
+        label = self.label
+        if label[i] != label[j]:
+            return np.zeros((self.dims[i], self.dims[j]))
+        tri = self._tri.get(int(label[i]))
+        if tri is not None:
+            pos, diag, off = tri
+            a, b = pos[i], pos[j]
+            if a == b:
+                return diag[a]
+            if abs(a - b) == 1:
+                return off[a] if b == a + 1 else off[b].T
+        return None
+
+    def __getitem__(self, pair: tuple[int, int]) -> FloatArray:
+        i, j = int(pair[0]), int(pair[1])
+        blk = self._read(i, j)
+        return self._solved[(i, j)] if blk is None else blk
+
+
 def covariance_blocks(
     info: SparseMatrix,
     offsets: IntArray,
@@ -212,64 +305,12 @@ def covariance_blocks(
         solver: a factorisation of ``info`` to reuse for blocks not given by the recursions.
 
     Returns:
-        ``{(i, j): Σ_ij}`` for every requested pair.
+        ``{(i, j): Σ_ij}`` for every requested pair (see :class:`CovarianceBlocks`).
     """
-    info = sp.csc_matrix(info)
     pairs = list(dict.fromkeys((int(i), int(j)) for i, j in pairs))
-    graph = _variable_graph(info, offsets)
-    _, label = csgraph.connected_components(graph, directed=False)
-    members_of: dict[int, list[int]] = defaultdict(list)
-    for v, comp in enumerate(label):
-        members_of[int(comp)].append(v)
-    dims = np.diff(offsets)
-    out: dict[tuple[int, int], FloatArray] = {}
-    pending: list[tuple[int, int]] = []
-    needed_comp = {int(label[i]) for i, _ in pairs} | {int(label[j]) for _, j in pairs}
-    tri: dict[int, tuple[dict[int, int], list[FloatArray], list[FloatArray]]] = {}
-    for c in needed_comp:
-        members = np.array(members_of[c], dtype=np.int64)
-        if len(members) == 1:
-            v = int(members[0])
-            blk = info[offsets[v] : offsets[v + 1], :][:, offsets[v] : offsets[v + 1]].toarray()
-            tri[c] = ({v: 0}, [np.linalg.inv(blk)], [])
-            continue
-        order = _path_order(graph, members)
-        if order is not None:
-            diag, off = _tridiagonal_blocks(info, offsets, order)
-            tri[c] = ({v: k for k, v in enumerate(order)}, diag, off)
-    for i, j in pairs:
-        if label[i] != label[j]:
-            out[(i, j)] = np.zeros((dims[i], dims[j]))
-            continue
-        c = int(label[i])
-        if c in tri:
-            pos, diag, off = tri[c]
-            a, b = pos[i], pos[j]
-            if a == b:
-                out[(i, j)] = diag[a]
-                continue
-            if abs(a - b) == 1:
-                out[(i, j)] = off[a] if b == a + 1 else off[b].T
-                continue
-        pending.append((i, j))
-    if pending:
-        if solver is None:
-            solver = SPDSolver(info)
-        cols_needed = sorted({j for _, j in pending})
-        for chunk in _column_chunks(cols_needed, dims, int(info.shape[0])):
-            rhs_cols = np.concatenate([np.arange(offsets[j], offsets[j + 1]) for j in chunk])
-            E = np.zeros((info.shape[0], len(rhs_cols)))
-            E[rhs_cols, np.arange(len(rhs_cols))] = 1.0
-            X = solver.solve(E)
-            local = {}
-            p = 0
-            for j in chunk:
-                local[j] = X[:, p : p + dims[j]]
-                p += dims[j]
-            for i, j in pending:
-                if j in local:
-                    out[(i, j)] = local[j][offsets[i] : offsets[i + 1], :].copy()  # not a view: frees the chunk
-    return out
+    variables = {v for p in pairs for v in p}
+    blocks = CovarianceBlocks(info, offsets, variables, pairs, solver)
+    return {p: blocks[p] for p in pairs}
 
 
 SOLVE_CHUNK_BYTES = 32 * 2**20

@@ -296,16 +296,27 @@ def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
     beams = scan_beams(scans, geo.stamps_ns, geo.poses, inputs.T_base_laser, rows)
     if not beams.hit.any():
         raise StageError("navigation needs walls: no laser scan within the path has a return")
-    _check_grid_size(np.vstack([beams.origins, beams.ends]), inputs.cfg.grid_resolution_m)
+    _check_grid_size((beams.origins, beams.ends), inputs.cfg.grid_resolution_m)
     return ray_cast_grid(beams.origins, beams.ends, beams.hit, inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
 
 
-def _check_grid_size(endpoints: npt.NDArray[np.float64], resolution_m: float, margin_m: float = 1.0) -> None:
-    """Refuse a laser grid of more than :data:`~stages.limits.MAX_GRID_CELLS` cells before allocating it."""
-    finite = endpoints[np.isfinite(endpoints).all(axis=1)]
-    if len(finite) == 0:
+def _check_grid_size(
+    endpoints: npt.NDArray[np.float64] | Sequence[npt.NDArray[np.float64]], resolution_m: float, margin_m: float = 1.0
+) -> None:
+    """Refuse a laser grid of more than :data:`~stages.limits.MAX_GRID_CELLS` cells before allocating it.
+
+    ``endpoints``: (N, 2) points, or several such arrays (the beams' origins and ends, not stacked into a copy)."""
+    parts = [endpoints] if isinstance(endpoints, np.ndarray) else list(endpoints)
+    finite = []
+    for p in parts:
+        ok = np.isfinite(p).all(axis=1)
+        if ok.any():
+            finite.append(p if ok.all() else p[ok])
+    if not finite:
         return
-    span = np.ptp(finite, axis=0) + 2 * margin_m
+    lo = np.min([f.min(axis=0) for f in finite], axis=0)
+    hi = np.max([f.max(axis=0) for f in finite], axis=0)
+    span = (hi - lo) + 2 * margin_m
     cells = float(np.prod(np.ceil(span / resolution_m) + 1))
     if cells > MAX_GRID_CELLS:
         finest = 1.1 * float(np.sqrt(np.prod(span) / MAX_GRID_CELLS))  # rounded up: the +1 cells per side
@@ -707,6 +718,8 @@ def run_all(
         if inputs.cfg.trials > 0:
             inputs.navigation = navigation_setup(inputs, optimal)
             navigate_case(first)
+        if inputs.cfg.realisations <= 0:
+            inputs.scans = None  # read only by the laser grid above and the realisations: not held through the cases
         results.append(first)
         rest = todo[1:] if progress is None else progress(todo[1:], "cases")
         for case in rest:

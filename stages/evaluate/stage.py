@@ -10,7 +10,7 @@ import numpy as np
 import rerun as rr
 
 from pipeline.context import StageContext
-from pipeline.memory import release_freed_memory
+from pipeline.memory import map_large_blocks, release_freed_memory
 from pipeline.recording import colormap, ellipsoids
 from pipeline.workers import WorkerPool
 from stages.estimation.blas import blas_single
@@ -73,6 +73,7 @@ PER_CASE = (
 def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
     t0 = time.perf_counter()
+    map_large_blocks()
     # α, K, the strategies and the risk model are what the selection stages used, read from their artifacts
     focused = FOCUSED.read(ctx.input("select_landmarks"))
     selection = SELECTION.read(ctx.input("select_measurements"))
@@ -101,7 +102,9 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     # a worker process (evaluate.workers=2) navigates each case while this one solves the next, then draws two figures
     pool = WorkerPool(1) if cfg.workers > 1 else None
     try:
-        return _run(ctx, cfg, inputs, todo, read, pool, t0)
+        detections = read.detections
+        del read, scans  # the scans' table (54 MB on an hour's recording) goes with inputs.scans (see run_all)
+        return _run(ctx, cfg, inputs, todo, detections, pool, t0)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
@@ -112,7 +115,7 @@ def _run(
     cfg: EvaluateConfig,
     inputs: EvalInputs,
     todo: list[Any],
-    read: Any,
+    detections: Any,
     pool: WorkerPool | None,
     t0: float,
 ) -> dict[str, Any]:
@@ -133,7 +136,7 @@ def _run(
             "by mutual information instead of Alg. 2"
         )
     notes += [f"- {line}" for line in inputs.skipped]
-    study = _realisations(inputs, todo, cfg, read.detections)
+    study = _realisations(inputs, todo, cfg, detections)
     art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma, pool) if cfg.plots else []
     md = markdown_report(inputs, results, images, notes) + report_section(study, cfg, TABLE_I_LABELS)

@@ -189,27 +189,36 @@ def ray_cast_grid(
     e = np.asarray(ends, dtype=float).reshape(-1, 2)
     h = np.asarray(hit, dtype=bool).reshape(-1)
     ok = np.isfinite(o).all(axis=1) & np.isfinite(e).all(axis=1)
-    o, e, h = o[ok], e[ok], h[ok]
+    if not ok.all():  # (an hour's beams are hundreds of MB: no copy when every beam is finite)
+        o, e, h = o[ok], e[ok], h[ok]
+    del ok
     if not h.any():
         raise ValueError("no laser returns to build an occupancy grid from")
-    pts = np.vstack([o, e])
-    origin = pts.min(axis=0) - margin_m
-    size = np.ceil((pts.max(axis=0) + margin_m - origin) / resolution).astype(np.int64) + 1
+    origin = np.minimum(o.min(axis=0), e.min(axis=0)) - margin_m  # the corners of the origins and ends, not stacked
+    size = np.ceil((np.maximum(o.max(axis=0), e.max(axis=0)) + margin_m - origin) / resolution).astype(np.int64) + 1
     if int(size[0]) * int(size[1]) > max_cells:
         raise ValueError(f"a laser grid of {size[0]} x {size[1]} cells is more than {max_cells:.0e}")
     cols = int(size[0])
     n_cells = int(size[0]) * int(size[1])
     u0 = (o - origin) / resolution
     ue = (e - origin) / resolution
+    del o, e
     length = np.linalg.norm(ue - u0, axis=1)
     # a return's beam stops one cell short of the return; a beam without one carves all of its length
     keep = np.where(h, np.maximum(length - 1.0, 0.0), length)
     u1 = u0 + (ue - u0) * np.divide(keep, length, out=np.zeros_like(length), where=length > 0)[:, None]
+    del keep, length
     hit_cells = np.floor(ue[h]).astype(np.int64)
+    del ue
     hits = np.zeros(n_cells, dtype=np.int32)
     misses = np.zeros(n_cells, dtype=np.int32)
     _add_counts(hits, hit_cells[:, 1] * cols + hit_cells[:, 0])
-    cost = np.cumsum(np.abs(np.floor(u1) - np.floor(u0)).sum(axis=1) + 1)
+    del hit_cells
+    # the cells each beam crosses, an axis at a time (the sum of two terms, as over the rows of an (N, 2) array)
+    cost = np.abs(np.floor(u1[:, 0]) - np.floor(u0[:, 0]))
+    cost += np.abs(np.floor(u1[:, 1]) - np.floor(u0[:, 1]))
+    cost += 1
+    np.cumsum(cost, out=cost)
     start = 0
     while start < len(u0):
         stop = max(int(np.searchsorted(cost, cost[start] - 1 + chunk_cells, side="right")), start + 1)

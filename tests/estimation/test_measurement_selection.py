@@ -21,6 +21,10 @@ from stages.estimation.measurement_selection import (
     TrackerOptions,
     _candidates,
     _chain_separator,
+    _compact_problem,
+    _focused_cov,
+    _gain_blocks,
+    _RowProduct,
     _schur_clique_gains,
     default_base,
     focused_entropy,
@@ -472,6 +476,7 @@ def test_recomputation_through_the_chain_separator_equals_the_inverse(
     c = _candidates(system, meas, fcols)
     monkeypatch.setattr(measurement_selection, "SCHUR_CHUNK", 7)  # the candidates in chunks of 7
     monkeypatch.setattr(measurement_selection, "SCHUR_SOLVE_COLUMNS", 3)  # the separator's solves 3 columns at a time
+    monkeypatch.setattr(measurement_selection, "ROW_BLOCK", 16)  # X C by row blocks of 16 (the last one longer)
     which = np.arange(len(meas))
     XF, SF, chunks = _schur_clique_gains(info, system, sep, fcols, c, which)
     parts = list(chunks)
@@ -485,3 +490,43 @@ def test_recomputation_through_the_chain_separator_equals_the_inverse(
         A, cols = system.factors[f].jacobian, system.factor_columns(f)
         np.testing.assert_allclose(M[k], A @ dense[np.ix_(cols, cols)] @ A.T, rtol=1e-8, atol=1e-10)
         np.testing.assert_allclose(U[k], dense[np.ix_(fcols, cols)] @ A.T, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("loop", [False, True])
+def test_initial_gains_in_chunks_equal_one_piece(loop: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """_gain_blocks reads the candidates' clique covariances and makes their ``M_c``, ``K_c`` GAIN_CHUNK candidates at
+    a time (memory on long graphs): in chunks of 3 the numbers are the same as in one piece, and the dense
+    inverse's; with a loop closure the chain is not a path and its blocks are solved for."""
+    system, meas = _chain_with_hub(loop)
+    landmarks = system.variables_of_kind("landmark")
+    base = [i for i in range(len(system.factors)) if i not in set(meas)]
+    prob = _compact_problem(system, base, meas, [*landmarks[:2], 7], 100.0)
+    fcols = prob.system.columns(prob.focused)
+    solver = measurement_selection.SPDSolver(prob.info0)
+    XF, SF = _focused_cov(solver, prob.system.dim, fcols)
+    c = _candidates(prob.system, prob.candidates, fcols)
+    whole = _gain_blocks(prob, solver, XF, SF, c)
+    monkeypatch.setattr(measurement_selection, "GAIN_CHUNK", 3)
+    chunked = _gain_blocks(prob, solver, XF, SF, c)
+    for a, b in zip(whole, chunked, strict=True):
+        np.testing.assert_array_equal(a, b)
+    dense = np.linalg.inv(prob.info0.toarray())
+    pairs = measurement_selection._sym_pairs(c.Ac.shape[1])
+    for k, f in enumerate(prob.candidates):
+        A, cols = prob.system.factors[f].jacobian, prob.system.factor_columns(f)
+        M = A @ dense[np.ix_(cols, cols)] @ A.T
+        np.testing.assert_allclose([M[i, j] for i, j in pairs], whole[0][:, k], rtol=1e-8, atol=1e-10)
+
+
+def test_row_product_reads_the_rows_of_the_whole_product(monkeypatch: pytest.MonkeyPatch) -> None:
+    """_RowProduct gives rows of ``X C`` block by block, the last block taking a short remainder."""
+    rng = np.random.default_rng(3)
+    X, C = rng.standard_normal((4100, 40)), rng.standard_normal((40, 40))
+    xc = _RowProduct(X, C)
+    assert xc.bounds.tolist() == [0, 2048, 4100]
+    idx = rng.choice(4100, 300)
+    np.testing.assert_allclose(xc.rows(idx), (X @ C)[idx], rtol=1e-13, atol=1e-13)
+    monkeypatch.setattr(measurement_selection, "ROW_BLOCK", 64)
+    xc = _RowProduct(X, C)
+    assert len(xc.bounds) == 4100 // 64 + 1 and xc.bounds[-1] - xc.bounds[-2] == 64 + 4
+    np.testing.assert_allclose(xc.rows(idx), (X @ C)[idx], rtol=1e-13, atol=1e-13)

@@ -63,3 +63,27 @@ def test_covariance_blocks_solved_in_small_chunks_equal_the_inverse(monkeypatch:
         block = dense[offsets[i] : offsets[i + 1], offsets[j] : offsets[j + 1]]
         np.testing.assert_allclose(chunked[(i, j)], block, rtol=1e-9, atol=1e-11)
         np.testing.assert_allclose(chunked[(i, j)], whole[(i, j)], rtol=1e-12, atol=1e-14)
+
+
+def test_covariance_blocks_read_pair_by_pair_equal_the_dict() -> None:
+    """CovarianceBlocks answers pairs one at a time (a path component by its recursion, another by solves, zero across
+    components) with the same blocks as covariance_blocks' dict."""
+    rng = np.random.default_rng(2)
+    dims = np.array([3] * 10 + [2] * 6 + [1])
+    offsets = np.concatenate([[0], np.cumsum(dims)]).astype(np.int64)
+    n = int(offsets[-1])
+    info = sp.lil_matrix((n, n))
+    for v in range(len(dims)):  # a chain 0-9, a triangle 10-12, a pair 13-14, singletons 15, 16
+        sl = slice(offsets[v], offsets[v + 1])
+        info[sl, sl] = 4.0 * np.eye(dims[v])
+    for u, v in [(i, i + 1) for i in range(9)] + [(10, 11), (11, 12), (10, 12), (13, 14)]:
+        info[offsets[u] : offsets[u + 1], offsets[v] : offsets[v + 1]] = 0.3 * rng.standard_normal((dims[u], dims[v]))
+    info = sp.csc_matrix(info + info.T)
+    pairs = [(int(i), int(j)) for i in range(len(dims)) for j in rng.choice(len(dims), 5, replace=False)]
+    blocks = sparse_cov.CovarianceBlocks(info, offsets, {v for p in pairs for v in p}, iter(pairs))
+    whole = sparse_cov.covariance_blocks(info, offsets, pairs)
+    dense = np.linalg.inv(info.toarray())
+    for i, j in pairs:
+        np.testing.assert_array_equal(blocks[(i, j)], whole[(i, j)])
+        block = dense[offsets[i] : offsets[i + 1], offsets[j] : offsets[j + 1]]
+        np.testing.assert_allclose(blocks[(i, j)], block, rtol=1e-9, atol=1e-12)

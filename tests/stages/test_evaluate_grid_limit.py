@@ -22,3 +22,17 @@ def test_a_grid_too_fine_for_the_area_names_the_key_and_a_resolution_that_fits()
     _check_grid_size(endpoints, suggested)  # the suggestion fits
     span = np.array([42.0, 32.0])
     assert np.prod(np.ceil(span / (0.9 * suggested)) + 1) > MAX_GRID_CELLS / 2  # and is not far too coarse
+
+
+def test_origins_and_ends_given_apart_are_checked_as_if_stacked() -> None:
+    """The beams' origins and ends are checked without stacking them (hundreds of MB on an hour's scans): the same
+    message, non-finite rows of either left out."""
+    origins = np.array([[0.0, 0.0], [np.nan, 1.0], [10.0, 5.0]])
+    ends = np.array([[40.0, 30.0], [np.inf, 0.0], [-2.0, 3.0]])
+    messages = []
+    for endpoints in (np.vstack([origins, ends]), (origins, ends)):
+        with pytest.raises(ConfigError) as info:
+            _check_grid_size(endpoints, 1e-3)
+        messages.append(str(info.value))
+    assert messages[0] == messages[1]
+    _check_grid_size((origins, ends[:0]), 0.05)  # an empty part
