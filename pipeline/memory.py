@@ -18,25 +18,13 @@ import pyarrow as pa
 
 
 @functools.cache
-def _malloc_trim() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
-    """glibc's ``malloc_trim`` (None elsewhere: musl, macOS, Windows)."""
-    name = ctypes.util.find_library("c")
-    if name is None:
+def _libc(name: str) -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
+    """glibc's function ``name`` (``malloc_trim``, ``mallopt``); None elsewhere (musl, macOS, Windows)."""
+    lib = ctypes.util.find_library("c")
+    if lib is None:
         return None
     try:
-        return ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError):
-        return None
-
-
-@functools.cache
-def _mallopt() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
-    """glibc's ``mallopt`` (None elsewhere)."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
-    try:
-        return ctypes.CDLL(name).mallopt
+        return getattr(ctypes.CDLL(lib), name)
     except (OSError, AttributeError):
         return None
 
@@ -51,7 +39,7 @@ def map_large_blocks(threshold: int = LARGE_BLOCK_BYTES) -> None:
     By default glibc raises that threshold to the size of the largest block freed so far (up to 32 MB), so that the
     numpy arrays of a long stage land on the heap, where what they leave free stays resident until
     :func:`release_freed_memory`. Changes no result."""
-    fn = _mallopt()
+    fn = _libc("mallopt")
     if fn is not None:
         fn(M_MMAP_THRESHOLD, threshold)
 
@@ -59,7 +47,7 @@ def map_large_blocks(threshold: int = LARGE_BLOCK_BYTES) -> None:
 def release_freed_memory() -> None:
     """Collect garbage, then return the freed memory of glibc's heap and pyarrow's pool to the system."""
     gc.collect()
-    trim = _malloc_trim()
+    trim = _libc("malloc_trim")
     if trim is not None:
         trim(0)
     pa.default_memory_pool().release_unused()

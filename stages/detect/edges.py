@@ -31,8 +31,8 @@ from scipy.ndimage import map_coordinates
 
 FloatArray = npt.NDArray[np.float64]
 
-BORDER_CELLS = {"tag36h11": 8, "tag25h9": 7, "tag16h5": 6, "tagStandard41h12": 5, "tag36h10": 8}
-"""Cells across the quad (the black border's outer edge) of each family; the border is one cell wide."""
+BORDER_CELLS = {"tag36h11": 8, "tag25h9": 7, "tag16h5": 6, "tag36h10": 8}
+"""Cells across the quad (the black border's outer edge) of each family detect reads; the border is one cell wide."""
 
 _U = np.arange(-0.6, 2.0001, 0.05)
 """Sample positions across a side, in cells from the quad's edge inwards."""

@@ -71,10 +71,9 @@ _APRILTAG_TO_OPENCV = [1, 0, 3, 2]
 
 def _frame_jobs(ingest: StageInput, batch_frames: int, edge_stride: int = 0) -> Iterator[list[FrameJob]]:
     """The frames in batches; every ``edge_stride``-th (0: none) has its tags' edges measured."""
-    n = 0
+    start = 0  # the batch's first frame's index in the run
     for batch in FRAMES.batches(ingest, batch_size=batch_frames):
         d = batch.to_pydict()
-        n += batch.num_rows
         yield [
             FrameJob(
                 frame=int(d[FRAME][i]),
@@ -85,10 +84,11 @@ def _frame_jobs(ingest: StageInput, batch_frames: int, edge_stride: int = 0) -> 
                 height=int(d[HEIGHT][i]),
                 step=int(d[STEP][i] or 0),
                 data=d[DATA][i],
-                measure_edges=bool(edge_stride) and (n - batch.num_rows + i) % edge_stride == 0,
+                measure_edges=bool(edge_stride) and (start + i) % edge_stride == 0,
             )
             for i in range(batch.num_rows)
         ]
+        start += batch.num_rows
 
 
 def bag_detection_jobs(table: pa.Table, cfg: DetectConfig) -> list[FrameJob]:

@@ -271,18 +271,15 @@ class CovarianceBlocks:
 
     def _read(self, i: int, j: int) -> FloatArray | None:
         """The block from the recursions (or zero across components), else None (solved for)."""
-        label = self.label
-        if label[i] != label[j]:
+        if not self._recursive(i, j):
+            return None
+        if self.label[i] != self.label[j]:
             return np.zeros((self.dims[i], self.dims[j]))
-        tri = self._tri.get(int(label[i]))
-        if tri is not None:
-            pos, diag, off = tri
-            a, b = pos[i], pos[j]
-            if a == b:
-                return diag[a]
-            if abs(a - b) == 1:
-                return off[a] if b == a + 1 else off[b].T
-        return None
+        pos, diag, off = self._tri[int(self.label[i])]
+        a, b = pos[i], pos[j]
+        if a == b:
+            return diag[a]
+        return off[a] if b == a + 1 else off[b].T
 
     def __getitem__(self, pair: tuple[int, int]) -> FloatArray:
         i, j = int(pair[0]), int(pair[1])

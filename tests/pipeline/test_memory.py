@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.memory import _malloc_trim, _mallopt, release_freed_memory
+from pipeline.memory import _libc, release_freed_memory
 
 
 def _rss_mib() -> float:
@@ -17,7 +17,9 @@ def _rss_mib() -> float:
         return int(f.read().split()[1]) * 4096 / 2**20
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux") or _malloc_trim() is None, reason="needs glibc's malloc_trim")
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux") or _libc("malloc_trim") is None, reason="needs glibc's malloc_trim"
+)
 def test_a_fragmented_heap_shrinks_after_release() -> None:
     # 160 MB of 8 KB blocks (below glibc's mmap threshold: they live in the heap), every 64th kept: the free runs
     # between the kept blocks cannot be returned by the heap's own top trim, only by malloc_trim
@@ -49,7 +51,7 @@ print(before - rss())
 """
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux") or _mallopt() is None, reason="needs glibc's mallopt")
+@pytest.mark.skipif(not sys.platform.startswith("linux") or _libc("mallopt") is None, reason="needs glibc's mallopt")
 def test_large_arrays_are_given_back_when_freed_after_map_large_blocks() -> None:
     def freed(map_them: bool) -> float:
         code = f"MAP = {map_them}\n" + _FREED_AT_ONCE
