@@ -230,10 +230,16 @@ def test_alg2_on_the_sample_equals_the_reference(inputs: LandmarkInputs) -> None
     np.testing.assert_allclose(fast.extra["z_after"], slow.extra["z_after"], rtol=1e-6)
     local = inputs.landmarks
     assert local.local is not None and local.joint is not None
-    ok = np.isfinite(local.local).all(axis=(2, 3))
-    assert ok.any()
-    t, r = np.nonzero(ok)
-    tr_local = np.trace(local.local[t, r], axis1=1, axis2=2)
+    held = local.local
+    assert len(held.rows) > 0 and np.isfinite(held.covariances).all()
+    seen = {
+        (int(t), r)
+        for r, tag in enumerate(local.tag_ids.tolist())
+        for t in np.flatnonzero(geo.visible[:, col[int(tag)]])
+    }
+    assert set(zip(held.keyframes.tolist(), held.rows.tolist(), strict=True)) == seen  # every pair the path sees
+    r = held.rows
+    tr_local = np.trace(held.covariances, axis1=1, axis2=2)
     tr_marg = np.trace(local.covariances[r], axis1=1, axis2=2)
     print(f"local / marginal trace: median {np.median(tr_local / tr_marg):.3f}")
     assert np.all(tr_local <= tr_marg * (1 + 1e-6))  # conditioning never adds uncertainty
