@@ -44,9 +44,11 @@ def map_large_blocks(threshold: int = LARGE_BLOCK_BYTES) -> None:
         fn(M_MMAP_THRESHOLD, threshold)
 
 
-def release_freed_memory() -> None:
-    """Collect garbage, then return the freed memory of glibc's heap and pyarrow's pool to the system."""
-    gc.collect()
+def release_freed_memory(collect: bool = True) -> None:
+    """Collect garbage (unless ``collect`` is False: what was just freed had no cycles), then return the freed memory
+    of glibc's heap and pyarrow's pool to the system."""
+    if collect:
+        gc.collect()
     trim = _libc("malloc_trim")
     if trim is not None:
         trim(0)
