@@ -155,6 +155,9 @@ class _LevelBlocks:
         self.off_d = np.r_[0, np.cumsum(sz * sz)].astype(np.int64)
         self.off_c = np.r_[0, np.cumsum(sz[1:] * sz[:-1])].astype(np.int64)  # C_k = A[block k+1, block k]
 
+    STORE_CHUNK = 1 << 18
+    """Entries of a matrix placed in the flat store at once by :meth:`store`."""
+
     def cost(self) -> float:
         """Flops of one selected inversion, roughly (``Σ_k b_k³`` times a small constant)."""
         return float(np.sum(self.size.astype(float) ** 3)) * 6.0
@@ -181,12 +184,17 @@ class _LevelBlocks:
         """``A``'s diagonal blocks and lower neighbour blocks, flat (the input of :meth:`factor`)."""
         coo = sp.coo_matrix(A)
         coo.sum_duplicates()
-        diag, upper, pos = self._index(coo.row.astype(np.int64), coo.col.astype(np.int64))
         D = np.zeros(int(self.off_d[-1]))
         C = np.zeros(int(self.off_c[-1]))
-        D[pos[diag]] = coo.data[diag]
-        low = ~diag & ~upper
-        C[pos[low]] = coo.data[low]
+        # in pieces: _index makes a dozen arrays the size of its input (all of A's entries at once: ~250 MiB on a
+        # 4-minute corridor run with laps)
+        for a in range(0, coo.nnz, self.STORE_CHUNK):
+            b = a + self.STORE_CHUNK
+            diag, upper, pos = self._index(coo.row[a:b].astype(np.int64), coo.col[a:b].astype(np.int64))
+            data = coo.data[a:b]
+            D[pos[diag]] = data[diag]
+            low = ~diag & ~upper
+            C[pos[low]] = data[low]
         return D, C
 
     def add(self, D: FloatArray, C: FloatArray, cols: npt.NDArray[np.int64], block: FloatArray) -> None:
@@ -295,10 +303,12 @@ def _low_rank(block: FloatArray, tol: float = 1e-12) -> FloatArray:
     return np.asarray(V[:, keep] * np.sqrt(w[keep]))
 
 
-DENSE_MAX_DIM = 6000
+DENSE_MAX_DIM = 2800
 """Largest trajectory dimension for which the MI greedy may carry the dense covariance (one inverse, rank-r
 downdates), chosen only when the level blocks are so large that it is cheaper; above it the level-block selected
-inverse is used regardless (it never needs an ``n × n`` array)."""
+inverse is used regardless (it never needs an ``n × n`` array). The dense path holds about four ``n × n`` arrays at
+once (the information, its inverse, a downdate and its difference): ~60 MiB each here, and 464 MiB in all on a
+3,702-dimensional trajectory, where the selected inverse took 255 MiB and the same picks."""
 
 
 def _dense_mi_ops(
@@ -511,20 +521,13 @@ def _leverage_probabilities(
     n, N = info0.shape[0], len(contributions)
     D, C = blocks.store(lam)
     inv = blocks.factor(D, C)  # Σ = Λ_all⁻¹ on the pattern of Λ_all: every landmark's support block is in it
-    rows, cols, data, owner = [], [], [], []
+    # tr(Σ Λ_l) one landmark at a time: all supports at once (Σ_l |c_l|² entries, each with a dozen index arrays)
+    # took ~450 MiB on a 4-minute corridor run with laps; one support at a time holds only the largest
+    own: FloatArray = np.zeros(N)
     for l_, (c, B) in enumerate(contributions):
         c = np.asarray(c, dtype=np.int64)
-        rows.append(np.repeat(c, len(c)))
-        cols.append(np.tile(c, len(c)))
-        data.append(np.asarray(B, dtype=float).ravel())
-        owner.append(np.full(len(c) * len(c), l_, dtype=np.int64))
-    r_ = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
-    own: FloatArray = np.zeros(N)
-    if len(r_):
-        sig = inv.entries(r_, np.concatenate(cols))
-        own = np.bincount(np.concatenate(owner), weights=sig * np.concatenate(data), minlength=N).astype(
-            np.float64, copy=False
-        )
+        if len(c):
+            own[l_] = float(np.sum(inv.block(c) * np.asarray(B, dtype=float)))
     # Σ (Λ₀ + Σ_l Λ_l) = I, so tr(Σ Λ₀) = n − Σ_l tr(Σ Λ_l): no other entry of Σ is needed
     base = (n - float(own.sum())) / N
     return np.asarray((base + own) / n)

@@ -306,7 +306,7 @@ def test_sparse_leverage_and_mi_equal_the_dense_formulas(backend, min_block) -> 
 
 
 @pytest.mark.parametrize("min_block", [1, 4, 10_000])
-def test_level_blocks_selected_inverse_on_the_pattern(min_block) -> None:
+def test_level_blocks_selected_inverse_on_the_pattern(min_block, monkeypatch) -> None:
     """Σ on every nonzero of the pattern and log det, against the dense inverse: a chain with landmarks tying far-apart
     poses (loop closures), a second disconnected chain, and a landmark whose support is not contiguous."""
     from stages.estimation.landmark_selection import _LevelBlocks, _scatter
@@ -335,6 +335,12 @@ def test_level_blocks_selected_inverse_on_the_pattern(min_block) -> None:
     assert inv.logdet == pytest.approx(np.linalg.slogdet(lam.toarray())[1], rel=1e-12)
     assert blocks.logdet(D, C) == pytest.approx(inv.logdet, rel=1e-12)
     assert inv.trace() == pytest.approx(np.trace(dense), rel=1e-10)
+    # the flat store placed a few entries at a time (as large matrices are) is the store placed at once
+    monkeypatch.setattr(_LevelBlocks, "STORE_CHUNK", 5)
+    D5, C5 = blocks.store(lam)
+    assert lam.nnz > 50
+    np.testing.assert_array_equal(D5, D)
+    np.testing.assert_array_equal(C5, C)
     # probabilities with the far-apart support: still the dense formula, still summing to 1
     pi = landmark_leverage_probabilities(big, contrib)
     np.testing.assert_allclose(pi, _dense_leverage_probabilities(big, contrib), rtol=1e-9)
