@@ -96,6 +96,17 @@ def test_recall_and_corners_on_rendered_frames(backend: str, scene: str) -> None
         assert rms < (0.35 if backend == "apriltag3" else 1.0), f"corner RMS {rms:.3f} px"
 
 
+def test_shortest_side_is_the_smallest_side_length_to_the_bit() -> None:
+    # the detections' side_px (and the min_side_px cut) must not move by a rounding when the formula is rewritten
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        quad = rng.normal(size=(4, 2)) * rng.uniform(1, 500) + rng.uniform(0, 1000, size=2)
+        sides = [float(np.hypot(*(quad[i] - quad[(i + 1) % 4]))) for i in range(4)]
+        assert shortest_side_px(quad) == pytest.approx(min(sides), rel=1e-15)
+        assert shortest_side_px(quad) == float(np.min(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
+    assert shortest_side_px(np.array([[0, 0], [30, 0], [30, 20], [0, 20]])) == 20.0
+
+
 def test_frame_without_tags_gives_no_rows() -> None:
     cfg = DetectConfig()
     cam = colmap_camera(_camera())
