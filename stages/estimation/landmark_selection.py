@@ -186,8 +186,8 @@ class _LevelBlocks:
         coo.sum_duplicates()
         D = np.zeros(int(self.off_d[-1]))
         C = np.zeros(int(self.off_c[-1]))
-        # in pieces: _index makes a dozen arrays the size of its input (all of A's entries at once: ~250 MiB on a
-        # 4-minute corridor run with laps)
+        # in pieces: _index makes a dozen arrays the size of its input (A's 3.5 million entries on a 4-minute
+        # corridor run with laps: ~28 MB each)
         for a in range(0, coo.nnz, self.STORE_CHUNK):
             b = a + self.STORE_CHUNK
             diag, upper, pos = self._index(coo.row[a:b].astype(np.int64), coo.col[a:b].astype(np.int64))

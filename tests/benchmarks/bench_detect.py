@@ -681,19 +681,21 @@ def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats
         *[f"+ pose, batched in {b}-frame chunks" for b in batches],
     ]
     times: dict[str, list[float]] = {m: [] for m in modes}
+    cpu: dict[str, list[float]] = {m: [] for m in modes}
     batched = core.estimate_tag_poses
     load_before = os.getloadavg()
     for r in range(repeats + 1):  # the first round warms up
         for m in modes:
             core.estimate_tag_poses = colmap_poses if "former" in m else batched  # type: ignore[assignment]
             try:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 count = run(m)
-                dt = time.perf_counter() - t0
+                dt, dc = time.perf_counter() - t0, time.process_time() - c0
             finally:
                 core.estimate_tag_poses = batched  # type: ignore[assignment]
             if r:
                 times[m].append(dt)
+                cpu[m].append(dc)
         if r == 0:
             tags = count
     load_after = os.getloadavg()
@@ -715,6 +717,15 @@ def bench_posecov(frames: list[np.ndarray], camera: CameraModel, n: int, repeats
         else:
             cells += [f"{1e3 * pose / len(frames):.2f}", f"{pose / med[m]:.0%}", f"{pose / former:.2f}x"]
         print(f"| {m} | " + " | ".join(cells) + " |")
+    # the share from CPU time, paired by round (each round runs every path once, back to back): another job on the
+    # machine moves the wall-time medians apart by several points; the paired CPU shares move far less
+    alone = np.asarray(cpu[modes[0]])
+    print("\nShare of the stage from CPU time, per round (median, and the rounds' range):")
+    print("| path | share, median | range |")
+    print("| --- | --- | --- |")
+    for m in modes[1:]:
+        share = 1.0 - alone / np.asarray(cpu[m])
+        print(f"| {m} | {float(np.median(share)):.0%} | {float(share.min()):.0%}–{float(share.max()):.0%} |")
 
 
 def _exact_tag_image(tag_id: int, H: np.ndarray, width: int = 320, height: int = 240, ss: int = 8) -> np.ndarray:
