@@ -21,6 +21,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from tests.fixtures.memory import resident_mib  # noqa: E402
+
 WINDOW_S = 2.0
 PERIOD_S = 0.005
 STACK_DEPTH = 7
@@ -32,11 +36,6 @@ class Window:
     start_s: float
     peak_mib: float = 0.0
     stack: list[str] = field(default_factory=list)
-
-
-def rss_mib() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 _PATHS = sysconfig.get_paths()
@@ -71,7 +70,7 @@ class Sampler(threading.Thread):
             if t - cur.start_s >= WINDOW_S:
                 self.windows.append(cur)
                 cur = Window(t)
-            r = rss_mib()
+            r = resident_mib()
             if r > cur.peak_mib:
                 cur.peak_mib, cur.stack = r, project_stack(self.watched)
             time.sleep(PERIOD_S)
@@ -100,7 +99,6 @@ def main() -> None:
     if len(sys.argv) < 3 or not sys.platform.startswith("linux"):
         raise SystemExit(__doc__)
     out, args = Path(sys.argv[1]), sys.argv[2:]
-    sys.path.insert(0, str(ROOT))
     from cli.app import main as focusmap
 
     sampler = Sampler(threading.get_ident())

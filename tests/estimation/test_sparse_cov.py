@@ -11,15 +11,9 @@ import scipy.sparse as sp
 
 from stages.estimation import sparse_cov
 from stages.estimation.sparse_cov import SPDSolver
+from tests.fixtures.memory import resident_mib
 
 STATUS = Path("/proc/self/status")
-
-
-def _rss_mib() -> float:
-    for line in STATUS.read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS line")
 
 
 @pytest.mark.skipif(not sparse_cov._HAVE_CHOLESPY or not STATUS.exists(), reason="CHOLMOD backend and Linux /proc")
@@ -33,14 +27,14 @@ def test_dropped_solvers_give_back_their_solve_buffers() -> None:
     first = SPDSolver(A).solve(B)  # warm up: the allocator's first pools
     del first
     gc.collect()
-    before = _rss_mib()
+    before = resident_mib()
     for _ in range(solvers):
         x = SPDSolver(A).solve(B)
         np.testing.assert_allclose(x, want, rtol=1e-10, atol=1e-12)
         del x
         gc.collect()
     leaked_each = n * cols * 8 / 2**20
-    assert _rss_mib() - before < 0.25 * solvers * leaked_each
+    assert resident_mib() - before < 0.25 * solvers * leaked_each
 
 
 def test_covariance_blocks_solved_in_small_chunks_equal_the_inverse(monkeypatch: pytest.MonkeyPatch) -> None:

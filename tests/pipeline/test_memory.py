@@ -10,11 +10,7 @@ import numpy as np
 import pytest
 
 from pipeline.memory import _libc, release_freed_memory
-
-
-def _rss_mib() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * 4096 / 2**20
+from tests.fixtures.memory import resident_mib
 
 
 @pytest.mark.skipif(
@@ -27,9 +23,9 @@ def test_a_fragmented_heap_shrinks_after_release(collect: bool) -> None:
     blocks = [np.ones(1024) for _ in range(20_000)]
     kept = blocks[::64]
     del blocks
-    held = _rss_mib()
+    held = resident_mib()
     release_freed_memory(collect=collect)  # the freed blocks had no cycles: the trim alone gives them back
-    after = _rss_mib()
+    after = resident_mib()
     assert held - after > 80, f"RSS {held:.0f} -> {after:.0f} MiB"
     assert all(float(k.sum()) == 1024.0 for k in kept)  # the live blocks are untouched
 
