@@ -44,6 +44,16 @@ def map_large_blocks(threshold: int = LARGE_BLOCK_BYTES) -> None:
         fn(M_MMAP_THRESHOLD, threshold)
 
 
+def freeze_live_objects() -> None:
+    """Have the cyclic garbage collector ignore, from now on, every object alive now.
+
+    Called once a stage's libraries are imported: their modules, classes and functions (~140,000 objects after
+    evaluate's imports) then stop being traversed by every full collection, which cost 66 ms each on the sample,
+    whether :func:`release_freed_memory` asked for it or Python did. The caller collects first, so nothing already
+    garbage is kept; what stays frozen are objects alive for the process's lifetime. Changes no result."""
+    gc.freeze()
+
+
 def release_freed_memory(collect: bool = True) -> None:
     """Collect garbage (unless ``collect`` is False: what was just freed had no cycles), then return the freed memory
     of glibc's heap and pyarrow's pool to the system."""

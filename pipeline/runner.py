@@ -20,7 +20,8 @@ from pipeline.code import code_digest, package_dirs
 from pipeline.config import Settings
 from pipeline.context import StageContext
 from pipeline.errors import StageError, write_error
-from pipeline.memory import release_freed_memory
+from pipeline.lazy import LazyCallable
+from pipeline.memory import freeze_live_objects, release_freed_memory
 from pipeline.recording import close_recording, log_summary, open_recording, run_blueprint, save_blueprint
 from pipeline.registry import Registry
 from pipeline.run_folder import RunFolder, SourceEntry, outside_identity, source_identity, write_json_atomic
@@ -213,6 +214,10 @@ def run_stage(
         blueprint = None
     rec = open_recording(run.run_id, rrd, blueprint)
     start = time.perf_counter()
+    if isinstance(stage.run, LazyCallable):
+        stage.run.target  # noqa: B018 - import the stage's libraries now, to freeze them below
+    release_freed_memory()  # what earlier stages left is collected, not frozen
+    freeze_live_objects()
     try:
         ctx = StageContext(
             run=run,

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
 import subprocess
 import sys
 import textwrap
+import weakref
 from pathlib import Path
 
 import pytest
@@ -154,3 +156,37 @@ def test_killed_process_leaves_no_half_written_stage(tmp_path: Path) -> None:
     assert (rdir / ".partial" / "s").exists()  # the unfinished scratch output, never taken for a result
     with RunFolder(rdir).lock():  # free again: the kernel released the killed process's lock
         assert not (rdir / ".partial").exists()
+
+
+class _Node:
+    """An object in a reference cycle: only the cyclic collector frees it."""
+
+    def __init__(self) -> None:
+        self.me = self
+
+
+def test_a_stage_starts_with_earlier_garbage_collected_and_what_lives_frozen(run: RunFolder) -> None:
+    # the runner freezes the objects alive when a stage starts (its libraries), so that the collections during the
+    # stage skip them; garbage left from before must be collected first, not frozen, and the stage's own cycles
+    # must still be collected
+    seen: dict[str, object] = {}
+
+    def run_c(ctx, cfg: ACfg) -> dict:
+        seen["earlier_freed"] = earlier() is None
+        seen["frozen"] = gc.get_freeze_count()
+        mine = weakref.ref(_Node())
+        gc.collect()
+        seen["own_freed"] = mine() is None
+        return {}
+
+    registry = Registry([Stage(name="c", config_type=ACfg, run=run_c)])
+    gc.disable()  # no automatic collection between making the garbage and the stage
+    try:
+        earlier = weakref.ref(_Node())
+        assert earlier() is not None
+        assert run_stage(run, registry, "c", load_settings(registry.models(), None, [])).status == "done"
+    finally:
+        gc.enable()
+        gc.unfreeze()
+    assert seen == {"earlier_freed": True, "frozen": seen["frozen"], "own_freed": True}
+    assert isinstance(seen["frozen"], int) and seen["frozen"] > 1000  # at least the modules pytest imported
