@@ -44,7 +44,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
-from scipy.stats import norm
 
 from pipeline.memory import release_freed_memory
 from stages.columns import STAMP_NS, TAG_ID
@@ -58,6 +57,7 @@ from stages.estimation.collision import (
     pair_information,
     step_information,
 )
+from stages.estimation.normal import normal_sf
 from stages.estimation.robot import PathSteps, RobotModel, resample_path
 from stages.ingest.artifacts import EXTRINSICS, SCANS
 from stages.laser import scan_beams
@@ -601,7 +601,7 @@ def path_risk(
             for t in range(T)
         ]
     )
-    return PathRisk(sigma, localised, np.asarray(norm.sf(z)), maha, z)
+    return PathRisk(sigma, localised, np.asarray(normal_sf(z)), maha, z)
 
 
 def riskiest_keyframes(

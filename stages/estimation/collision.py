@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.stats import norm
 
 from stages.estimation.landmark_selection import LandmarkSelection, SelectionStatus
+from stages.estimation.normal import normal_logsf, normal_sf
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -159,7 +159,7 @@ def collision_risk(
     """
     P = poses_cov[:, pos_idx][:, :, pos_idx]
     var = np.einsum("ti,tij,tj->t", normals, P, normals)
-    return np.asarray(norm.sf(clearance / np.sqrt(np.maximum(var, 1e-300))))
+    return np.asarray(normal_sf(clearance / np.sqrt(np.maximum(var, 1e-300))))
 
 
 def mahalanobis_to_obstacle(cov_pos: FloatArray, offset: FloatArray) -> float:
@@ -217,7 +217,7 @@ def select_collision(
     J = np.zeros((K, 3, 3))
     cov = forward_covariances(noise, J[None])[0]
     z = margin_sigmas(cov, margin, normals)
-    risk0 = norm.sf(z)
+    risk0 = normal_sf(z)
     if L == 0:
         return LandmarkSelection([], [], "no_landmarks", {"risk_before": risk0, "risk_after": risk0})
     if budget <= 0:
@@ -246,7 +246,7 @@ def select_collision(
             zc = margin_sigmas(forward_covariances(noise, Js), margin, normals)
             finite = np.where(np.isfinite(zc), zc, np.inf)
             with np.errstate(divide="ignore"):
-                logp = np.where(np.isfinite(zc), norm.logsf(np.where(np.isfinite(zc), zc, 0.0)), 0.0).sum(axis=1)
+                logp = np.where(np.isfinite(zc), normal_logsf(np.where(np.isfinite(zc), zc, 0.0)), 0.0).sum(axis=1)
             order = np.lexsort((logp, -finite.min(axis=1), -np.round(zc[:, k], 9)))
             nxt = int(cands[int(order[0])])
         chosen.append(nxt)
@@ -255,7 +255,7 @@ def select_collision(
         np.add.at(J, steps, info)
         cov = forward_covariances(noise, J[None])[0]
         z = margin_sigmas(cov, margin, normals)
-        scores.append(float(norm.sf(z.min())) if np.isfinite(z).any() else 0.0)
+        scores.append(float(normal_sf(z.min())) if np.isfinite(z).any() else 0.0)
     status: SelectionStatus = "budget_exceeds_landmarks" if budget > L else "ok"
-    extra = {"risk_before": risk0, "risk_after": norm.sf(z), "z_after": z, "sigma_after": cov}
+    extra = {"risk_before": risk0, "risk_after": normal_sf(z), "z_after": z, "sigma_after": cov}
     return LandmarkSelection(chosen, scores, status, extra)
