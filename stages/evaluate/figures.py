@@ -28,6 +28,16 @@ def pyplot() -> Any:
     return plt
 
 
+def warm_up(plots: bool) -> None:
+    """Import what evaluate's worker process will run, the navigation trials and (``plots``) matplotlib, while
+    evaluate loads its inputs and solves the first case: on the sample the worker otherwise started its first
+    navigation 1.5 s after it was sent, the time of these imports."""
+    import stages.navigation.lqg  # noqa: F401
+
+    if plots:
+        pyplot()
+
+
 def grid(n: int) -> tuple[int, int]:
     """Rows and columns of a grid of ``n`` panels, at most three across."""
     cols = min(3, n)

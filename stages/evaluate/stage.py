@@ -28,6 +28,7 @@ from stages.evaluate.cases import (
     run_all,
 )
 from stages.evaluate.config import EvaluateConfig
+from stages.evaluate.figures import warm_up
 from stages.evaluate.realisations import Study, report_section, run_realisations, statistics_rows, study_table
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
 from stages.evaluate.risk_check import check_columns, direction
@@ -80,6 +81,19 @@ stage, side by side, for no memory that matters there."""
 def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
     """Run every case, write ``cases.parquet``, the report with its figures, and ``evaluate.rrd``."""
     t0 = time.perf_counter()
+    # a worker process (evaluate.workers=2) navigates each case while this one solves the next, then draws two
+    # figures; it starts now and imports what it runs while this one loads the inputs
+    pool = WorkerPool(1) if cfg.workers > 1 else None
+    try:
+        if pool is not None:
+            pool.submit(warm_up, cfg.plots)
+        return _load_and_run(ctx, cfg, pool, t0)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+
+def _load_and_run(ctx: StageContext, cfg: EvaluateConfig, pool: WorkerPool | None, t0: float) -> dict[str, Any]:
     # α, K, the strategies and the risk model are what the selection stages used, read from their artifacts
     focused = FOCUSED.read(ctx.input("select_landmarks"))
     selection = SELECTION.read(ctx.input("select_measurements"))
@@ -107,15 +121,9 @@ def run(ctx: StageContext, cfg: EvaluateConfig) -> dict[str, Any]:
         upstream=Upstream(focused, selection, _optimized(ctx, loaded, focused.tag_ids)),
     )
     todo = cases(cfg)
-    # a worker process (evaluate.workers=2) navigates each case while this one solves the next, then draws two figures
-    pool = WorkerPool(1) if cfg.workers > 1 else None
-    try:
-        detections = read.detections
-        del read, scans  # the scans' table (54 MB on an hour's recording) goes with inputs.scans (see run_all)
-        return _run(ctx, cfg, inputs, todo, detections, pool, t0)
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
+    detections = read.detections
+    del read, scans  # the scans' table (54 MB on an hour's recording) goes with inputs.scans (see run_all)
+    return _run(ctx, cfg, inputs, todo, detections, pool, t0)
 
 
 def _run(
