@@ -214,11 +214,11 @@ def run_stage(
         blueprint = None
     rec = open_recording(run.run_id, rrd, blueprint)
     start = time.perf_counter()
-    if isinstance(stage.run, LazyCallable):
-        stage.run.target  # noqa: B018 - import the stage's libraries now, to freeze them below
-    release_freed_memory()  # what earlier stages left is collected, not frozen
-    freeze_live_objects()
     try:
+        if isinstance(stage.run, LazyCallable):
+            stage.run.target  # noqa: B018 - import the stage's libraries now, to freeze them below
+        release_freed_memory()  # what earlier stages left is collected, not frozen
+        freeze_live_objects()
         ctx = StageContext(
             run=run,
             stage=stage,

@@ -190,3 +190,16 @@ def test_a_stage_starts_with_earlier_garbage_collected_and_what_lives_frozen(run
         gc.unfreeze()
     assert seen == {"earlier_freed": True, "frozen": seen["frozen"], "own_freed": True}
     assert isinstance(seen["frozen"], int) and seen["frozen"] > 1000  # at least the modules pytest imported
+
+
+def test_a_stage_whose_code_cannot_be_imported_leaves_nothing_behind(run: RunFolder) -> None:
+    # the runner imports the stage's module before it runs it (to freeze its libraries): an import that fails there
+    # is the stage's failure like any other, with its scratch folder and recording removed
+    from pipeline.lazy import lazy
+
+    registry = Registry([Stage(name="c", config_type=ACfg, run=lazy("tests.no_such_module_here:run"))])
+    before = sorted(p.name for p in run.path.iterdir())
+    with pytest.raises(ModuleNotFoundError):
+        run_stage(run, registry, "c", load_settings(registry.models(), None, []))
+    assert sorted(p.name for p in run.path.iterdir() if not p.name.startswith("error")) == before
+    assert run.stage_entry("c") is None
