@@ -97,10 +97,9 @@ def resolved(cfg: GraphConfig, calibration: bool) -> GraphConfig:
 
 def calibration_test(
     problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig
-) -> tuple[dict[str, Any], dict[int, np.ndarray]]:
+) -> dict[str, Any]:
     """Do the data reject uncalibrated odometry? The ``decision`` block of ``odometry_calibration: auto`` (not
-    tested, ``skipped``, above ``calibration_test_max_poses`` keyframes: the test is quadratic in them), and the
-    joint step of every landmark (its tangent vector, by key; empty when skipped) for :func:`map_shift`.
+    tested, ``skipped``, above ``calibration_test_max_poses`` keyframes: the test is quadratic in them).
 
     At the uncalibrated solution the graph is linearised with the calibration as one more variable (its priors
     as configured), exactly the first round of :func:`calibrate`. Its Gauss-Newton step ``δc`` and covariance
@@ -122,7 +121,7 @@ def calibration_test(
             "reason": f"not tested: {len(problem.pose_keys)} keyframes > graph.calibration_test_max_poses="
             f"{cfg.calibration_test_max_poses} (the test grows with the square of the keyframes); set "
             "graph.odometry_calibration=true to estimate wheel errors on this recording",
-        }, {}
+        }
     t0 = time.perf_counter()
     on = resolved(cfg, True)
     base = list(problem.rows)
@@ -142,8 +141,7 @@ def calibration_test(
     statistic = wald / max(ratio, 1e-12)
     sig = np.sqrt(np.diag(cov_c))
     step = ", ".join(f"{PARAMETERS[i]} {prior_mean[i] + dc[i]:+.4f} ± {sig[i]:.4f}" for i in free)
-    why_not = implausible(prior_mean + dc, on)
-    rejected = why_not if statistic > cfg.calibration_test_threshold else None
+    rejected = implausible(prior_mean + dc, on) if statistic > cfg.calibration_test_threshold else None
     applied = statistic > cfg.calibration_test_threshold and rejected is None
     if rejected is not None:
         reason = (
@@ -162,12 +160,10 @@ def calibration_test(
             f"no systematic odometry error found: the yaw calibration's statistic is {statistic:.1f} "
             f"(<= {cfg.calibration_test_threshold:g}; {step})"
         )
-    steps = {k: np.asarray(delta.at(k), dtype=float) for k in problem.landmark_keys.values() if delta.exists(k)}
     return {
         "setting": "auto",
         "applied": bool(applied),
         "rejected": rejected is not None,
-        "plausible": why_not is None,
         "reason": reason,
         "statistic": statistic,
         "wald": wald,
@@ -176,75 +172,7 @@ def calibration_test(
         "step": {PARAMETERS[i]: float(prior_mean[i] + dc[i]) for i in range(3)},
         "sigma": {PARAMETERS[i]: float(sig[i]) for i in range(3)},
         "seconds": round(time.perf_counter() - t0, 4),
-    }, steps
-
-
-def map_shift(
-    problem: GraphProblem, values: gtsam.Values, marginals: dict[int, np.ndarray], steps: dict[int, np.ndarray]
-) -> dict[str, Any]:
-    """How far the calibration test's joint step would move the landmarks, against the uncalibrated map's own
-    marginals: per landmark ``d² = δpᵀ Σ_p⁻¹ δp / n`` over its ``n`` position dimensions (``δp`` the map-frame
-    position change of its step, ``Σ_p`` its position covariance); their mean (the NEES per dimension of the
-    uncalibrated map against the calibrated one), median and largest, and the median and largest shift.
-
-    The Wald statistic asks whether the data reject uncalibrated odometry; this asks whether the uncalibrated map's
-    covariances would cover the correction if the wheels had the errors the data point to. Where the landmarks
-    move by more than their own σ on average, the map's accuracy rests on the wheels having none (docs/graph.md)."""
-    d2, metres = [], []
-    for key in problem.landmark_keys.values():
-        if key not in steps or key not in marginals:
-            continue
-        kind = problem.kind(key)
-        J = kind.position_jacobian(kind.read(values, key))
-        rows = np.flatnonzero(np.abs(J).sum(axis=1) > 0)  # the 2D kinds have no height
-        dp = J[rows] @ steps[key]
-        C = J[rows] @ marginals[key] @ J[rows].T
-        try:
-            d2.append(float(dp @ np.linalg.solve(C, dp)) / len(rows))
-        except np.linalg.LinAlgError:
-            continue
-        metres.append(float(np.linalg.norm(dp)))
-    if not d2:
-        return {"landmarks": 0}
-    return {
-        "landmarks": len(d2),
-        "mean_d2_per_dim": float(np.mean(d2)),
-        "median_d2_per_dim": float(np.median(d2)),
-        "max_d2_per_dim": float(np.max(d2)),
-        "median_shift_m": float(np.median(metres)),
-        "max_shift_m": float(np.max(metres)),
     }
-
-
-def shift_decision(
-    decision: dict[str, Any], shift: dict[str, Any], cfg: GraphConfig, scale_warning: str | None
-) -> bool:
-    """Turn the calibration on (``decision`` updated in place; True) when the test did not, but calibrating would
-    move the landmarks by more than ``graph.calibration_shift_threshold`` of their σ (their mean ``d²`` per
-    dimension, :func:`map_shift`), the step is a plausible wheel error, and the shared tag scale is near its prior
-    (``scale_warning`` None: the health check's verdict on the uncalibrated map).
-
-    Most of the step's shift is the distance scale's, which is one degree of freedom with the tag scale: a long
-    wheel and a small tag move the map alike. A tag scale far from its prior says the tag size is wrong (the
-    ``tag_scale`` check names the size the data suggest); a calibration would hide that in the distance scale."""
-    decision["map_shift"] = shift
-    mean = shift.get("mean_d2_per_dim")
-    if decision.get("applied") or not decision.get("plausible") or mean is None:
-        return False
-    if mean <= cfg.calibration_shift_threshold:
-        return False
-    if scale_warning is not None:
-        shift["not_applied"] = "the tag scale is far from its prior: a wrong tag size is the likelier cause"
-        return False
-    decision["applied"] = True
-    decision["reason"] = (
-        f"the odometry may have systematic errors: the yaw calibration's statistic is {decision['statistic']:.1f} "
-        f"(<= {cfg.calibration_test_threshold:g}), but its step would move the landmarks by {math.sqrt(mean):.1f} "
-        f"of their own sigma (root mean square; median {100 * shift['median_shift_m']:.1f} cm; squared above "
-        f"graph.calibration_shift_threshold={cfg.calibration_shift_threshold:g}), which the uncalibrated map's "
-        "covariances do not allow for; so the distance scale, yaw-rate scale and yaw bias were estimated with the map"
-    )
-    return True
 
 
 PLAUSIBLE_SIGMAS = 5.0

@@ -84,15 +84,6 @@ class GraphConfig(SettingsModel):
         "redundancy with the calibration free) exceeds this (5.99: the 95 % point of chi-square with 2 degrees "
         "of freedom; a missed wheel error costs the map far more than a needless calibration, docs/graph.md).",
     )
-    calibration_shift_threshold: float = Field(
-        1.0,
-        gt=0,
-        description="odometry_calibration=auto also turns the calibration on when the test does not, but the test's "
-        "joint step would move the landmarks by more than their own sigma: the mean over landmarks of the step's "
-        "squared distance per position dimension against the uncalibrated marginals above this (1.0: one sigma). On "
-        "simulated corridors with mild wheel errors it is 1.7-4.9, without wheel errors 0.0-0.4 but for one world "
-        "(2.1) where calibrating helped (docs/graph.md). A large value turns it off.",
-    )
     calibration_test_max_poses: int = Field(
         6000,
         ge=0,

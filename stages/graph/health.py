@@ -98,7 +98,7 @@ def graph_health(
     warnings: list[str] = []
     for name, (figures, warning) in (
         ("chi2", _chi2_check(problem, chi2)),
-        ("tag_scale", scale_check(problem, values, marginals, tag_size_m)),
+        ("tag_scale", _scale_check(problem, values, marginals, tag_size_m)),
         ("iterations", _iterations_check(iterations, max_iterations, section)),
         ("moved_tags", _moved_tags_check(problem, chi2)),
         ("dead_reckoning", _dead_reckoning_check(problem, values, marginals)),
@@ -147,11 +147,9 @@ def _chi2_check(problem: GraphProblem, chi2: np.ndarray) -> tuple[dict[str, Any]
     )
 
 
-def scale_check(
+def _scale_check(
     problem: GraphProblem, values: gtsam.Values, marginals: dict[int, np.ndarray], tag_size_m: float | None
 ) -> tuple[dict[str, Any], str | None]:
-    """The ``tag_scale`` check: its figures, and its warning line when the shared tag scale is more than
-    :data:`SCALE_PRIOR_SIGMAS` prior sigmas from 1 (None otherwise, or when the scale is not estimated)."""
     sk = problem.scale_key
     prior = next((r for r in problem.rows if r.kind == "scale_prior"), None)
     if sk is None or prior is None:

@@ -13,10 +13,10 @@ import rerun as rr
 from pipeline.artifacts import StageOutput
 from pipeline.errors import StageError
 from stages.graph.calibration import applies as calibration_applies
-from stages.graph.calibration import calibrate, calibration_test, map_shift, shift_decision, tested
+from stages.graph.calibration import calibrate, calibration_test, tested
 from stages.graph.config import GraphConfig
 from stages.graph.factors import build_graph
-from stages.graph.health import graph_health, scale_check, strict_error
+from stages.graph.health import graph_health, strict_error
 from stages.graph.outputs import log_recording, write_artifacts
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, check_problem, marginal_covariances, optimise
@@ -101,31 +101,17 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     graph = build_graph(problem.rows)
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
     decision: dict[str, Any] | None = None
-    steps: dict[int, np.ndarray] = {}
     if tested(problem, cfg):
-        decision, steps = calibration_test(problem, graph, solution.values, cfg)
+        decision = calibration_test(problem, graph, solution.values, cfg)
         if decision["applied"]:
-            return _calibrated(problem, cfg, solution, decision, t0)
+            result = calibrate(problem, cfg, initial=solution.values)
+            result.summary["decision"] = decision
+            seconds = (time.perf_counter() - t0, 0.0)
+            return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
     t1 = time.perf_counter()
     marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
-    # the test did not turn it on: would calibrating move the map beyond its own σ?
-    shift = map_shift(problem, solution.values, marginals, steps) if decision is not None and steps else None
-    if decision is not None and shift is not None:
-        scale_warning = scale_check(problem, solution.values, marginals, None)[1]
-        if shift_decision(decision, shift, cfg, scale_warning):
-            return _calibrated(problem, cfg, solution, decision, t0)
     calibration = None if decision is None else {"estimated": False, "decision": decision}
     return _Solved(problem, graph, solution, marginals, calibration, (t1 - t0, time.perf_counter() - t1))
-
-
-def _calibrated(
-    problem: GraphProblem, cfg: GraphConfig, solution: Solution, decision: dict[str, Any], t0: float
-) -> _Solved:
-    """Solve again with the calibration that ``auto`` turned on, from the uncalibrated solution."""
-    result = calibrate(problem, cfg, initial=solution.values)
-    result.summary["decision"] = decision
-    seconds = (time.perf_counter() - t0, 0.0)
-    return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
 
 
 def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:

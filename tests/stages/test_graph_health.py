@@ -77,12 +77,6 @@ def test_a_wrong_tag_size_names_the_setting_and_the_size_the_data_suggest(tmp_pa
     assert scale["value"] > 1.05 and scale["prior_sigmas_from_1"] > 3
     line = next(w for w in summary["health"]["warnings"] if "tag scale" in w)
     assert "detect.tag_size_m=0.16" in line and f"{SIZE * scale['value']:.3f} m" in line
-    # calibrating the wheels would move the map far beyond its sigma too (a long wheel looks like a small tag), but
-    # the tag scale's distance from its prior names the tag size: the calibration stays off and does not hide it
-    calibration = summary["odometry_calibration"]
-    assert calibration["estimated"] is False
-    shift = calibration["decision"]["map_shift"]
-    assert shift["mean_d2_per_dim"] > 1.0 and "wrong tag size" in shift["not_applied"]
 
 
 def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
