@@ -462,10 +462,12 @@ def bench_photos() -> None:
 _WORKER: dict[str, Any] = {}
 
 
-def _init_speed(sets: dict[str, tuple[list[np.ndarray], CameraModel]]) -> None:
-    """Worker initializer: the frames (decoded once, sent once) and a processor per (setting, set)."""
+def _init_speed(sets: dict[str, tuple[list[np.ndarray], CameraModel]], pose_batch: int = 1) -> None:
+    """Worker initializer: the frames (decoded once, sent once), a processor per (setting, set), and how many
+    frames' poses are solved together (:func:`_work`)."""
     _WORKER["sets"] = sets
     _WORKER["procs"] = {}
+    _WORKER["pose_batch"] = pose_batch
 
 
 def _processor(variant: str, set_name: str) -> FrameProcessor:
@@ -476,8 +478,14 @@ def _processor(variant: str, set_name: str) -> FrameProcessor:
 
 
 def _work(task: tuple[str, str, int, int, bool]) -> int:
-    """Detect (and with ``pose``, estimate every pose) in frames ``lo:hi`` of a set; returns the tag count."""
-    from stages.detect.core import detect_image
+    """Detect (and with ``pose``, estimate every pose) in frames ``lo:hi`` of a set; returns the tag count.
+
+    With ``pose`` and ``_WORKER["pose_batch"]`` above 1 the frames' tags are kept and their poses solved together, as
+    the detect stage does with a batch of ``detect.batch_frames`` frames (:meth:`FrameProcessor.process`); with 1,
+    one frame at a time (``detect_image``, what this benchmark measured before session thirteen)."""
+    from collections import Counter
+
+    from stages.detect.core import FrameJob, detect_image, kept_observations, rows_with_poses
 
     variant, set_name, lo, hi, pose = task
     proc = _processor(variant, set_name)
@@ -485,10 +493,24 @@ def _work(task: tuple[str, str, int, int, bool]) -> int:
     frames = _WORKER["sets"][set_name][0][lo:hi]
     if not pose:
         return sum(len(proc.detector.detect(f)) for f in frames)
-    return sum(len(detect_image(f, proc.detector, proc.camera, proc.cfg)) for f in frames)
+    if _WORKER.get("pose_batch", 1) <= 1:
+        return sum(len(detect_image(f, proc.detector, proc.camera, proc.cfg)) for f in frames)
+    dropped: Counter[str] = Counter()
+    items = [
+        (
+            FrameJob(frame=i, stamp_ns=0, camera=""),
+            proc.camera,
+            kept_observations(proc.detector.detect(f), proc.cfg, dropped, True),
+        )
+        for i, f in enumerate(frames)
+    ]
+    return len(rows_with_poses(items, proc.cfg, dropped))
 
 
-def _tasks(variant: str, set_name: str, n: int, pose: bool, batch: int = 4) -> list[tuple[str, str, int, int, bool]]:
+def _tasks(variant: str, set_name: str, n: int, pose: bool) -> list[tuple[str, str, int, int, bool]]:
+    """The set's frames in tasks of ``pose_batch`` frames (4 when poses are solved per frame)."""
+    batch = max(_WORKER.get("pose_batch", 1), 1)
+    batch = batch if batch > 1 else 4
     return [(variant, set_name, i, min(i + batch, n), pose) for i in range(0, n, batch)]
 
 
@@ -561,8 +583,13 @@ def bench_speed(
     n: int,
     repeats: int,
     extra: dict[str, tuple[list[np.ndarray], CameraModel]] | None = None,
+    pose_batch: int = 1,
 ) -> None:
     """Frames per second, one process and two, per setting and frame set, interleaved; ratios to the reference.
+
+    ``pose_batch``: frames whose poses are solved together, in tasks of that many frames (the detect stage's
+    ``detect.batch_frames``, 16 by default; ``n`` a multiple of twice it keeps the two workers' shares equal), or 1:
+    one frame at a time, in tasks of 4 frames.
 
     Frames are decoded once and sent to the workers once (the initializer); pool start-up and the first
     detector construction are excluded (one warm-up pass). Each (setting, set, processes) cell is measured
@@ -582,10 +609,10 @@ def bench_speed(
     if photos is not None:
         sets[f"photos {photos[0][0].shape[1]}x{photos[0][0].shape[0]}"] = photos
     load_before = os.getloadavg()
-    _init_speed(sets)
+    _init_speed(sets, pose_batch)
     results: dict[tuple[str, str, int, bool], list[float]] = {}
     t_start = time.perf_counter()
-    with ProcessPoolExecutor(2, initializer=_init_speed, initargs=(sets,)) as pool:
+    with ProcessPoolExecutor(2, initializer=_init_speed, initargs=(sets, pose_batch)) as pool:
         for variant in VARIANTS:  # warm-up: build every detector in both workers and here
             for set_name in sets:
                 list(pool.map(_work, [(variant, set_name, 0, 1, True)] * 4))
@@ -598,7 +625,8 @@ def bench_speed(
                         results.setdefault((variant, set_name, workers, pose), []).append(fps)
     load_after = os.getloadavg()
     print(
-        f"\n## Speed: frames per second (median of {repeats} interleaved repeats, {n} frames per set), "
+        f"\n## Speed: frames per second (median of {repeats} interleaved repeats, {n} frames per set, poses solved "
+        f"{'one frame at a time' if pose_batch <= 1 else f'{pose_batch} frames at a time'}), "
         f"ratio to {REFERENCE} in one process"
     )
     print(
@@ -806,6 +834,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", type=Path, default=SAMPLE_BAG, help="recording with <stem>.ground_truth.json beside")
     parser.add_argument("--fit-seeds", type=int, nargs="*", default=[], help="also run simulator seeds (fitting)")
     parser.add_argument("--speed-frames", type=int, default=40, help="frames per speed set")
+    parser.add_argument(
+        "--speed-batch",
+        type=int,
+        default=1,
+        help="frames whose tags' poses are solved together in the speed table, in tasks of that many (the detect "
+        "stage's detect.batch_frames is 16: --speed-batch 16 --speed-frames 64 measures the stage's way); 1 (the "
+        "default): one frame at a time, as this table always was",
+    )
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats per speed cell (median)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["sim", "photos", "speed", "posecov", "recall"])
     parser.add_argument("--posecov-frames", type=int, default=200, help="sample frames for the pose + covariance share")
@@ -867,7 +903,7 @@ def main(argv: list[str] | None = None) -> int:
         bench_posecov(frames, camera, args.posecov_frames, args.repeats, batches)
     if "speed" not in args.skip:
         extra = {name.split(":")[0]: (f, c) for name, (f, _, c) in worlds.items()}
-        bench_speed(frames, camera, args.speed_frames, args.repeats, extra)
+        bench_speed(frames, camera, args.speed_frames, args.repeats, extra, args.speed_batch)
     print(f"\n(benchmark took {time.perf_counter() - t0:.0f} s)")
     return 0
 
