@@ -188,8 +188,10 @@ def test_a_stage_starts_with_earlier_garbage_collected_and_what_lives_frozen(run
     finally:
         gc.enable()
         gc.unfreeze()
-    assert seen == {"earlier_freed": True, "frozen": seen["frozen"], "own_freed": True}
-    assert isinstance(seen["frozen"], int) and seen["frozen"] > 1000  # at least the modules pytest imported
+    assert seen["earlier_freed"] is True  # collected before the freeze, not kept in the frozen generation
+    assert seen["own_freed"] is True  # the stage's own cycles are still collected
+    frozen = seen["frozen"]
+    assert isinstance(frozen, int) and frozen > 1000  # at least the modules pytest imported
 
 
 def test_a_stage_whose_code_cannot_be_imported_leaves_nothing_behind(run: RunFolder) -> None:
