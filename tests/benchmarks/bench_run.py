@@ -15,47 +15,27 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from tests.fixtures.memory import command_usage  # noqa: E402
+
 BAG = Path("sample_data/office/office.bag")
 CONFIG = Path("configs/office.yaml")
 DURATION_S = 114.95
 """The sample's recorded duration (ingest's ``duration_s``)."""
 
-_WRAPPER = """
-import resource, subprocess, sys, time
-t = time.perf_counter()
-rc = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-dt = time.perf_counter() - t
-if rc.returncode:
-    sys.stderr.write(rc.stderr)
-    sys.exit(rc.returncode)
-u = resource.getrusage(resource.RUSAGE_CHILDREN)
-print(dt, u.ru_utime + u.ru_stime, u.ru_maxrss / 1024.0)
-"""
-
 
 def run_once(checkout: Path, out: Path) -> tuple[float, float, float]:
     """Wall s, CPU s, peak RSS MiB of one whole run of ``checkout``'s code (its own modules first on the path)."""
     env = {**os.environ, "PYTHONPATH": str(checkout)}
-    cmd = ["focusmap", "run", str(BAG), "--out", str(out), "--config", str(CONFIG)]
     launcher = [sys.executable, "-c", "import sys; from cli.app import main; sys.argv[0] = 'focusmap'; main()"]
-    res = subprocess.run(
-        [sys.executable, "-c", _WRAPPER, *launcher, *cmd[1:]],
-        cwd=checkout,
-        env=env,
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if res.returncode:
-        raise SystemExit(f"run of {checkout} failed:\n{res.stderr}")
-    wall, cpu, rss = (float(v) for v in res.stdout.split())
-    return wall, cpu, rss
+    args = ["run", str(BAG), "--out", str(out), "--config", str(CONFIG)]
+    return command_usage([*launcher, *args], cwd=checkout, env=env)
 
 
 def main() -> None:

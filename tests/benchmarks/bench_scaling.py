@@ -27,22 +27,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
+from tests.fixtures.memory import command_usage  # noqa: E402
+
 STAGES = ("ingest", "detect", "graph", "select_landmarks", "select_measurements", "optimize", "evaluate")
 SIM_TAG_SIZE_M = 0.16
 """The simulator's tag size (``sample_data/simulate.py``'s ``--tag-size`` default), told to detect."""
 LAP_S = 63.6
 """One more lap of the corridor there and back, with the turn before it, s (the first is 57.7 s)."""
-
-_WRAPPER = """
-import resource, subprocess, sys, time
-t = time.perf_counter()
-rc = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-dt = time.perf_counter() - t
-if rc.returncode:
-    sys.stderr.write(rc.stderr)
-    sys.exit(rc.returncode)
-print(dt, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
-"""
 
 
 def laps_for(minutes: float) -> int:
@@ -52,11 +43,8 @@ def laps_for(minutes: float) -> int:
 
 def measured(cmd: list[str]) -> tuple[float, float]:
     """(wall s, peak RSS MiB) of ``cmd`` run in a fresh wrapper process."""
-    out = subprocess.run([sys.executable, "-c", _WRAPPER, *cmd], capture_output=True, text=True, check=False)
-    if out.returncode:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{out.stderr[-2000:]}")
-    dt, rss_kb = out.stdout.split()
-    return float(dt), float(rss_kb) / 1024.0
+    wall, _, rss = command_usage(cmd)
+    return wall, rss
 
 
 def slope(x: list[float], y: list[float]) -> float:
