@@ -509,8 +509,7 @@ def _work(task: tuple[str, str, int, int, bool]) -> int:
 
 def _tasks(variant: str, set_name: str, n: int, pose: bool) -> list[tuple[str, str, int, int, bool]]:
     """The set's frames in tasks of ``pose_batch`` frames (4 when poses are solved per frame)."""
-    batch = max(_WORKER.get("pose_batch", 1), 1)
-    batch = batch if batch > 1 else 4
+    batch = _WORKER["pose_batch"] if _WORKER.get("pose_batch", 1) > 1 else 4
     return [(variant, set_name, i, min(i + batch, n), pose) for i in range(0, n, batch)]
 
 
