@@ -43,7 +43,7 @@ STRICT: Final = Option(
     "--strict",
     "strict",
     "Stop with an error when a health check fails (fit far outside the noise models, tag scale off its prior, "
-    "iteration cap, moved tags, trajectory against dead reckoning).",
+    "iteration cap, moved tags, trajectory against dead reckoning, wheel scale).",
     kind=bool,
 )
 """The ``--strict`` option of the graph and optimize commands (their ``strict`` setting)."""

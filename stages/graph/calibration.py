@@ -97,9 +97,10 @@ def resolved(cfg: GraphConfig, calibration: bool) -> GraphConfig:
 
 def calibration_test(
     problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], dict[int, np.ndarray]]:
     """Do the data reject uncalibrated odometry? The ``decision`` block of ``odometry_calibration: auto`` (not
-    tested, ``skipped``, above ``calibration_test_max_poses`` keyframes: the test is quadratic in them).
+    tested, ``skipped``, above ``calibration_test_max_poses`` keyframes: the test is quadratic in them), and the
+    joint step of every landmark (its tangent vector, by key; empty when skipped) for :func:`map_shift`.
 
     At the uncalibrated solution the graph is linearised with the calibration as one more variable (its priors
     as configured), exactly the first round of :func:`calibrate`. Its Gauss-Newton step ``δc`` and covariance
@@ -121,7 +122,7 @@ def calibration_test(
             "reason": f"not tested: {len(problem.pose_keys)} keyframes > graph.calibration_test_max_poses="
             f"{cfg.calibration_test_max_poses} (the test grows with the square of the keyframes); set "
             "graph.odometry_calibration=true to estimate wheel errors on this recording",
-        }
+        }, {}
     t0 = time.perf_counter()
     on = resolved(cfg, True)
     base = list(problem.rows)
@@ -160,6 +161,7 @@ def calibration_test(
             f"no systematic odometry error found: the yaw calibration's statistic is {statistic:.1f} "
             f"(<= {cfg.calibration_test_threshold:g}; {step})"
         )
+    steps = {k: np.asarray(delta.at(k), dtype=float) for k in problem.landmark_keys.values() if delta.exists(k)}
     return {
         "setting": "auto",
         "applied": bool(applied),
@@ -172,7 +174,74 @@ def calibration_test(
         "step": {PARAMETERS[i]: float(prior_mean[i] + dc[i]) for i in range(3)},
         "sigma": {PARAMETERS[i]: float(sig[i]) for i in range(3)},
         "seconds": round(time.perf_counter() - t0, 4),
+    }, steps
+
+
+def map_shift(
+    problem: GraphProblem, values: gtsam.Values, marginals: dict[int, np.ndarray], steps: dict[int, np.ndarray]
+) -> dict[str, Any]:
+    """How far the calibration test's joint step would move the landmarks, against the uncalibrated map's own
+    marginals: per landmark ``d² = δpᵀ Σ_p⁻¹ δp / n`` over its ``n`` position dimensions (``δp`` the map-frame
+    position change of its step, ``Σ_p`` its position covariance); their mean (the NEES per dimension of the
+    uncalibrated map against the calibrated one), median and largest, and the median and largest shift.
+
+    The Wald statistic asks whether the data reject error-free wheels; this asks whether the uncalibrated map's
+    covariances would cover the correction if the wheels had the errors the data point to (docs/graph.md)."""
+    d2, metres = [], []
+    for key in problem.landmark_keys.values():
+        if key not in steps or key not in marginals:
+            continue
+        kind = problem.kind(key)
+        J = kind.position_jacobian(kind.read(values, key))
+        rows = np.flatnonzero(np.abs(J).sum(axis=1) > 0)  # the 2D kinds have no height
+        dp = J[rows] @ steps[key]
+        C = J[rows] @ marginals[key] @ J[rows].T
+        try:
+            d2.append(float(dp @ np.linalg.solve(C, dp)) / len(rows))
+        except np.linalg.LinAlgError:
+            continue
+        metres.append(float(np.linalg.norm(dp)))
+    if not d2:
+        return {"landmarks": 0}
+    return {
+        "landmarks": len(d2),
+        "mean_d2_per_dim": float(np.mean(d2)),
+        "median_d2_per_dim": float(np.median(d2)),
+        "max_d2_per_dim": float(np.max(d2)),
+        "median_shift_m": float(np.median(metres)),
+        "max_shift_m": float(np.max(metres)),
     }
+
+
+SHIFT_STEP_SIGMAS = 1.0
+"""The ``wheel_scale`` check also asks that the distance scale of the test's step be this many of its σ from 1: a
+step within its own noise moves a precise map by about its σ by chance (a world without wheel errors: mean ``d²``
+1.02 with the step at 0.64 σ; those with mild wheel errors: 1.6-2.2 σ, docs/graph.md)."""
+
+
+def shift_warning(decision: dict[str, Any], cfg: GraphConfig) -> str | None:
+    """The ``wheel_scale`` health check's line (None when it passes): ``auto`` left the calibration off, but the
+    test's joint step would move the landmarks by more than ``graph.calibration_shift_max`` of their own σ (mean
+    ``d²`` per dimension, :func:`map_shift`), and its distance scale is more than :data:`SHIFT_STEP_SIGMAS` of its σ
+    from 1. The map's accuracy then rests on wheels without error, which the data cannot confirm: most of the shift
+    is the distance scale's, one degree of freedom with the tag size, so a long wheel and a small tag print look
+    alike and neither setting can be chosen from the data (docs/graph.md)."""
+    shift = decision.get("map_shift") or {}
+    mean = shift.get("mean_d2_per_dim")
+    if decision.get("applied") or decision.get("rejected") or mean is None or mean <= cfg.calibration_shift_max:
+        return None
+    k_d = decision["step"]["distance_scale"]
+    sigma = decision["sigma"]["distance_scale"]
+    if abs(k_d - 1.0) <= SHIFT_STEP_SIGMAS * sigma:
+        return None  # the step's own noise: it moves a precise map by chance, not because the data point anywhere
+    return (
+        f"the map's scale rests on the wheels: calibrating them would move the landmarks by {math.sqrt(mean):.1f} "
+        f"of their sigma (root mean square; median {100 * shift['median_shift_m']:.1f} cm), though the yaw test did "
+        f"not call for it ({decision['statistic']:.1f} <= {decision['threshold']:g}); a wheel distance scale of "
+        f"{k_d:.4f} ± {sigma:.4f} and a tag size {100 * abs(k_d - 1):.1f} % off explain the data alike. Check "
+        "detect.tag_size_m against a printed tag, then set graph.odometry_calibration=true if the wheels may be "
+        "off (false accepts them as they are)"
+    )
 
 
 PLAUSIBLE_SIGMAS = 5.0

@@ -84,6 +84,15 @@ class GraphConfig(SettingsModel):
         "redundancy with the calibration free) exceeds this (5.99: the 95 % point of chi-square with 2 degrees "
         "of freedom; a missed wheel error costs the map far more than a needless calibration, docs/graph.md).",
     )
+    calibration_shift_max: float = Field(
+        1.0,
+        gt=0,
+        description="When odometry_calibration=auto leaves the calibration off, warn (health check wheel_scale) if "
+        "the test's joint step would move the landmarks by more than their own sigma: the mean over landmarks of "
+        "the step's squared distance per position dimension against the uncalibrated marginals above this (1.0: "
+        "one sigma; not fitted). A wheel distance error and a wrong tag size look alike to the data, so the map's "
+        "scale is then doubtful (docs/graph.md). A large value turns the check off.",
+    )
     calibration_test_max_poses: int = Field(
         6000,
         ge=0,

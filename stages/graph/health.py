@@ -24,6 +24,11 @@ gives its figures and, when it fails, one line that says what is wrong and which
   per dimension over the keyframes, with both covariances added; above :data:`DEAD_RECKONING_D2_PER_DIM_MAX`
   they disagree far beyond either's uncertainty.
 
+The graph stage adds two checks of ``odometry_calibration: auto`` when it ran its test
+(``stages/graph/solve_all.py``): ``odometry_calibration`` (the odometry disagrees with the tags as no wheel error
+does) and ``wheel_scale`` (the calibration stayed off, but would move the map beyond its own σ: a wheel's distance
+scale and the tag size cannot be told apart, :func:`stages.graph.calibration.shift_warning`).
+
 The thresholds are set so that none fires on the bundled sample or held-out simulated worlds with correct
 settings, and each fires on a world made to break it (docs/graph.md, "Health checks").
 """

@@ -13,7 +13,7 @@ import rerun as rr
 from pipeline.artifacts import StageOutput
 from pipeline.errors import StageError
 from stages.graph.calibration import applies as calibration_applies
-from stages.graph.calibration import calibrate, calibration_test, tested
+from stages.graph.calibration import calibrate, calibration_test, map_shift, shift_warning, tested
 from stages.graph.config import GraphConfig
 from stages.graph.factors import build_graph
 from stages.graph.health import graph_health, strict_error
@@ -38,7 +38,7 @@ def solve_and_write(
     t1 = time.perf_counter()
     solved = _solve(problem, cfg)
     health = _health(solved, cfg)
-    _rejected_calibration(solved, health)
+    _calibration_checks(solved, health, cfg)
     dropped: list[int] = []
     while (
         cfg.moved_tags == "drop" and health["checks"]["moved_tags"].get("tags") and len(dropped) < cfg.max_dropped_tags
@@ -49,7 +49,7 @@ def solve_and_write(
         check_problem(problem)
         solved = _solve(problem, cfg)
         health = _health(solved, cfg)
-        _rejected_calibration(solved, health)
+        _calibration_checks(solved, health, cfg)
     if dropped:
         health["warnings"].insert(
             0,
@@ -101,8 +101,9 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     graph = build_graph(problem.rows)
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
     decision: dict[str, Any] | None = None
+    steps: dict[int, np.ndarray] = {}
     if tested(problem, cfg):
-        decision = calibration_test(problem, graph, solution.values, cfg)
+        decision, steps = calibration_test(problem, graph, solution.values, cfg)
         if decision["applied"]:
             result = calibrate(problem, cfg, initial=solution.values)
             result.summary["decision"] = decision
@@ -110,6 +111,8 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
             return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
     t1 = time.perf_counter()
     marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    if decision is not None and steps:
+        decision["map_shift"] = map_shift(problem, solution.values, marginals, steps)
     calibration = None if decision is None else {"estimated": False, "decision": decision}
     return _Solved(problem, graph, solution, marginals, calibration, (t1 - t0, time.perf_counter() - t1))
 
@@ -127,15 +130,25 @@ def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:
     )
 
 
-def _rejected_calibration(s: _Solved, health: dict[str, Any]) -> None:
-    """A failed ``odometry_calibration`` check when ``auto`` found odometry that disagrees with the tags in a way no
-    wheel calibration explains (:func:`stages.graph.calibration.implausible`)."""
+def _calibration_checks(s: _Solved, health: dict[str, Any], cfg: GraphConfig) -> None:
+    """The checks of ``odometry_calibration: auto``, when it ran its test: ``odometry_calibration`` fails when the
+    odometry disagrees with the tags in a way no wheel calibration explains
+    (:func:`stages.graph.calibration.implausible`); ``wheel_scale`` when the calibration stayed off but would have
+    moved the map beyond its σ (:func:`stages.graph.calibration.shift_warning`; not when the ``tag_scale`` check
+    has already named a wrong tag size, the likelier cause then)."""
     decision = (s.calibration or {}).get("decision") or {}
-    if not decision.get("rejected"):
+    if decision.get("rejected"):
+        health["checks"]["odometry_calibration"] = {"ok": False, "reason": decision["reason"]}
+        health["warnings"].append(decision["reason"])
+        health["ok"] = False
+    shift = decision.get("map_shift")
+    if shift is None:
         return
-    health["checks"]["odometry_calibration"] = {"ok": False, "reason": decision["reason"]}
-    health["warnings"].append(decision["reason"])
-    health["ok"] = False
+    warning = shift_warning(decision, cfg) if health["checks"]["tag_scale"]["ok"] else None
+    health["checks"]["wheel_scale"] = {"ok": warning is None, "max": cfg.calibration_shift_max, **shift}
+    if warning is not None:
+        health["warnings"].append(warning)
+        health["ok"] = False
 
 
 def _without_tag(problem: GraphProblem, tag_id: int) -> GraphProblem:

@@ -10,7 +10,9 @@ covariances 10x too small, all zero, or absent (no covariance column), and the s
 (the control: calibration must not hurt it). Each is solved with the calibration off (``before``) and on
 (``after``: ``graph.odometry_calibration``, with the odometry's noise level estimated; ``after_tag_noise``: the
 tags' too, ``graph.noise_estimate=odometry_and_tags``), and with the defaults
-(``default``: ``odometry_calibration: auto`` decides; the ``auto`` column says what it chose and its statistic).
+(``default``: ``odometry_calibration: auto`` decides; the ``auto`` column says what it chose, its statistic and,
+when the test did not turn it on, the mean squared shift per dimension of its step against the map's sigma,
+``map_shift``, which the ``wheel_scale`` health check warns of above 1).
 
 Figures per run: landmark RMSE after a rigid 2D alignment of the landmarks to the truth (Umeyama, no scale),
 landmark NEES / 2 in the map frame (the truth in the frame of the true first keyframe, where the marginals
@@ -302,7 +304,9 @@ def main() -> None:
                     res["seconds"] = round(secs, 1)
                     if "decision" in summ:
                         dec = summ["decision"]
-                        res["auto"] = f"{'on' if dec['applied'] else 'off'} ({dec['statistic']:.1f})"
+                        shift = dec.get("map_shift", {}).get("mean_d2_per_dim")
+                        moved = "" if shift is None else f"; shift {shift:.2f}"
+                        res["auto"] = f"{'on' if dec['applied'] else 'off'} ({dec['statistic']:.1f}{moved})"
                     if args.decompose:
                         calibrated = "distance_scale" in summ
                         used = {"odometry_calibration": calibrated, "noise_estimate": summ.get("noise_estimate", "off")}

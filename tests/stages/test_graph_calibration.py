@@ -167,8 +167,65 @@ def test_auto_is_not_fooled_by_overconfident_covariances() -> None:
         problem = build_problem(run.detections, run.odometry, run.extrinsics, cfg)
         graph = build_graph(problem.rows)
         sol = optimise(problem, graph)
-        stats.append(calibration_test(problem, graph, sol.values, cfg))
+        stats.append(calibration_test(problem, graph, sol.values, cfg)[0])
     assert stats[1]["wald"] > 5 * stats[0]["wald"]
     assert stats[1]["odometry_chi2_per_redundancy"] > 5
     assert stats[1]["statistic"] < 0.5 * cfg.calibration_test_threshold
     assert not any(s["applied"] for s in stats)
+
+
+def _checked(run: SyntheticRun, cfg: GraphConfig):
+    """The stage's solve and its health block with the calibration's checks, as ``solve_and_write`` makes them."""
+    from stages.graph.solve_all import _calibration_checks, _health
+    from stages.graph.solve_all import _solve as stage_solve
+
+    problem = build_problem(run.detections, run.odometry, run.extrinsics, cfg)
+    solved = stage_solve(problem, cfg)
+    health = _health(solved, cfg)
+    _calibration_checks(solved, health, cfg)
+    return solved, health
+
+
+def test_a_wheel_distance_error_the_yaw_test_misses_is_a_warning_not_a_calibration() -> None:
+    """A wheel 3 % long with exact tags: the yaw test has nothing to find, so ``auto`` leaves the calibration off and
+    the map is the uncalibrated one bit for bit; but the test's joint step would move the landmarks by several of
+    their σ, so the ``wheel_scale`` check fails with a line naming both explanations and both settings. A clean run
+    passes it, and where the shared tag scale is estimated the same error is the ``tag_scale`` check's alone."""
+    from stages.graph import remarks
+
+    long_wheel = synthetic_run(seed=0, loops=2.0, wheel_errors=(0.03, 0.0, 0.0))
+    cfg = GraphConfig(tag_scale_sigma=EXACT_TAG_SCALE)
+    solved, health = _checked(long_wheel, cfg)
+    assert solved.calibration is not None and solved.calibration["estimated"] is False
+    decision = solved.calibration["decision"]
+    assert not decision["applied"] and decision["statistic"] < cfg.calibration_test_threshold
+    assert abs(decision["step"]["distance_scale"] - 1.03) < 3 * decision["sigma"]["distance_scale"]
+    check = health["checks"]["wheel_scale"]
+    assert not check["ok"] and not health["ok"]
+    assert check["mean_d2_per_dim"] > 1.5 * cfg.calibration_shift_max
+    assert check["landmarks"] == len(solved.problem.landmark_keys)
+    line = next(w for w in health["warnings"] if "wheels" in w)
+    assert "detect.tag_size_m" in line and "graph.odometry_calibration=true" in line
+    assert f"{decision['step']['distance_scale']:.4f}" in line
+    assert ("warning", line) in remarks({"health": health})
+    plain, _, marginals, _ = _solve(long_wheel, cfg.model_copy(update={"odometry_calibration": False}))
+    for key in plain.var_types:
+        assert np.array_equal(solved.marginals[key], marginals[key])
+    # a larger threshold turns the check off; the figures stay in the summary
+    quiet = _checked(long_wheel, cfg.model_copy(update={"calibration_shift_max": 1e6}))[1]
+    assert quiet["checks"]["wheel_scale"]["ok"] and quiet["ok"]
+
+    clean = _checked(synthetic_run(seed=0, loops=2.0), cfg)[1]
+    assert clean["checks"]["wheel_scale"]["ok"] and clean["checks"]["wheel_scale"]["mean_d2_per_dim"] < 1.0
+    assert clean["ok"], clean["warnings"]
+
+    # with the shared tag scale free (the default) the map follows the wheel part of the way: a 3 % long wheel
+    # leaves the scale at 2.2 prior σ, under the tag_scale check's 3, and the wheel_scale check is the one warning;
+    # a 5 % long wheel pushes the scale beyond 3 σ, that check names the tag size, and wheel_scale stays quiet
+    scaled = _checked(long_wheel, GraphConfig())[1]
+    assert scaled["checks"]["tag_scale"]["ok"] and not scaled["checks"]["wheel_scale"]["ok"]
+    assert len(scaled["warnings"]) == 1 and "wheels" in scaled["warnings"][0]
+    longer = _checked(synthetic_run(seed=0, loops=2.0, wheel_errors=(0.05, 0.0, 0.0)), GraphConfig())[1]
+    assert not longer["checks"]["tag_scale"]["ok"]
+    assert longer["checks"]["wheel_scale"]["ok"] and longer["checks"]["wheel_scale"]["mean_d2_per_dim"] > 1.0
+    assert len(longer["warnings"]) == 1 and "tag scale" in longer["warnings"][0]
