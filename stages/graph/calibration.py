@@ -38,7 +38,7 @@ from stages.estimation.sparse_cov import SPDSolver
 from stages.geometry import pose3_from_vector, pose3_to_vector
 from stages.graph.config import GraphConfig
 from stages.graph.factors import FactorRow, build_graph
-from stages.graph.marginals import whitened_system
+from stages.graph.marginals import selected_inverse, whitened_system
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, optimise
 
@@ -500,26 +500,30 @@ def _noise_statistics(
     """Whitened χ², redundancy and the calibration's covariance at the optimum (see the module docstring).
 
     The joint system's whitened Jacobian ``J`` (factor rows in graph order, the calibration's prior last) gives
-    ``H = JᵀJ``; the odometry rows' part of ``tr(J H⁻¹ Jᵀ)`` comes from one sparse factorisation and solves
-    with those rows as right-hand sides, and the tag rows' part is the rest of ``tr(H⁻¹ H) = n``.
+    ``H = JᵀJ``; the odometry rows' part of ``tr(J H⁻¹ Jᵀ)`` needs ``H⁻¹`` only on the blocks of each odometry
+    factor's keys (:func:`stages.graph.marginals.selected_inverse`, linear in the keyframes; solves with those rows
+    as right-hand sides were quadratic), and the tag rows' part is the rest of ``tr(H⁻¹ H) = n``.
     """
     J, b = whitened_system(joint)
-    m, n = J.shape
+    n = J.shape[1]
     solver = SPDSolver((J.T @ J).tocsc())
     starts = np.concatenate([[0], np.cumsum([r.dim for r in problem.rows] + [3])])
 
     def rows_of(idx: list[int]) -> np.ndarray:
         return np.concatenate([np.arange(starts[i], starts[i + 1]) for i in idx]) if idx else np.zeros(0, int)
 
-    def hat_trace(rows: np.ndarray) -> float:
-        total = 0.0
-        for k in range(0, len(rows), 512):
-            B = J[rows[k : k + 512]].T.toarray()
-            total += float(np.sum(B * solver.solve(B)))
-        return total
-
     odo_rows, tag_rows = rows_of(odo), rows_of(tags)
-    other_rows = np.setdiff1d(np.arange(m), np.concatenate([odo_rows, tag_rows]))
+    other = sorted(set(range(joint.size())) - set(odo) - set(tags))  # priors, the calibration's prior last
+    other_rows = rows_of(other)
+    # each row's leverage J_r H⁻¹ J_rᵀ needs H⁻¹ on its own factor's keys only: the selected inverse
+    dims = {k: 3 if k == CALIBRATION_KEY else problem.kind(k).dim for k in map(int, joint.keyVector())}
+    groups = [list(joint.at(i).keys()) for i in odo + other]
+    Z = selected_inverse(joint, dims, groups, last=list(problem.landmark_keys.values()))
+
+    def hat_trace(rows: np.ndarray) -> float:  # tr(H⁻¹ J_rᵀ J_r): both sparse on the factors' blocks
+        Jr = J[rows]
+        return float((Jr.T @ Jr).multiply(Z).sum())
+
     tr_odo, tr_other = hat_trace(odo_rows), hat_trace(other_rows)
     r_odo = len(odo_rows) - tr_odo
     r_tag = len(tag_rows) - (n - tr_odo - tr_other)

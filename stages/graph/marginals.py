@@ -14,7 +14,7 @@ small dense products per clique; a clique's covariance is dropped once its child
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 
 import gtsam
 import numpy as np
@@ -64,8 +64,76 @@ def tree_marginals(
     """
     order = [int(k) for k in keys]
     want = set(order)
-    tree = eliminate(linear, last)
     out: dict[int, np.ndarray] = {}
+    for ks, at, n_front, cov in _clique_covariances(eliminate(linear, last), dims):
+        for k in ks:
+            i = at[k]
+            if i >= n_front:
+                break
+            if k in want:
+                block = cov[i : i + dims[k], i : i + dims[k]]
+                out[k] = 0.5 * (block + block.T)
+    if missing := sorted(want - set(out)):
+        raise RuntimeError(f"variables {missing[:5]} are not in the graph, so have no marginal")
+    return {k: out[k] for k in order}  # in the order asked
+
+
+def selected_inverse(
+    linear: gtsam.GaussianFactorGraph,
+    dims: Mapping[int, int],
+    groups: Sequence[Sequence[int]],
+    last: Iterable[int] = (),
+) -> sp.csr_matrix:
+    """The covariance ``H⁻¹`` of the Gaussian ``linear`` on the blocks of each group of keys (every pair of keys of a
+    group, both ways), zero elsewhere, in :func:`whitened_system`'s column layout (keys sorted): the selected
+    inverse, from the recursion of the module docstring.
+
+    A group must be the keys of one factor of ``linear`` (or a subset of them): elimination puts them in one clique,
+    whose covariance the recursion holds at some point, so the cost is that of :func:`tree_marginals`, linear where
+    the tree's cliques stay small, rather than a solve per column. ``tr(H⁻¹ J_fᵀ J_f)`` (a factor's share of the
+    hat matrix's trace, its "leverage") then needs only the blocks of its own keys.
+
+    Raises:
+        RuntimeError: GTSAM's, when the system is indeterminant.
+    """
+    ordered = sorted(int(k) for k in linear.keyVector())
+    offsets = dict(zip(ordered, np.cumsum([0] + [dims[k] for k in ordered[:-1]]).tolist(), strict=True))
+    n = sum(dims[k] for k in ordered)
+    pending: dict[int, list[tuple[int, ...]]] = {}  # each group under each of its keys
+    for g in {tuple(sorted(int(k) for k in g)) for g in groups}:
+        for k in g:
+            pending.setdefault(k, []).append(g)
+    served: set[tuple[int, ...]] = set()
+    rows, cols, vals = [], [], []
+    for ks, at, n_front, cov in _clique_covariances(eliminate(linear, last), dims):
+        for k in ks:
+            if at[k] >= n_front:
+                break
+            for g in pending.get(k, ()):
+                if g in served or any(j not in at for j in g):
+                    continue
+                served.add(g)
+                local = np.concatenate([np.arange(at[j], at[j] + dims[j]) for j in g])
+                glob = np.concatenate([np.arange(offsets[j], offsets[j] + dims[j]) for j in g])
+                rows.append(np.repeat(glob, len(glob)))
+                cols.append(np.tile(glob, len(glob)))
+                vals.append(cov[np.ix_(local, local)].ravel())
+    if missing := [g for gs in pending.values() for g in gs if g not in served]:
+        raise RuntimeError(f"keys {list(missing[0])} share no clique: they are not one factor's")
+    if not rows:
+        return sp.csr_matrix((n, n))
+    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    flat, first = np.unique(r * n + c, return_index=True)  # a pair of keys in two groups: one entry
+    Z = sp.csr_matrix((v[first], (flat // n, flat % n)), shape=(n, n))
+    return (Z + Z.T) * 0.5
+
+
+def _clique_covariances(
+    tree: gtsam.GaussianBayesTree, dims: Mapping[int, int]
+) -> Iterator[tuple[list[int], dict[int, int], int, np.ndarray]]:
+    """Each clique's joint covariance, top-down (the recursion of the module docstring): its keys (frontals first),
+    where each key's block starts, the frontal dimension, and the covariance. A clique's covariance is dropped once
+    its children have taken theirs."""
     trtri = sla.lapack.dtrtri  # R⁻¹ of a small upper-triangular R, without solve_triangular's checks
     # each clique is handed its parent's covariance and, per key of the parent, that key's indices in it
     stack: list[tuple[gtsam.GaussianBayesTreeClique, dict[int, int], np.ndarray]] = [
@@ -97,17 +165,8 @@ def tree_marginals(
                 cov[:n_front, n_front:] = cov_fs
                 cov[n_front:, :n_front] = cov_fs.T
                 cov[n_front:, n_front:] = cov_ss
-            for k in ks:
-                i = at[k]
-                if i >= n_front:
-                    break
-                if k in want:
-                    block = cov[i : i + dims[k], i : i + dims[k]]
-                    out[k] = 0.5 * (block + block.T)
+            yield ks, at, n_front, cov
             stack.extend((clique[c], at, cov) for c in range(clique.nrChildren()))
-    if missing := sorted(want - set(out)):
-        raise RuntimeError(f"variables {missing[:5]} are not in the graph, so have no marginal")
-    return {k: out[k] for k in order}  # in the order asked
 
 
 def whitened_system(linear: gtsam.GaussianFactorGraph) -> tuple[sp.csr_matrix, np.ndarray]:

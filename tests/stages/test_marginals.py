@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from stages.graph.factors import build_graph
-from stages.graph.marginals import key_dims, sparse_joint_covariance, tree_marginals
+from stages.graph.marginals import (
+    key_dims,
+    selected_inverse,
+    sparse_joint_covariance,
+    tree_marginals,
+    whitened_system,
+)
 from stages.graph.scale_solve import NativeScaleGraph, scale_key_of, without_key
 from stages.graph.solve import optimise
 from tests.fixtures.synthetic_runs import synthetic_planar_problem
@@ -119,3 +125,32 @@ def test_the_sparse_joint_covariance_is_gtsams() -> None:
     ours = sparse_joint_covariance(linear, key_dims(values), pick)
     assert ours.shape == theirs.shape
     assert np.allclose(ours, theirs, rtol=1e-7, atol=1e-10 * np.abs(theirs).max())
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.005])
+def test_the_selected_inverse_is_the_dense_inverse_on_every_factors_blocks(sigma: float) -> None:
+    """``selected_inverse`` gives ``H⁻¹`` on the blocks of every factor's keys (both ways) and zero elsewhere, equal
+    to the dense inverse of ``JᵀJ``; each factor's leverage ``tr(H⁻¹ J_fᵀ J_f)`` from it sums to the number of
+    unknowns, as the hat matrix's trace must. With the shared scale, one key is in every tag factor's group."""
+    problem = synthetic_planar_problem(120, 15, 200, seed=5, tag_scale_sigma=sigma)
+    graph = build_graph(problem.rows)
+    values = optimise(problem, graph).values
+    linear = graph.linearize(values)
+    groups = [[int(k) for k in linear.at(i).keys()] for i in range(linear.size())]  # noqa: SIM118 (a KeyVector)
+    dims = key_dims(values)
+    Z = selected_inverse(linear, dims, groups)
+    J, _ = whitened_system(linear)
+    dense = np.linalg.inv((J.T @ J).toarray())
+    ordered = sorted(dims)
+    start = dict(zip(ordered, np.cumsum([0] + [dims[k] for k in ordered[:-1]]).tolist(), strict=True))
+    mask = np.zeros(dense.shape, dtype=bool)
+    for g in groups:
+        idx = np.concatenate([np.arange(start[k], start[k] + dims[k]) for k in g])
+        mask[np.ix_(idx, idx)] = True
+    Zd = Z.toarray()
+    assert np.allclose(Zd[mask], dense[mask], rtol=1e-8, atol=1e-10 * np.abs(dense).max())
+    assert not Zd[~mask].any()
+    leverage = float((J.T @ J).multiply(Z).sum())
+    assert leverage == pytest.approx(J.shape[1], rel=1e-9)
+    with pytest.raises(RuntimeError, match="share no clique"):  # the first and last poses are no factor's keys
+        selected_inverse(linear, dims, [[ordered[0], ordered[-1]], *groups])
