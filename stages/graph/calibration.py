@@ -36,6 +36,7 @@ import numpy as np
 
 from stages.estimation.sparse_cov import SPDSolver
 from stages.geometry import pose3_from_vector, pose3_to_vector
+from stages.graph import se2
 from stages.graph.config import GraphConfig
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.marginals import selected_inverse, whitened_system
@@ -339,6 +340,39 @@ def _whitening(cov: np.ndarray) -> np.ndarray:
     return np.asarray(gtsam.noiseModel.Gaussian.Covariance(0.5 * (C + C.T)).R())
 
 
+def _planar_increments(M: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """:func:`corrected_increment` of every planar measurement (rows of ``M``) at once."""
+    k_d, k_w, b = (float(v) for v in c)
+    x, y, th = M[:, 0], M[:, 1], M[:, 2]
+    th_c = (th - b * x / k_d) / k_w
+    half = 0.5 * (th_c - th)
+    ch, sh = np.cos(half), np.sin(half)
+    return np.column_stack([(ch * x - sh * y) / k_d, (sh * x + ch * y) / k_d, th_c])
+
+
+def planar_corrected_factors(M: np.ndarray, covs: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`corrected_factor` of every planar measurement at once: ``(N, 3)`` increments, ``(N, 3, 3)``
+    covariances (the same central differences, in :mod:`stages.graph.se2`'s batched ``Pose2`` operations)."""
+    Z = _planar_increments(M, c)
+    G = np.empty((len(M), 3, 3))
+    for p in range(3):
+        d = np.zeros((len(M), 3))
+        d[:, p] = _STEP
+        hi = _planar_increments(se2.retract(M, d), c)
+        lo = _planar_increments(se2.retract(M, -d), c)
+        G[:, :, p] = se2.local(lo, hi) / (2 * _STEP)
+    C = G @ covs @ G.transpose(0, 2, 1)
+    return Z, 0.5 * (C + C.transpose(0, 2, 1))
+
+
+def _planar_whitened_residuals(M: np.ndarray, covs: np.ndarray, c: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """:func:`_whitened_residual` of every planar factor at once (``pred``: the predicted increments, ``(N, 3)``);
+    the whitening is GTSAM's, the upper Cholesky factor of the information."""
+    Z, C = planar_corrected_factors(M, covs, c)
+    R = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
+    return np.einsum("nij,nj->ni", R, se2.local(Z, pred))
+
+
 @dataclass
 class _State:
     c: np.ndarray
@@ -351,10 +385,16 @@ def _rows_at(
 ) -> list[FactorRow]:
     """The problem's rows with the odometry corrected by ``s.c`` and the covariances scaled."""
     rows = list(base)
-    for i in odo:
-        r = base[i]
-        z, cov = corrected_factor(r.measurement, r.covariance, s.c, problem.model)
-        rows[i] = replace(r, measurement=z, covariance=s.lam_odo * cov)
+    if problem.model == "planar" and odo:
+        M = np.array([base[i].measurement[:3] for i in odo], dtype=float)
+        Z, C = planar_corrected_factors(M, np.array([base[i].covariance for i in odo], dtype=float), s.c)
+        for i, z, cov in zip(odo, Z, C, strict=True):
+            rows[i] = replace(base[i], measurement=z, covariance=s.lam_odo * cov)
+    else:
+        for i in odo:
+            r = base[i]
+            z, cov = corrected_factor(r.measurement, r.covariance, s.c, problem.model)
+            rows[i] = replace(r, measurement=z, covariance=s.lam_odo * cov)
     if s.lam_tag != 1.0:
         for i in tags:
             rows[i] = replace(base[i], covariance=s.lam_tag * base[i].covariance)
@@ -378,7 +418,7 @@ def _joint_system(
     lin = graph.linearize(values)
     odo_set = set(odo)
     joint = gtsam.GaussianFactorGraph()
-    a_c: dict[int, np.ndarray] = {}
+    a_c = _planar_calibration_columns(problem, lin, values, odo, s, base) if problem.model == "planar" else {}
     for i in range(lin.size()):
         f = lin.at(i)
         if i not in odo_set:
@@ -387,30 +427,54 @@ def _joint_system(
         row = problem.rows[i]
         A, b = f.jacobian()
         keys = list(f.keys())
-        pred: Any
-        if problem.model == "planar":
-            pred = values.atPose2(keys[0]).between(values.atPose2(keys[1]))
-        else:
+        if i not in a_c:
             pred = values.atPose3(keys[0]).between(values.atPose3(keys[1]))
-        cov = s.lam_odo * base[i].covariance
-        cols = []
-        for p in range(3):
-            dp = np.zeros(3)
-            dp[p] = _CAL_STEP
-            hi = _whitened_residual(problem.model, base[i].measurement, cov, s.c + dp, pred)
-            lo = _whitened_residual(problem.model, base[i].measurement, cov, s.c - dp, pred)
-            cols.append((hi - lo) / (2 * _CAL_STEP))
-        Ac = np.column_stack(cols)
-        a_c[i] = Ac
+            cov = s.lam_odo * base[i].covariance
+            cols = []
+            for p in range(3):
+                dp = np.zeros(3)
+                dp[p] = _CAL_STEP
+                hi = _whitened_residual(problem.model, base[i].measurement, cov, s.c + dp, pred)
+                lo = _whitened_residual(problem.model, base[i].measurement, cov, s.c - dp, pred)
+                cols.append((hi - lo) / (2 * _CAL_STEP))
+            a_c[i] = np.column_stack(cols)
         d = row.dim
         unit = gtsam.noiseModel.Unit.Create(d)
         k1, k2 = keys
-        joint.push_back(gtsam.JacobianFactor(k1, A[:, :d], k2, A[:, d:], CALIBRATION_KEY, Ac, b, unit))
+        joint.push_back(gtsam.JacobianFactor(k1, A[:, :d], k2, A[:, d:], CALIBRATION_KEY, a_c[i], b, unit))
     A0 = np.diag(1.0 / prior_sigma)
     joint.push_back(
         gtsam.JacobianFactor(CALIBRATION_KEY, A0, (prior_mean - s.c) / prior_sigma, gtsam.noiseModel.Unit.Create(3))
     )
     return joint, a_c
+
+
+def _planar_calibration_columns(
+    problem: GraphProblem,
+    lin: gtsam.GaussianFactorGraph,
+    values: gtsam.Values,
+    odo: list[int],
+    s: _State,
+    base: list[FactorRow],
+) -> dict[int, np.ndarray]:
+    """Every planar odometry factor's whitened Jacobian for ``c`` at once (central differences of
+    :func:`_planar_whitened_residuals`), by factor index."""
+    if not odo:
+        return {}
+    keys = [list(lin.at(i).keys()) for i in odo]
+    at = {k: i for i, k in enumerate(sorted({k for pair in keys for k in pair}))}
+    poses = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(k) for k in at)])
+    pred = se2.between(poses[[at[k1] for k1, _ in keys]], poses[[at[k2] for _, k2 in keys]])
+    M = np.array([base[i].measurement[:3] for i in odo], dtype=float)
+    covs = s.lam_odo * np.array([base[i].covariance for i in odo], dtype=float)
+    cols = np.empty((len(odo), 3, 3))
+    for p in range(3):
+        dp = np.zeros(3)
+        dp[p] = _CAL_STEP
+        hi = _planar_whitened_residuals(M, covs, s.c + dp, pred)
+        lo = _planar_whitened_residuals(M, covs, s.c - dp, pred)
+        cols[:, :, p] = (hi - lo) / (2 * _CAL_STEP)
+    return dict(zip(odo, cols, strict=True))
 
 
 def _prior(cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ covariances 10x too small, all zero, or absent (no covariance column), and the s
 tags' too, ``graph.noise_estimate=odometry_and_tags``), and with the defaults
 (``default``: ``odometry_calibration: auto`` decides; the ``auto`` column says what it chose, its statistic and,
 when the test did not turn it on, the mean squared shift per dimension of its step against the map's sigma,
-``map_shift``, which the ``wheel_scale`` health check warns of above 1).
+``map_shift``, the distance scale's step in its σ, and ``wheel_scale`` where that health check would warn).
 
 Figures per run: landmark RMSE after a rigid 2D alignment of the landmarks to the truth (Umeyama, no scale),
 landmark NEES / 2 in the map frame (the truth in the frame of the true first keyframe, where the marginals
@@ -275,6 +275,8 @@ def main() -> None:
     import pyarrow.parquet as pq
 
     from stages.detect.artifacts import DETECTIONS
+    from stages.graph.calibration import shift_warning
+    from stages.graph.config import GraphConfig
     from stages.ingest.artifacts import EXTRINSICS, Extrinsics
 
     args.work.mkdir(parents=True, exist_ok=True)
@@ -305,7 +307,11 @@ def main() -> None:
                     if "decision" in summ:
                         dec = summ["decision"]
                         shift = dec.get("map_shift", {}).get("mean_d2_per_dim")
-                        moved = "" if shift is None else f"; shift {shift:.2f}"
+                        moved = ""
+                        if shift is not None:  # the wheel_scale check's figures (without the tag_scale check's veto)
+                            z = (dec["step"]["distance_scale"] - 1) / dec["sigma"]["distance_scale"]
+                            warned = shift_warning(dec, GraphConfig(**CONFIGS[label])) is not None
+                            moved = f"; shift {shift:.2f}, k_d {z:+.1f} σ" + ("; wheel_scale" if warned else "")
                         res["auto"] = f"{'on' if dec['applied'] else 'off'} ({dec['statistic']:.1f}{moved})"
                     if args.decompose:
                         calibrated = "distance_scale" in summ
