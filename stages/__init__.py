@@ -39,6 +39,7 @@ HEADLINES: Final = {
         "maxP",
     ),
     "collision_rate": Headline("float64", (("evaluate", "headline.collision_rate"),), "rate"),
+    "graph_warnings": Headline("int64", (("graph", "health.warnings"),), "warn"),
 }
 """The figures ``focusmap batch`` shows per run: column -> where to find it in the stage summaries."""
 

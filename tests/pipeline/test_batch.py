@@ -285,7 +285,7 @@ def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None
         status="done",
         stages_run=["graph"],
         stages={
-            "graph": {"seconds": 1.5, "summary": {"landmarks": 24}},
+            "graph": {"seconds": 1.5, "summary": {"landmarks": 24, "health": {"warnings": ["a", "b"]}}},
             "select_landmarks": {"seconds": 0.5, "summary": {"selected": 3, "p_collision_max_focused": 0.02}},
             "evaluate": {"seconds": 2.0, "summary": {"headline": {"collision_rate": 0.1}, "focused_entropy": -3.5}},
         },
@@ -299,6 +299,7 @@ def test_summary_reads_headlines_from_stage_summaries_and_leaves_nulls() -> None
     assert rows[0]["max_collision_probability"] == pytest.approx(0.02)
     assert rows[0]["collision_rate"] == pytest.approx(0.1)  # a dotted place reaches into "headline"
     assert rows[0]["focused_entropy"] == pytest.approx(-3.5)  # found by the column's own name
+    assert rows[0]["graph_warnings"] == 2  # the graph's health warnings, counted
     assert rows[0]["measurements_kept"] is None
     assert rows[0]["seconds_graph"] == 1.5
     assert rows[1] | {"recording": None} == {
