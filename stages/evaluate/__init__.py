@@ -47,7 +47,8 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
 
 
 def report_lines(summary: Summary) -> list[str]:
-    """The evaluation report's path and its headline row (focus, info), from evaluate's summary."""
+    """The evaluation report's path, its headline row (focus, info), and a line when the full map failed health
+    checks, from evaluate's summary."""
     lines = []
     if summary.get("report"):
         lines.append(f"report: {summary['report']}")
@@ -71,6 +72,12 @@ def report_lines(summary: Summary) -> list[str]:
             f"max P(collision) {num('max_collision_probability'):.2g}, "
             f"collision rate {num('collision_rate'):.3f} "
             f"[{num('collision_ci_low'):.3f}, {num('collision_ci_high'):.3f}]"
+        )
+    failed = summary.get("map_health_warnings")
+    if isinstance(failed, int) and failed > 0:
+        lines.append(
+            f"the full map failed {failed} health check(s) of the graph stage (its warning lines above, and at the "
+            "top of the report): its figures are doubtful"
         )
     return lines
 

@@ -214,7 +214,11 @@ REALISATIONS: Final = TableSpec(
 )
 
 # the report --------------------------------------------------------------------------------------------
-REPORT_MD = FileSpec("report.md", "Table I layout and extra columns, expectation checks, the Why analysis, figures")
+REPORT_MD = FileSpec(
+    "report.md",
+    "the full map's health checks (graph's failed ones as warning lines), Table I layout and extra columns, "
+    "expectation checks, the Why analysis, figures",
+)
 REPORT_HTML = FileSpec("report.html", "the same with the figures embedded")
 FIGURES: Final = tuple(
     FileSpec(name, what, optional=True)

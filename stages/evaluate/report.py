@@ -202,14 +202,20 @@ def _navigation_spec(inputs: EvalInputs, results: Sequence[CaseResult]) -> Navig
 
 
 def markdown_report(
-    inputs: EvalInputs, results: Sequence[CaseResult], images: Sequence[str], notes: Sequence[str]
+    inputs: EvalInputs,
+    results: Sequence[CaseResult],
+    images: Sequence[str],
+    notes: Sequence[str],
+    map_warnings: Sequence[str] = (),
 ) -> str:
-    """``report.md``."""
+    """``report.md``. ``map_warnings``: the full graph's failed health checks, shown before any figure, since every
+    case is cut from that map."""
     ref = results[0].row["error_reference"] if results else "?"
     nav = inputs.navigation
     lines = [
         "# focusmap evaluation: Mu et al. Table I on this run",
         "",
+        *map_health_lines(map_warnings),
         f"Navigation regime: {inputs.cfg.regime}.",
         "",
         f"Budgets: alpha = {inputs.alpha} landmarks, K = {inputs.K} measurements. "
@@ -248,6 +254,19 @@ def markdown_report(
         lines += ["## Notes", "", *notes, ""]
     lines += ["## Figures", ""] + [f"![{name}]({name})" for name in images]
     return "\n".join(lines) + "\n"
+
+
+def map_health_lines(warnings: Sequence[str]) -> list[str]:
+    """The report's paragraph on the full map's health checks (the graph stage's; docs/graph.md "Health checks")."""
+    if not warnings:
+        return ["The full map passed every health check of the graph stage.", ""]
+    return [
+        f"**The full map failed {len(warnings)} health check(s) of the graph stage: every case below is cut from it, "
+        "so read its figures with these in mind.**",
+        "",
+        *(f"- warning: {w}" for w in warnings),
+        "",
+    ]
 
 
 def risk_check_line(row: dict[str, Any]) -> str:

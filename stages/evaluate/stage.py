@@ -155,7 +155,9 @@ def _run(
     study = _realisations(inputs, todo, cfg, detections)
     art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma, pool) if cfg.plots else []
-    md = markdown_report(inputs, results, images, notes) + report_section(study, cfg, TABLE_I_LABELS)
+    health = ctx.input("graph").summary.get("health") or {}
+    map_warnings = [str(w) for w in health.get("warnings") or []]
+    md = markdown_report(inputs, results, images, notes, map_warnings) + report_section(study, cfg, TABLE_I_LABELS)
     out.write_text(art.REPORT_MD.file, md)
     out.write_text(art.REPORT_HTML.file, html_report(md, out.path))
     log_recording(ctx.rec, inputs, results, ctx.n_sigma)
@@ -175,6 +177,7 @@ def _run(
         "regime": cfg.regime,
         "why": why_findings(inputs, results),
         "report": str(ctx.run.stage_dir("evaluate") / art.REPORT_HTML.file),
+        "map_health_warnings": len(map_warnings),
         "from_upstream": {r.case.name: r.reused for r in results if r.reused},
         "realisations": _realisations_summary(study),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},

@@ -142,6 +142,13 @@ def test_a_run_ends_with_the_report_lines_of_its_stages(capsys: pytest.CaptureFi
     ]
     cli_app._print_headline([StageResult("graph", "done", 1.0, {})])  # evaluate not run: nothing, not an old one
     assert capsys.readouterr().out == ""
+    # a map that failed its health checks: the last line says its figures are doubtful
+    doubtful = {**summary, "map_health_warnings": 2}
+    cli_app._print_headline([StageResult("evaluate", "done", 1.0, doubtful)])
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("the full map failed 2 health check(s)") and "doubtful" in last
+    cli_app._print_headline([StageResult("evaluate", "done", 1.0, {**summary, "map_health_warnings": 0})])
+    assert len(capsys.readouterr().out.splitlines()) == 2
 
 
 def test_a_stage_command_ends_with_the_report_lines_of_its_stage(

@@ -115,6 +115,15 @@ def test_report_figures_summary_and_recording(evaluated) -> None:
     assert all("predicted P(collision on the path) in [" in line and "simulated " in line for line in lines)
     assert all(("consistent (the interval reaches within 10x" in line) != ("DISAGREE" in line) for line in lines)
     assert "data:image/png;base64," in (out / "report.html").read_text()
+    # the full map's health checks head the report: each failed one as a warning line, or that all passed
+    from stages.evaluate.report import map_health_lines
+
+    graph_warnings = json.loads((evaluated.stage_dir("graph") / "summary.json").read_text())["health"]["warnings"]
+    head = md.split("## ", 1)[0]
+    assert "\n".join(map_health_lines(graph_warnings)) in head
+    assert ("passed every health check" in head) == (not graph_warnings)
+    failed = "\n".join(map_health_lines(["the tag scale is far from its prior", "LM stopped at its cap"]))
+    assert "failed 2 health check(s)" in failed and "- warning: LM stopped at its cap" in failed
     summary = json.loads((out / "summary.json").read_text())
     assert summary["headline"]["case"] == "focus_info" and summary["alpha"] == 5 and summary["K"] == 15
     assert "## Why" in md and "oracle" in md and "margin / deviation" in md
