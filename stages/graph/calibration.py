@@ -180,15 +180,17 @@ def calibration_test(
 
 def map_shift(
     problem: GraphProblem, values: gtsam.Values, marginals: dict[int, np.ndarray], steps: dict[int, np.ndarray]
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], dict[int, np.ndarray]]:
     """How far the calibration test's joint step would move the landmarks, against the uncalibrated map's own
     marginals: per landmark ``d² = δpᵀ Σ_p⁻¹ δp / n`` over its ``n`` position dimensions (``δp`` the map-frame
     position change of its step, ``Σ_p`` its position covariance); their mean (the NEES per dimension of the
-    uncalibrated map against the calibrated one), median and largest, and the median and largest shift.
+    uncalibrated map against the calibrated one), median and largest, and the median and largest shift; and each
+    landmark's map-frame move ``δp`` (x, y, z; by key), for the recording.
 
     The Wald statistic asks whether the data reject error-free wheels; this asks whether the uncalibrated map's
     covariances would cover the correction if the wheels had the errors the data point to (docs/graph.md)."""
     d2, metres = [], []
+    moves: dict[int, np.ndarray] = {}
     for key in problem.landmark_keys.values():
         if key not in steps or key not in marginals:
             continue
@@ -202,8 +204,9 @@ def map_shift(
         except np.linalg.LinAlgError:
             continue
         metres.append(float(np.linalg.norm(dp)))
+        moves[key] = J @ steps[key]
     if not d2:
-        return {"landmarks": 0}
+        return {"landmarks": 0}, moves
     return {
         "landmarks": len(d2),
         "mean_d2_per_dim": float(np.mean(d2)),
@@ -211,7 +214,7 @@ def map_shift(
         "max_d2_per_dim": float(np.max(d2)),
         "median_shift_m": float(np.median(metres)),
         "max_shift_m": float(np.max(metres)),
-    }
+    }, moves
 
 
 SHIFT_STEP_SIGMAS = 1.0

@@ -8,6 +8,7 @@ Artifacts in ``graph/`` (declared in :mod:`stages.graph.artifacts`): ``factors.p
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from typing import Any
 
 import gtsam
@@ -175,8 +176,12 @@ def log_recording(
     marginals: dict[int, np.ndarray],
     n_sigma: float,
     pose_stride: int = 10,
+    calibration_moves: Mapping[int, np.ndarray] | None = None,
 ) -> None:
-    """``graph.rrd``: dead reckoning and optimised path, landmarks with ellipsoids, pose ellipses, tag edges."""
+    """``graph.rrd``: dead reckoning and optimised path, landmarks with ellipsoids, pose ellipses, tag edges, and
+    (``calibration_moves``, when ``odometry_calibration: auto`` tested and left the calibration off) where its
+    step would move each landmark, as arrows: what the ``wheel_scale`` check measures, beside the ellipsoids it
+    measures it against."""
     poses3 = problem.pose3s(solution.values)
     path = np.array([np.asarray(p.translation()) for p in poses3]).reshape(-1, 3)
     dr = np.array([np.asarray(p.translation()) for p in problem.pose3s(problem.initial)]).reshape(-1, 3)
@@ -184,6 +189,19 @@ def log_recording(
     rec.log(f"{ENTITY}/dead_reckoning", rr.LineStrips3D([dr], colors=[[150, 150, 150]]), static=True)
     rec.log(f"{ENTITY}/path", rr.LineStrips3D([path], colors=[[40, 120, 255]]), static=True)
     landmarks = _log_landmarks(rec, problem, solution.values, marginals, n_sigma)
+    moves = {k: np.asarray(v, dtype=float)[:3] for k, v in (calibration_moves or {}).items() if k in landmarks}
+    if moves:
+        tags = {k: t for t, k in problem.landmark_keys.items()}
+        rec.log(
+            f"{ENTITY}/calibration_step",
+            rr.Arrows3D(
+                origins=np.array([landmarks[k] for k in moves]),
+                vectors=np.array(list(moves.values())),
+                labels=[str(tags[k]) for k in moves],
+                colors=[[220, 40, 160]],
+            ),
+            static=True,
+        )
     idx = list(range(0, len(problem.pose_keys), max(1, pose_stride)))
     if idx:
         kind = problem.graph_model.pose

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
@@ -62,7 +62,7 @@ def solve_and_write(
     t3 = time.perf_counter()
     summary = write_artifacts(out, problem, solution, marginals)
     if rec is not None:
-        log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride)
+        log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride, solved.calibration_moves)
     summary.update(problem.info)
     summary["health"] = health
     if cfg.moved_tags == "drop":
@@ -88,6 +88,8 @@ class _Solved:
     calibration: dict[str, Any] | None
     seconds: tuple[float, float]
     """Optimise and marginals (the calibration's joint solve counts as optimise)."""
+    calibration_moves: dict[int, np.ndarray] = field(default_factory=dict)
+    """Each landmark's map-frame move under the calibration test's step, by key (when ``auto`` left it off)."""
 
 
 def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
@@ -111,10 +113,12 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
             return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
     t1 = time.perf_counter()
     marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    moves: dict[int, np.ndarray] = {}
     if decision is not None and steps:
-        decision["map_shift"] = map_shift(problem, solution.values, marginals, steps)
+        decision["map_shift"], moves = map_shift(problem, solution.values, marginals, steps)
     calibration = None if decision is None else {"estimated": False, "decision": decision}
-    return _Solved(problem, graph, solution, marginals, calibration, (t1 - t0, time.perf_counter() - t1))
+    seconds = (t1 - t0, time.perf_counter() - t1)
+    return _Solved(problem, graph, solution, marginals, calibration, seconds, moves)
 
 
 def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:

@@ -128,8 +128,11 @@ def test_rrd_read_back(corridor) -> None:
     run, _, _ = corridor
     summary = json.loads((run.stage_dir("graph") / "summary.json").read_text())
     rows: Counter[str] = Counter()
+    arrows: list[list[float]] = []
     for chunk in RrdReader(run.rrd_path("graph")).stream():
         rows[str(chunk.entity_path)] += chunk.num_rows
+        if str(chunk.entity_path) == "/graph/calibration_step":
+            arrows += chunk.to_record_batch().column("Arrows3D:vectors").to_pylist()[0]
     for entity in (
         "/graph/path",
         "/graph/dead_reckoning",
@@ -142,6 +145,13 @@ def test_rrd_read_back(corridor) -> None:
         assert rows[entity] >= 1, (entity, dict(rows))
     # the moving pose and the covariance ellipses are logged every pose_ellipse_stride (10) poses
     assert rows["/graph/pose"] == len(range(0, summary["poses"], 10))
+    # auto tested the odometry and left the calibration off: where its step would move each landmark, as arrows
+    # whose lengths are the shifts the wheel_scale check reports
+    shift = summary["odometry_calibration"]["decision"]["map_shift"]
+    assert len(arrows) == shift["landmarks"] == summary["landmarks"]
+    lengths = np.linalg.norm(np.array(arrows), axis=1)
+    assert np.median(lengths) == pytest.approx(shift["median_shift_m"], rel=1e-5)
+    assert lengths.max() == pytest.approx(shift["max_shift_m"], rel=1e-5)
 
 
 def test_trajectory_tum_reads_like_evo(corridor) -> None:
