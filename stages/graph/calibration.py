@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import gtsam
 import numpy as np
 
-from stages.estimation.sparse_cov import SPDSolver
 from stages.geometry import pose3_from_vector, pose3_to_vector
 from stages.graph import se2
 from stages.graph.config import GraphConfig
@@ -135,7 +136,7 @@ def calibration_test(
     delta = joint.optimize()
     dc = np.asarray(delta.at(CALIBRATION_KEY), dtype=float)
     cov_c = np.asarray(gtsam.Marginals(joint, delta).marginalCovariance(CALIBRATION_KEY))
-    stats = _noise_statistics(problem, joint, odo, tags)
+    stats = _noise_statistics(problem, joint, delta, odo, tags)
     free = [i for i in (1, 2) if prior_sigma[i] > 1e-8]
     wald = float(dc[free] @ np.linalg.solve(cov_c[np.ix_(free, free)], dc[free])) if free else 0.0
     r_odo = float(stats["odometry_redundancy"])
@@ -197,14 +198,15 @@ def map_shift(
         kind = problem.kind(key)
         J = kind.position_jacobian(kind.read(values, key))
         rows = np.flatnonzero(np.abs(J).sum(axis=1) > 0)  # the 2D kinds have no height
-        dp = J[rows] @ steps[key]
+        move = J @ steps[key]
+        dp = move[rows]
         C = J[rows] @ marginals[key] @ J[rows].T
         try:
             d2.append(float(dp @ np.linalg.solve(C, dp)) / len(rows))
         except np.linalg.LinAlgError:
             continue
         metres.append(float(np.linalg.norm(dp)))
-        moves[key] = J @ steps[key]
+        moves[key] = move
     if not d2:
         return {"landmarks": 0}, moves
     return {
@@ -268,20 +270,13 @@ def implausible(c: np.ndarray, cfg: GraphConfig) -> str | None:
 
 def corrected_increment(m: np.ndarray, c: np.ndarray, model: str) -> np.ndarray:
     """The odometry measurement ``m`` (a row's layout) corrected by the calibration ``c = (k_d, k_w, b)``."""
-    k_d, k_w, b = (float(v) for v in c)
     if model == "planar":
-        x, y, th = (float(v) for v in m[:3])
-    else:
-        pose = pose3_from_vector(m)
-        t = np.asarray(pose.translation())
-        x, y, th = float(t[0]), float(t[1]), float(pose.rotation().yaw())
-    th_c = (th - b * x / k_d) / k_w
-    half = 0.5 * (th_c - th)
-    ch, sh = math.cos(half), math.sin(half)
-    xc, yc = (ch * x - sh * y) / k_d, (sh * x + ch * y) / k_d
-    if model == "planar":
-        return np.array([xc, yc, th_c])
-    t_c = np.array([xc, yc, float(t[2]) / k_d])
+        return _planar_increments(np.asarray(m[:3], dtype=float)[None], c)[0]
+    pose = pose3_from_vector(m)
+    t = np.asarray(pose.translation())
+    th = float(pose.rotation().yaw())
+    xc, yc, th_c = _planar_increments(np.array([[t[0], t[1], th]], dtype=float), c)[0]
+    t_c = np.array([xc, yc, float(t[2]) / float(c[0])])
     R_c = gtsam.Rot3.Yaw(th_c - th).compose(pose.rotation())
     return pose3_to_vector(gtsam.Pose3(R_c, t_c))
 
@@ -432,15 +427,9 @@ def _joint_system(
         keys = list(f.keys())
         if i not in a_c:
             pred = values.atPose3(keys[0]).between(values.atPose3(keys[1]))
-            cov = s.lam_odo * base[i].covariance
-            cols = []
-            for p in range(3):
-                dp = np.zeros(3)
-                dp[p] = _CAL_STEP
-                hi = _whitened_residual(problem.model, base[i].measurement, cov, s.c + dp, pred)
-                lo = _whitened_residual(problem.model, base[i].measurement, cov, s.c - dp, pred)
-                cols.append((hi - lo) / (2 * _CAL_STEP))
-            a_c[i] = np.column_stack(cols)
+            a_c[i] = _calibration_columns(
+                partial(_pose3_residual, problem.model, base[i].measurement, s.lam_odo * base[i].covariance, pred), s.c
+            )
         d = row.dim
         unit = gtsam.noiseModel.Unit.Create(d)
         k1, k2 = keys
@@ -470,14 +459,24 @@ def _planar_calibration_columns(
     pred = se2.between(poses[[at[k1] for k1, _ in keys]], poses[[at[k2] for _, k2 in keys]])
     M = np.array([base[i].measurement[:3] for i in odo], dtype=float)
     covs = s.lam_odo * np.array([base[i].covariance for i in odo], dtype=float)
-    cols = np.empty((len(odo), 3, 3))
+    cols = _calibration_columns(lambda c: _planar_whitened_residuals(M, covs, c, pred), s.c)
+    return dict(zip(odo, cols, strict=True))
+
+
+def _pose3_residual(model: str, m: np.ndarray, cov: np.ndarray, pred: Any, c: np.ndarray) -> np.ndarray:
+    """:func:`_whitened_residual` with the calibration last, for :func:`_calibration_columns`."""
+    return _whitened_residual(model, m, cov, c, pred)
+
+
+def _calibration_columns(residual: Callable[[np.ndarray], np.ndarray], c: np.ndarray) -> np.ndarray:
+    """``∂ residual / ∂c`` at ``c`` by central differences (step ``_CAL_STEP``), one column per component of ``c``,
+    stacked on a last axis: ``(d, 3)`` for one factor's residual, ``(N, d, 3)`` for a batch's."""
+    cols = []
     for p in range(3):
         dp = np.zeros(3)
         dp[p] = _CAL_STEP
-        hi = _planar_whitened_residuals(M, covs, s.c + dp, pred)
-        lo = _planar_whitened_residuals(M, covs, s.c - dp, pred)
-        cols[:, :, p] = (hi - lo) / (2 * _CAL_STEP)
-    return dict(zip(odo, cols, strict=True))
+        cols.append((residual(c + dp) - residual(c - dp)) / (2 * _CAL_STEP))
+    return np.stack(cols, axis=-1)
 
 
 def _prior(cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -523,7 +522,7 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
         marg = gtsam.Marginals(joint, delta)
         cov_c = np.asarray(marg.marginalCovariance(CALIBRATION_KEY))
         sig_c = np.sqrt(np.diag(cov_c))
-        stats = _noise_statistics(current, joint, odo, tags) if estimate_noise else {}
+        stats = _noise_statistics(current, joint, delta, odo, tags) if estimate_noise else {}
         history.append({"c": s.c.tolist(), "dc": dc.tolist(), **{k: v for k, v in stats.items() if k != "groups"}})
         new = _State(s.c + dc, s.lam_odo, s.lam_tag)
         if estimate_noise:
@@ -562,18 +561,22 @@ def _clip(lam: float) -> float:
 
 
 def _noise_statistics(
-    problem: GraphProblem, joint: gtsam.GaussianFactorGraph, odo: list[int], tags: list[int]
+    problem: GraphProblem,
+    joint: gtsam.GaussianFactorGraph,
+    delta: gtsam.VectorValues,
+    odo: list[int],
+    tags: list[int],
 ) -> dict[str, Any]:
     """Whitened χ², redundancy and the calibration's covariance at the optimum (see the module docstring).
 
     The joint system's whitened Jacobian ``J`` (factor rows in graph order, the calibration's prior last) gives
     ``H = JᵀJ``; the odometry rows' part of ``tr(J H⁻¹ Jᵀ)`` needs ``H⁻¹`` only on the blocks of each odometry
     factor's keys (:func:`stages.graph.marginals.selected_inverse`, linear in the keyframes; solves with those rows
-    as right-hand sides were quadratic), and the tag rows' part is the rest of ``tr(H⁻¹ H) = n``.
+    as right-hand sides were quadratic), and the tag rows' part is the rest of ``tr(H⁻¹ H) = n``. ``delta`` is the
+    joint system's Gauss-Newton step (``joint.optimize()``, which the caller has), for the χ² after it.
     """
     J, b = whitened_system(joint)
     n = J.shape[1]
-    solver = SPDSolver((J.T @ J).tocsc())
     starts = np.concatenate([[0], np.cumsum([r.dim for r in problem.rows] + [3])])
 
     def rows_of(idx: list[int]) -> np.ndarray:
@@ -596,7 +599,8 @@ def _noise_statistics(
     r_tag = len(tag_rows) - (n - tr_odo - tr_other)
     chi_odo, chi_tag = float(b[odo_rows] @ b[odo_rows]), float(b[tag_rows] @ b[tag_rows])
     # the odometry's chi-square after the joint Gauss-Newton step (the linearised optimum with the calibration free)
-    after = J @ np.asarray(solver.solve(J.T @ b)).ravel() - b
+    step = np.concatenate([np.asarray(delta.at(k), dtype=float) for k in sorted(map(int, joint.keyVector()))])
+    after = J @ step - b
     return {
         "odometry_chi2": chi_odo,
         "odometry_chi2_after_step": float(after[odo_rows] @ after[odo_rows]),
