@@ -961,6 +961,12 @@ def _validate(cfg: SimConfig) -> None:
     if cfg.duration_s is not None and cfg.duration_s <= 0:
         msg = f"duration_s must be > 0 (or None for the whole path), got {cfg.duration_s}"
         raise ValueError(msg)
+    if not 0.1 <= cfg.camera_xyz_m[2] <= cfg.wall_height_m - 0.2:
+        msg = (
+            f"the camera's height must be 0.1 to {cfg.wall_height_m - 0.2:g} m (the tags hang at it on walls "
+            f"{cfg.wall_height_m:g} m high), got {cfg.camera_xyz_m[2]:g}"
+        )
+        raise ValueError(msg)
     if cfg.laps < 1 or (cfg.laps > 1 and cfg.path != "corridor_return"):
         msg = f"laps must be >= 1, and above 1 only with path corridor_return (got {cfg.laps}, path {cfg.path})"
         raise ValueError(msg)
@@ -1733,6 +1739,29 @@ def main(argv: list[str] | None = None) -> int:
     look.add_argument(
         "--tag-size", type=float, default=SimConfig.tag_size_m, help="edge of every tag's black square, m"
     )
+    rig = parser.add_argument_group("rig (default: the sample's)")
+    rig.add_argument(
+        "--camera-xyz",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        default=SimConfig.camera_xyz_m,
+        help="camera optical centre in base_link, m (the tags hang at its height)",
+    )
+    rig.add_argument(
+        "--camera-yaw",
+        type=float,
+        default=SimConfig.camera_yaw_deg,
+        help="camera yaw left of the robot's forward axis, degrees (90: looking left, 180: backwards)",
+    )
+    rig.add_argument(
+        "--laser-xyz",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        default=SimConfig.laser_xyz_m,
+        help="laser centre in base_link, m",
+    )
     parser.add_argument(
         "--laser-sweep",
         action="store_true",
@@ -1763,6 +1792,9 @@ def main(argv: list[str] | None = None) -> int:
         vignetting=args.vignetting,
         motion_blur_px=args.motion_blur,
         tag_size_m=args.tag_size,
+        camera_xyz_m=tuple(args.camera_xyz),
+        camera_yaw_deg=args.camera_yaw,
+        laser_xyz_m=tuple(args.laser_xyz),
         odom_v_sigma_mps=SimConfig.odom_v_sigma_mps * args.odom_noise_scale,
         odom_yaw_rate_sigma_radps=SimConfig.odom_yaw_rate_sigma_radps * args.odom_noise_scale,
     )

@@ -473,3 +473,25 @@ def test_cli_rendering_options_reach_the_recording(tmp_path: Path) -> None:
         assert np.abs(px.ravel() - np.array(v["corners_px"])).max() < 0.01
     assert main([*args, "--name", "bad", "--vignetting", "1.5"]) == 1
     assert main([*args, "--name", "bad", "--jpeg-quality", "0"]) == 1
+
+
+def test_cli_rig_options_reach_the_bag_and_the_world(tmp_path: Path) -> None:
+    """A camera looking left from 0.9 m, behind the axle: the bag's /tf_static says so, and the tags hang at its
+    height (so the camera still sees them)."""
+    args = ["--out", str(tmp_path), "--duration", "1.0", "--width", "160", "--height", "120", "--name", "rig"]
+    rig = ["--camera-yaw", "90", "--camera-xyz", "-0.2", "0.1", "0.9", "--laser-xyz", "0.25", "0", "0.3"]
+    assert main([*args, *rig]) == 0
+    gt = json.loads((tmp_path / "rig.ground_truth.json").read_text())
+    _, first = _read_counts(tmp_path / "rig.bag")
+    tf = {t.child_frame_id: t.transform for t in first[TF_STATIC_TOPIC].transforms}
+    cam, laser = tf["camera"], tf["laser"]
+    assert (cam.translation.x, cam.translation.y, cam.translation.z) == pytest.approx((-0.2, 0.1, 0.9))
+    assert (laser.translation.x, laser.translation.y, laser.translation.z) == pytest.approx((0.25, 0.0, 0.3))
+    q = cam.rotation
+    R = np.array(gt["T_base_camera"])[:3, :3]
+    assert np.allclose(R[:, 2], [0.0, 1.0, 0.0], atol=1e-9)  # the optical axis points along the base's +y (left)
+    w = math.sqrt(max(0.0, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2  # the message's quaternion is the same rotation
+    assert abs(abs(q.w) - w) < 1e-6
+    assert all(abs(t["position"][2] - 0.9) <= 0.06 + 1e-9 for t in gt["tags"])
+    assert main([*args, "--name", "bad", "--camera-xyz", "0", "0", "3"]) == 1
+    assert not (tmp_path / "bad.bag").exists()
