@@ -66,6 +66,7 @@ if TYPE_CHECKING:
     import gtsam
 
     from pipeline.context import StageContext
+    from stages.graph.consider import ConsiderTerm
     from stages.graph.load import LoadedGraph
     from stages.graph.problem import GraphProblem
 
@@ -670,6 +671,7 @@ def map_covariances(
     marginals: Mapping[int, FloatArray],
     landmarks: LandmarkMap,
     geometry: PathGeometry,
+    consider: ConsiderTerm | None = None,
 ) -> tuple[LocalCovariances, FloatArray]:
     """The landmark covariances a robot navigating with the map needs, from the solved graph.
 
@@ -682,7 +684,9 @@ def map_covariances(
         considered states of the navigation's Schmidt filter.
 
     Cross blocks come from sparse solves on the graph's information matrix
-    (:func:`stages.estimation.sparse_cov.covariance_blocks`), ``Σ_tt`` from the pose's marginal.
+    (:func:`stages.estimation.sparse_cov.covariance_blocks`), plus ``consider``'s blocks when the graph's odometry
+    rows were corrected by a calibration (its uncertainty, which ``marginals`` already hold and the information
+    matrix does not: :mod:`stages.graph.consider`); ``Σ_tt`` from the pose's marginal.
     """
     from stages.estimation.linear_system import information_from_gtsam
     from stages.estimation.sparse_cov import covariance_blocks
@@ -709,6 +713,9 @@ def map_covariances(
     pairs += [(var(problem.pose_keys[t]), lv) for _, lv, ts in rows for t in ts]
     blocks = covariance_blocks(system.information, system.offsets, pairs)
     del system
+    if consider is not None:
+        key_of = {var(k): k for k in [*problem.pose_keys, *problem.landmark_keys.values()] if values.exists(k)}
+        blocks = {(a, b): blk + consider.block(key_of[a], key_of[b]) for (a, b), blk in blocks.items()}
     jac: dict[int, FloatArray] = {}
     for r, _, _ in rows:
         key = problem.landmark_keys[int(landmarks.tag_ids[r])]

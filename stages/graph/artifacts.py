@@ -234,8 +234,17 @@ G2O_META: Final = JsonSpec(
     "graph.g2o.json", "what a reader of `graph.g2o` needs beyond its lines (it has no comment lines)", G2oMetadata
 )
 
+CALIBRATION: Final = FileSpec(
+    "calibration.npz",
+    "when the odometry calibration was applied: `value` (k_d, k_w, b), `covariance` (3x3, from the joint system), "
+    "`factor_index` (the corrected odometry rows' indices in `factors.parquet`) and `jacobian` (N x dim x 3: the "
+    "derivative of each of those factors' error, in its tangent, by each component of the calibration); readers "
+    "add the calibration's uncertainty to graphs built from the corrected rows (stages/graph/consider.py)",
+    optional=True,
+)
+
 ARTIFACTS: Final = ArtifactSet(
     "graph",
     "The full factor graph of the run, optimised, with the marginal covariance of every variable.",
-    [FACTORS, VALUES, MARGINALS, POSES, LANDMARKS, TRAJECTORY, DEAD_RECKONING, G2O, G2O_META],
+    [FACTORS, VALUES, MARGINALS, POSES, LANDMARKS, TRAJECTORY, DEAD_RECKONING, G2O, G2O_META, CALIBRATION],
 )

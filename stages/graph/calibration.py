@@ -39,6 +39,7 @@ import numpy as np
 from stages.geometry import pose3_from_vector, pose3_to_vector
 from stages.graph import se2
 from stages.graph.config import GraphConfig
+from stages.graph.consider import OdometryCalibration
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.marginals import selected_inverse, whitened_system
 from stages.graph.problem import GraphProblem
@@ -65,6 +66,8 @@ class CalibrationResult:
     solution: Solution
     marginals: dict[int, np.ndarray]
     summary: dict[str, Any]
+    calibration: OdometryCalibration
+    """The estimate, its covariance and each corrected factor's Jacobian for it (``calibration.npz``)."""
 
 
 def _has_odometry(problem: GraphProblem) -> bool:
@@ -516,7 +519,7 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
         inner_iterations += sol.iterations
         if first_error is None:
             first_error = sol.initial_error
-        joint, _ = _joint_system(current, graph, sol.values, odo, s, prior_mean, prior_sigma, base)
+        joint, a_c = _joint_system(current, graph, sol.values, odo, s, prior_mean, prior_sigma, base)
         delta = joint.optimize()
         dc = np.asarray(delta.at(CALIBRATION_KEY), dtype=float)
         marg = gtsam.Marginals(joint, delta)
@@ -553,7 +556,9 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
         sol.optimizer,
         time.perf_counter() - t0,
     )
-    return CalibrationResult(current, graph, solution, marginals, summary)
+    jacobian = np.stack([np.linalg.solve(_whitening(current.rows[i].covariance), a_c[i]) for i in odo])
+    calibration = OdometryCalibration(s.c.copy(), cov_c, np.asarray(odo, dtype=np.int64), jacobian)
+    return CalibrationResult(current, graph, solution, marginals, summary, calibration)
 
 
 def _clip(lam: float) -> float:

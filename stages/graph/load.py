@@ -31,7 +31,9 @@ from stages.graph.artifacts import (
     MarginalArrays,
     ValueArrays,
 )
+from stages.graph.consider import ConsiderTerm, OdometryCalibration, consider_term
 from stages.graph.factors import make_factor, table_to_rows
+from stages.graph.marginals import key_dims
 from stages.graph.models import model_of_poses
 from stages.graph.problem import GraphProblem, arrays_to_values
 from stages.graph.variables import var_kind
@@ -50,12 +52,20 @@ class LoadedGraph(GraphProblem):
         values: the optimised values of every variable.
         factors: ``factors.parquet`` as a pyarrow table (the same factors as ``rows``).
         marginals: marginal covariance of each key (tangent space), from ``marginals.npz``.
+        calibration: the odometry calibration the rows were corrected with, from ``calibration.npz`` (None: not
+            calibrated, or a reduced graph of optimize, whose rows keep their full-graph indices in ``kept.parquet``).
     """
 
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
     factors: pa.Table
     marginals: dict[int, np.ndarray]
+    calibration: OdometryCalibration | None = None
+
+    def consider_term(self) -> ConsiderTerm | None:
+        """The calibration's uncertainty that covariances computed from :attr:`graph` lack (its ``marginals``
+        already hold it): see :mod:`stages.graph.consider`."""
+        return consider_term(self.rows, self.graph.linearize(self.values), key_dims(self.values), self.calibration)
 
 
 def load_graph(graph_input: StageInput) -> LoadedGraph:
@@ -104,6 +114,7 @@ def load_graph(graph_input: StageInput) -> LoadedGraph:
         var_types=var_types,
         model=model.name,
         marginals=marginals,
+        calibration=OdometryCalibration.read(graph_input) if graph_input.stage == "graph" else None,
     )
 
 

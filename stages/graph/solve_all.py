@@ -12,9 +12,10 @@ import rerun as rr
 
 from pipeline.artifacts import StageOutput
 from pipeline.errors import StageError
+from stages.graph.calibration import CalibrationResult, calibrate, calibration_test, map_shift, shift_warning, tested
 from stages.graph.calibration import applies as calibration_applies
-from stages.graph.calibration import calibrate, calibration_test, map_shift, shift_warning, tested
 from stages.graph.config import GraphConfig
+from stages.graph.consider import OdometryCalibration
 from stages.graph.factors import build_graph
 from stages.graph.health import graph_health, strict_error
 from stages.graph.outputs import log_recording, write_artifacts
@@ -61,6 +62,8 @@ def solve_and_write(
     problem, solution, marginals = solved.problem, solved.solution, solved.marginals
     t3 = time.perf_counter()
     summary = write_artifacts(out, problem, solution, marginals)
+    if solved.applied is not None:
+        solved.applied.write(out)
     if rec is not None:
         log_recording(rec, problem, solution, marginals, n_sigma, cfg.pose_ellipse_stride, solved.calibration_moves)
     summary.update(problem.info)
@@ -90,6 +93,8 @@ class _Solved:
     """Optimise and marginals (the calibration's joint solve counts as optimise)."""
     calibration_moves: dict[int, np.ndarray] = field(default_factory=dict)
     """Each landmark's map-frame move under the calibration test's step, by key (when ``auto`` left it off)."""
+    applied: OdometryCalibration | None = None
+    """The calibration applied to the odometry rows, for ``calibration.npz``."""
 
 
 def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
@@ -99,7 +104,7 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     if calibration_applies(problem, cfg):
         result = calibrate(problem, cfg)
         seconds = (time.perf_counter() - t0, 0.0)
-        return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
+        return _calibrated(result, seconds)
     graph = build_graph(problem.rows)
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
     decision: dict[str, Any] | None = None
@@ -110,7 +115,7 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
             result = calibrate(problem, cfg, initial=solution.values)
             result.summary["decision"] = decision
             seconds = (time.perf_counter() - t0, 0.0)
-            return _Solved(result.problem, result.graph, result.solution, result.marginals, result.summary, seconds)
+            return _calibrated(result, seconds)
     t1 = time.perf_counter()
     marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
     moves: dict[int, np.ndarray] = {}
@@ -119,6 +124,18 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     calibration = None if decision is None else {"estimated": False, "decision": decision}
     seconds = (t1 - t0, time.perf_counter() - t1)
     return _Solved(problem, graph, solution, marginals, calibration, seconds, moves)
+
+
+def _calibrated(result: CalibrationResult, seconds: tuple[float, float]) -> _Solved:
+    return _Solved(
+        result.problem,
+        result.graph,
+        result.solution,
+        result.marginals,
+        result.summary,
+        seconds,
+        applied=result.calibration,
+    )
 
 
 def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from pipeline.artifacts import StageInput
 from pipeline.contracts import ArtifactSet, Column, FileSpec, TableSpec
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
 from stages.graph.artifacts import ARTIFACTS as GRAPH_ARTIFACTS
+from stages.graph.artifacts import CALIBRATION
 from stages.select_landmarks.artifacts import CLEARANCE_M, LOCALISED, SIGMA_STAR
 
 if TYPE_CHECKING:
@@ -85,6 +86,7 @@ RISK: Final = TableSpec(
 GRAPH_FILES: Final = tuple(
     FileSpec(spec.file, f"the reduced graph, as `graph/{spec.file}` (see graph's declarations)")
     for spec in GRAPH_ARTIFACTS.specs
+    if spec is not CALIBRATION  # the full graph's, read through kept.parquet's `full_index`
 )
 
 ARTIFACTS: Final = ArtifactSet(
@@ -103,7 +105,9 @@ def read_reduced(inp: StageInput, full: LoadedGraph, focused_tag_ids: Iterable[i
         full: the full graph (the landmark map is read as :func:`solve_reduced` makes it, in the full graph's keys).
         focused_tag_ids: the focused landmarks optimize used (select_landmarks' ``tag_ids``).
     """
+    from stages.graph.consider import consider_term
     from stages.graph.load import load_graph
+    from stages.graph.marginals import key_dims
     from stages.graph.problem import GraphProblem
     from stages.graph.solve import Solution
     from stages.optimize.core import ReducedMap
@@ -145,4 +149,7 @@ def read_reduced(inp: StageInput, full: LoadedGraph, focused_tag_ids: Iterable[i
         n_measurements=sum(1 for r in red.rows if r.kind == "tag"),
         dropped_unfocused=int(summary.get("dropped_unfocused_measurements", 0)),
         timing_s=timing,
+        consider=consider_term(red.rows, red.graph.linearize(red.values), key_dims(red.values), full.calibration, kept)
+        if full.calibration is not None
+        else None,
     )

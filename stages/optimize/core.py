@@ -30,6 +30,7 @@ import numpy.typing as npt
 from pipeline.errors import StageError
 from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
 from stages.estimation.linear_system import landmark_prior_sigmas
+from stages.graph.consider import ConsiderTerm, consider_term
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.marginals import key_dims, sparse_joint_covariance, tree_marginals
@@ -64,6 +65,9 @@ class ReducedMap:
     dropped_unfocused: int
     """Selected measurements of landmarks outside the focused set (left out)."""
     timing_s: dict[str, float] = field(default_factory=dict)
+    consider: ConsiderTerm | None = None
+    """The odometry calibration's uncertainty (:mod:`stages.graph.consider`), already in ``marginals`` and the
+    entropies; None when the run was not calibrated."""
 
     @property
     def focused_observed(self) -> list[int]:
@@ -124,6 +128,13 @@ def solve_reduced(
     scored = focused if entropy_tag_ids is None else sorted({int(t) for t in entropy_tag_ids})
     focused_obs = [t for t in scored if t in set(observed)]
     marginals, joint = _marginals(problem, graph, solution, focused_obs)
+    consider = None
+    if loaded.calibration is not None:
+        linear = graph.linearize(solution.values)
+        consider = consider_term(rows, linear, key_dims(solution.values), loaded.calibration, keep)
+    if consider is not None:  # the calibrated odometry, as uncertain as the whole recording left the calibration
+        marginals = consider.add_to_marginals(marginals)
+        joint = joint + consider.joint([problem.landmark_keys[t] for t in focused_obs])
     t3 = time.perf_counter()
     h_obs = gaussian_entropy(joint)
     missing_dims = [
@@ -148,6 +159,7 @@ def solve_reduced(
         n_measurements=len(kept_tags),
         dropped_unfocused=int(dropped),
         timing_s={"build": round(t1 - t0, 4), "optimise": round(t2 - t1, 4), "marginals": round(t3 - t2, 4)},
+        consider=consider,
     )
 
 
@@ -296,7 +308,7 @@ def local_map(reduced: ReducedMap, geometry: PathGeometry) -> LandmarkMap:
     lm = dataclasses.replace(reduced.landmark_map)
     graph = build_graph(reduced.problem.rows)
     lm.local, lm.joint = map_covariances(
-        reduced.problem, graph, reduced.solution.values, reduced.marginals, lm, geometry
+        reduced.problem, graph, reduced.solution.values, reduced.marginals, lm, geometry, reduced.consider
     )
     return lm
 
@@ -304,5 +316,7 @@ def local_map(reduced: ReducedMap, geometry: PathGeometry) -> LandmarkMap:
 def full_local_map(loaded: LoadedGraph, geometry: PathGeometry) -> LandmarkMap:
     """The full graph's map with local covariances (see :func:`local_map`)."""
     lm = LandmarkMap.from_graph(loaded)
-    lm.local, lm.joint = map_covariances(loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry)
+    lm.local, lm.joint = map_covariances(
+        loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry, loaded.consider_term()
+    )
     return lm

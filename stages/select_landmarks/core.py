@@ -88,7 +88,9 @@ class LandmarkInputs:
         geometry = path_geometry(loaded, scans, T_base_laser, detections, params)
         lm = LandmarkMap.from_graph(loaded)
         if geometry.has_laser:
-            lm.local, lm.joint = map_covariances(loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry)
+            lm.local, lm.joint = map_covariances(
+                loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry, loaded.consider_term()
+            )
         return cls(loaded, lm, geometry, params, laser_note)
 
     @classmethod
