@@ -62,6 +62,18 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
         out.append(("note", f"odometry calibration on (graph.odometry_calibration=auto): {decision.get('reason')}"))
     if isinstance(decision, dict) and decision.get("skipped"):
         out.append(("note", f"odometry calibration off (graph.odometry_calibration=auto): {decision.get('reason')}"))
+    block = calibration if isinstance(calibration, dict) else {}
+    scale = block.get("odometry_covariance_scale_by_dimension")
+    if summary.get("odometry_noise") == "settings" and isinstance(scale, list) and not block.get("estimated"):
+        dims = ("x", "y", "θ") if len(scale) == 3 else ("all",)
+        scaled = ", ".join(f"{float(v):.3g} ({d})" for v, d in zip(scale, dims, strict=True))  # type: ignore[arg-type]
+        out.append(
+            (
+                "note",
+                "the odometry has no covariances, so its noise is the settings' (graph.odometry_sigma_*) scaled to "
+                f"the data (graph.noise_estimate=auto): variances x {scaled}",
+            )
+        )
     health = summary.get("health")
     warnings = health.get("warnings") if isinstance(health, dict) else None
     if isinstance(warnings, list):

@@ -134,7 +134,7 @@ def calibration_test(
     odo = [i for i, r in enumerate(base) if r.kind == "odometry"]
     tags = [i for i, r in enumerate(base) if r.kind == "tag"]
     prior_mean, prior_sigma = _prior(on)
-    state = _State(prior_mean.copy(), 1.0, 1.0)
+    state = _State(prior_mean.copy(), _unit_noise(problem.model), 1.0)
     joint, _ = _joint_system(problem, graph, values, odo, state, prior_mean, prior_sigma, base)
     delta = joint.optimize()
     dc = np.asarray(delta.at(CALIBRATION_KEY), dtype=float)
@@ -328,9 +328,13 @@ def _retract(model: str, m: np.ndarray, d: np.ndarray) -> np.ndarray:
     return pose3_to_vector(pose3_from_vector(m).retract(d))
 
 
-def _whitened_residual(model: str, m: np.ndarray, cov: np.ndarray, c: np.ndarray, pred: Any) -> np.ndarray:
-    """The whitened error of a corrected odometry factor at calibration ``c`` for the predicted increment."""
+def _whitened_residual(
+    model: str, m: np.ndarray, cov: np.ndarray, c: np.ndarray, pred: Any, lam: np.ndarray | None = None
+) -> np.ndarray:
+    """The whitened error of a corrected odometry factor at calibration ``c`` for the predicted increment (the
+    corrected covariance scaled by ``lam``, :func:`_scaled`; None: as it is)."""
     z, C = corrected_factor(m, cov, c, model)
+    C = C if lam is None else _scaled(C, lam)
     zp = gtsam.Pose2(*z) if model == "planar" else pose3_from_vector(z)
     return _whitening(C) @ np.asarray(zp.localCoordinates(pred))
 
@@ -366,10 +370,13 @@ def planar_corrected_factors(M: np.ndarray, covs: np.ndarray, c: np.ndarray) -> 
     return Z, 0.5 * (C + C.transpose(0, 2, 1))
 
 
-def _planar_whitened_residuals(M: np.ndarray, covs: np.ndarray, c: np.ndarray, pred: np.ndarray) -> np.ndarray:
+def _planar_whitened_residuals(
+    M: np.ndarray, covs: np.ndarray, c: np.ndarray, pred: np.ndarray, lam: np.ndarray
+) -> np.ndarray:
     """:func:`_whitened_residual` of every planar factor at once (``pred``: the predicted increments, ``(N, 3)``);
     the whitening is GTSAM's, the upper Cholesky factor of the information."""
     Z, C = planar_corrected_factors(M, covs, c)
+    C = _scaled(C, lam)
     R = np.linalg.cholesky(np.linalg.inv(C)).transpose(0, 2, 1)
     return np.einsum("nij,nj->ni", R, se2.local(Z, pred))
 
@@ -377,8 +384,23 @@ def _planar_whitened_residuals(M: np.ndarray, covs: np.ndarray, c: np.ndarray, p
 @dataclass
 class _State:
     c: np.ndarray
-    lam_odo: float
+    lam_odo: np.ndarray
+    """The odometry covariances' scale: planar, one per dimension (x, y, θ; ``D Σ D`` with ``D = diag(√λ)``); 3d,
+    one for all (shape (1,))."""
     lam_tag: float
+
+
+def _unit_noise(model: str) -> np.ndarray:
+    """The odometry scale that leaves the covariances as they are."""
+    return np.ones(3 if model == "planar" else 1)
+
+
+def _scaled(cov: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Covariance(s) ``(..., d, d)`` scaled by ``lam``: one number for all, or ``D Σ D``, ``D = diag(√lam)``."""
+    if len(lam) == 1:
+        return float(lam[0]) * cov
+    root = np.sqrt(lam)
+    return cov * root[:, None] * root[None, :]
 
 
 def _rows_at(
@@ -389,13 +411,13 @@ def _rows_at(
     if problem.model == "planar" and odo:
         M = np.array([base[i].measurement[:3] for i in odo], dtype=float)
         Z, C = planar_corrected_factors(M, np.array([base[i].covariance for i in odo], dtype=float), s.c)
-        for i, z, cov in zip(odo, Z, C, strict=True):
-            rows[i] = replace(base[i], measurement=z, covariance=s.lam_odo * cov)
+        for i, z, cov in zip(odo, Z, _scaled(C, s.lam_odo), strict=True):
+            rows[i] = replace(base[i], measurement=z, covariance=cov)
     else:
         for i in odo:
             r = base[i]
             z, cov = corrected_factor(r.measurement, r.covariance, s.c, problem.model)
-            rows[i] = replace(r, measurement=z, covariance=s.lam_odo * cov)
+            rows[i] = replace(r, measurement=z, covariance=_scaled(cov, s.lam_odo))
     if s.lam_tag != 1.0:
         for i in tags:
             rows[i] = replace(base[i], covariance=s.lam_tag * base[i].covariance)
@@ -431,7 +453,7 @@ def _joint_system(
         if i not in a_c:
             pred = values.atPose3(keys[0]).between(values.atPose3(keys[1]))
             a_c[i] = _calibration_columns(
-                partial(_pose3_residual, problem.model, base[i].measurement, s.lam_odo * base[i].covariance, pred), s.c
+                partial(_pose3_residual, problem.model, base[i].measurement, base[i].covariance, pred, s.lam_odo), s.c
             )
         d = row.dim
         unit = gtsam.noiseModel.Unit.Create(d)
@@ -461,14 +483,16 @@ def _planar_calibration_columns(
     poses = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(k) for k in at)])
     pred = se2.between(poses[[at[k1] for k1, _ in keys]], poses[[at[k2] for _, k2 in keys]])
     M = np.array([base[i].measurement[:3] for i in odo], dtype=float)
-    covs = s.lam_odo * np.array([base[i].covariance for i in odo], dtype=float)
-    cols = _calibration_columns(lambda c: _planar_whitened_residuals(M, covs, c, pred), s.c)
+    covs = np.array([base[i].covariance for i in odo], dtype=float)
+    cols = _calibration_columns(lambda c: _planar_whitened_residuals(M, covs, c, pred, s.lam_odo), s.c)
     return dict(zip(odo, cols, strict=True))
 
 
-def _pose3_residual(model: str, m: np.ndarray, cov: np.ndarray, pred: Any, c: np.ndarray) -> np.ndarray:
+def _pose3_residual(
+    model: str, m: np.ndarray, cov: np.ndarray, pred: Any, lam: np.ndarray, c: np.ndarray
+) -> np.ndarray:
     """:func:`_whitened_residual` with the calibration last, for :func:`_calibration_columns`."""
-    return _whitened_residual(model, m, cov, c, pred)
+    return _whitened_residual(model, m, cov, c, pred, lam)
 
 
 def _calibration_columns(residual: Callable[[np.ndarray], np.ndarray], c: np.ndarray) -> np.ndarray:
@@ -505,7 +529,7 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
     odo = [i for i, r in enumerate(base) if r.kind == "odometry"]
     tags = [i for i, r in enumerate(base) if r.kind == "tag"]
     prior_mean, prior_sigma = _prior(cfg)
-    s = _State(prior_mean.copy(), 1.0, 1.0)
+    s = _State(prior_mean.copy(), _unit_noise(problem.model), 1.0)
     estimate_noise = cfg.noise_estimate != "off"
     initial = problem.initial if initial is None else initial
     first_error: float | None = None
@@ -529,13 +553,13 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
         history.append({"c": s.c.tolist(), "dc": dc.tolist(), **{k: v for k, v in stats.items() if k != "groups"}})
         new = _State(s.c + dc, s.lam_odo, s.lam_tag)
         if estimate_noise:
-            new.lam_odo = _clip(s.lam_odo * stats["odometry_ratio"])
+            new.lam_odo = _next_noise(s.lam_odo, stats)
             if cfg.noise_estimate == "odometry_and_tags":
                 new.lam_tag = _clip(s.lam_tag * stats["tag_ratio"])
         settled = bool(np.all(np.abs(dc) <= cfg.calibration_tolerance * np.maximum(sig_c, 1e-12))) and (
             not estimate_noise
             or (
-                abs(math.log(new.lam_odo / s.lam_odo)) < cfg.calibration_tolerance
+                float(np.max(np.abs(np.log(new.lam_odo / s.lam_odo)))) < cfg.calibration_tolerance
                 and abs(math.log(new.lam_tag / s.lam_tag)) < cfg.calibration_tolerance
             )
         )
@@ -563,6 +587,24 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
 
 def _clip(lam: float) -> float:
     return float(min(max(lam, LAMBDA_BOUNDS[0]), LAMBDA_BOUNDS[1]))
+
+
+MIN_REDUNDANCY_PER_DIMENSION = 10.0
+"""A dimension's own noise level needs this much redundancy (its relative σ is √(2/r), 45 % at 10); below it the
+dimension follows the odometry's pooled ratio."""
+
+
+def _next_noise(lam: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
+    """Förstner's update of the odometry's noise level, ``λ ← λ χ² / r``: per dimension where the odometry has one
+    level per dimension (planar), from each dimension's whitened residuals and their redundancy, so that the
+    settings' or the messages' *shape* is corrected too (translation against heading: one factor for all made the
+    heading overconfident where the lateral noise was stated far too large); else one for all."""
+    pooled = float(stats["odometry_ratio"])
+    if len(lam) == 1:
+        return np.array([_clip(float(lam[0]) * pooled)])
+    chi, red = stats["odometry_chi2_by_dimension"], stats["odometry_redundancy_by_dimension"]
+    ratio = [c / r if r >= MIN_REDUNDANCY_PER_DIMENSION else pooled for c, r in zip(chi, red, strict=True)]
+    return np.array([_clip(float(v) * q) for v, q in zip(lam, ratio, strict=True)])
 
 
 def _noise_statistics(
@@ -600,6 +642,9 @@ def _noise_statistics(
         return float((Jr.T @ Jr).multiply(Z).sum())
 
     tr_odo, tr_other = hat_trace(odo_rows), hat_trace(other_rows)
+    # the same per dimension of the odometry's residual (whitened component d of each odometry factor)
+    odo_dim = problem.rows[odo[0]].dim if odo else 0
+    by_dim = [np.array([starts[i] + d for i in odo], dtype=int) for d in range(odo_dim)]
     r_odo = len(odo_rows) - tr_odo
     r_tag = len(tag_rows) - (n - tr_odo - tr_other)
     chi_odo, chi_tag = float(b[odo_rows] @ b[odo_rows]), float(b[tag_rows] @ b[tag_rows])
@@ -611,6 +656,8 @@ def _noise_statistics(
         "odometry_chi2_after_step": float(after[odo_rows] @ after[odo_rows]),
         "odometry_redundancy": r_odo,
         "odometry_ratio": chi_odo / r_odo if r_odo > 0 else 1.0,
+        "odometry_chi2_by_dimension": [float(b[r] @ b[r]) for r in by_dim],
+        "odometry_redundancy_by_dimension": [float(len(r) - hat_trace(r)) for r in by_dim],
         "tag_chi2": chi_tag,
         "tag_redundancy": r_tag,
         "tag_ratio": chi_tag / r_tag if r_tag > 0 else 1.0,
@@ -634,7 +681,8 @@ def _summary(
         out[name] = {"value": float(v), "sigma": float(sg), "prior_sigma": float(ps) if ps > 1e-8 else 0.0}
     out["correlation"] = (cov_c / np.outer(np.maximum(sig_c, 1e-300), np.maximum(sig_c, 1e-300))).round(4).tolist()
     out["noise_estimate"] = cfg.noise_estimate
-    out["odometry_covariance_scale"] = s.lam_odo
+    out["odometry_covariance_scale"] = float(np.exp(np.mean(np.log(s.lam_odo))))
+    out["odometry_covariance_scale_by_dimension"] = s.lam_odo.tolist()
     out["tag_covariance_scale"] = s.lam_tag
     if stats:
         out["odometry_chi2_per_redundancy"] = stats["odometry_ratio"]

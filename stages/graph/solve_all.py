@@ -99,7 +99,9 @@ class _Solved:
 
 def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     """Optimise (with the odometry calibration when asked, or when ``auto`` finds systematic errors) and take every
-    marginal."""
+    marginal. With ``noise_estimate: auto`` and the odometry's noise from the settings (its messages' covariances
+    zero or absent), the settings' noise is first brought to the data's level (:func:`settings_noise_estimated`),
+    and the calibration test runs on that."""
     t0 = time.perf_counter()
     if calibration_applies(problem, cfg):
         result = calibrate(problem, cfg)
@@ -107,23 +109,41 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
         return _calibrated(result, seconds)
     graph = build_graph(problem.rows)
     solution = optimise(problem, graph, cfg.optimizer, cfg.max_iterations, cfg.relative_error_tol)
+    solved, noise = problem, None
+    if settings_noise_estimated(problem, cfg):
+        off = cfg.model_copy(update={"odometry_calibration": False, "noise_estimate": "odometry"})
+        noise = calibrate(problem, off, initial=solution.values)
+        solved, graph, solution = noise.problem, noise.graph, noise.solution
     decision: dict[str, Any] | None = None
     steps: dict[int, np.ndarray] = {}
     if tested(problem, cfg):
-        decision, steps = calibration_test(problem, graph, solution.values, cfg)
+        decision, steps = calibration_test(solved, graph, solution.values, cfg)
         if decision["applied"]:
             result = calibrate(problem, cfg, initial=solution.values)
             result.summary["decision"] = decision
             seconds = (time.perf_counter() - t0, 0.0)
             return _calibrated(result, seconds)
     t1 = time.perf_counter()
-    marginals = marginal_covariances(problem, graph, solution.values, list(problem.var_types))
+    if noise is not None:
+        marginals = noise.marginals
+    else:
+        marginals = marginal_covariances(solved, graph, solution.values, list(solved.var_types))
     moves: dict[int, np.ndarray] = {}
     if decision is not None and steps:
-        decision["map_shift"], moves = map_shift(problem, solution.values, marginals, steps)
-    calibration = None if decision is None else {"estimated": False, "decision": decision}
+        decision["map_shift"], moves = map_shift(solved, solution.values, marginals, steps)
+    calibration: dict[str, Any] | None = None if noise is None else dict(noise.summary)
+    if decision is not None:
+        calibration = {**(calibration or {}), "estimated": False, "decision": decision}
     seconds = (t1 - t0, time.perf_counter() - t1)
-    return _Solved(problem, graph, solution, marginals, calibration, seconds, moves)
+    return _Solved(solved, graph, solution, marginals, calibration, seconds, moves)
+
+
+def settings_noise_estimated(problem: GraphProblem, cfg: GraphConfig) -> bool:
+    """Whether ``noise_estimate: auto`` scales the odometry's noise even without the calibration: when that noise
+    is the settings' guess (``odometry_noise`` = settings, the messages' covariances zero or absent), whose level
+    and shape (translation against heading) only the data can tell. Measured on zero-covariance worlds without wheel
+    errors: landmark RMSE 1.40 → 1.19 cm and 5.58 → 4.10 cm, NEES/2 0.29 → 1.97 and 0.26 → 1.90 (docs/graph.md)."""
+    return cfg.noise_estimate == "auto" and problem.info.get("odometry_noise") == "settings"
 
 
 def _calibrated(result: CalibrationResult, seconds: tuple[float, float]) -> _Solved:
@@ -134,7 +154,7 @@ def _calibrated(result: CalibrationResult, seconds: tuple[float, float]) -> _Sol
         result.marginals,
         result.summary,
         seconds,
-        applied=result.calibration,
+        applied=result.calibration if result.summary.get("estimated") else None,
     )
 
 

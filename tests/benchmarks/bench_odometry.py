@@ -181,7 +181,7 @@ def decompose(det: Any, odo: Any, extr: Any, used: dict[str, Any], gt: dict[str,
     mean, sigma = cal._prior(cfg)
     state = cal._State(
         np.array([summ[k]["value"] for k in cal.PARAMETERS]),
-        summ["odometry_covariance_scale"],
+        np.asarray(summ.get("odometry_covariance_scale_by_dimension", [summ["odometry_covariance_scale"]])),
         summ["tag_covariance_scale"],
     )
     joint, _ = cal._joint_system(p, r.graph, values, odo_rows, state, mean, sigma, base)

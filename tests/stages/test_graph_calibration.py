@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -229,3 +230,47 @@ def test_a_wheel_distance_error_the_yaw_test_misses_is_a_warning_not_a_calibrati
     assert not longer["checks"]["tag_scale"]["ok"]
     assert longer["checks"]["wheel_scale"]["ok"] and longer["checks"]["wheel_scale"]["mean_d2_per_dim"] > 1.0
     assert len(longer["warnings"]) == 1 and "tag scale" in longer["warnings"][0]
+
+
+def _odometry_truth_mean_square(run: SyntheticRun, problem) -> np.ndarray:
+    """Per dimension (x, y, θ), the mean square of each odometry factor's error at the true poses over its stated σ
+    (1 where the stated noise is right)."""
+    stamp = dict(zip(problem.pose_keys, problem.pose_stamps_ns, strict=True))
+    out = []
+    for row in problem.rows:
+        if row.kind != "odometry":
+            continue
+        a, b = (run.true_pose_at(np.array([stamp[k]]))[0] for k in row.keys)
+        truth = gtsam.Pose2(*a).between(gtsam.Pose2(*b))
+        out.append(gtsam.Pose2(*row.measurement).localCoordinates(truth) / np.sqrt(np.diag(row.covariance)))
+    return np.mean(np.square(out), axis=0)
+
+
+def test_settings_noise_is_brought_to_the_data_per_dimension_without_the_calibration() -> None:
+    """Zero message covariances and exact wheels: the settings' noise (translation isotropic, 5 % of the distance)
+    is far too large, and larger sideways than forwards for a wheeled robot. ``noise_estimate: auto`` scales it to
+    the data although the calibration stays off, one level per dimension: the heading's noise then matches its
+    errors at the truth, and the landmarks are no longer several times pessimistic."""
+    from stages.graph import remarks
+    from stages.graph.solve_all import _solve as stage_solve
+
+    run = synthetic_run(seed=0, loops=2.0, odom_cov_scale=0.0)
+    cfg = GraphConfig(tag_scale_sigma=EXACT_TAG_SCALE)
+    problem = build_problem(run.detections, run.odometry, run.extrinsics, cfg)
+    assert problem.info["odometry_noise"] == "settings"
+    scaled = stage_solve(problem, cfg)
+    cal = scaled.calibration
+    assert cal is not None and cal["estimated"] is False and not cal["decision"]["applied"]
+    lam_x, lam_y, lam_th = cal["odometry_covariance_scale_by_dimension"]
+    assert lam_y < 0.5 * lam_x  # the settings overstate the sideways noise more than the forward one
+    assert max(lam_x, lam_th) < 0.5  # and both are overstated
+    assert scaled.applied is None  # no calibration to carry downstream
+    plain = stage_solve(problem, cfg.model_copy(update={"noise_estimate": "off"}))
+    nees_scaled = _landmark_nees(run, scaled.problem, scaled.solution.values, scaled.marginals)
+    nees_plain = _landmark_nees(run, plain.problem, plain.solution.values, plain.marginals)
+    assert nees_plain < 0.35 and 0.4 < nees_scaled < 2.0 and nees_scaled > 1.8 * nees_plain
+    heading_scaled = _odometry_truth_mean_square(run, scaled.problem)[2]
+    heading_plain = _odometry_truth_mean_square(run, plain.problem)[2]
+    assert heading_plain < 0.4 and 0.5 < heading_scaled < 2.0
+    notes = remarks({**problem.info, "odometry_calibration": cal})
+    assert any(kind == "note" and "graph.noise_estimate=auto" in text for kind, text in notes)

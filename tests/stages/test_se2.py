@@ -54,10 +54,11 @@ def test_the_batched_corrected_factors_are_the_one_factor_path() -> None:
     c = np.array([1.02, 0.985, 0.01])
     pred = M + rng.normal(0, 0.01, (n, 3))
     Z, C = planar_corrected_factors(M, covs, c)
-    R = _planar_whitened_residuals(M, covs, c, pred)
+    lam = np.array([0.5, 2.0, 1.3])  # the noise level per dimension scales both paths' covariances alike
+    R = _planar_whitened_residuals(M, covs, c, pred, lam)
     for i in range(n):
         z, Ci = corrected_factor(M[i], covs[i], c, "planar")
         assert np.array_equal(z, Z[i])
         assert np.allclose(C[i], Ci, rtol=1e-5, atol=1e-5 * np.abs(Ci).max())
-        r = _whitened_residual("planar", M[i], covs[i], c, gtsam.Pose2(*pred[i]))
+        r = _whitened_residual("planar", M[i], covs[i], c, gtsam.Pose2(*pred[i]), lam)
         assert np.allclose(R[i], r, rtol=1e-5, atol=1e-5 * np.abs(r).max())
