@@ -66,7 +66,7 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
     scale = block.get("odometry_covariance_scale_by_dimension")
     if summary.get("odometry_noise") == "settings" and isinstance(scale, list) and not block.get("estimated"):
         dims = ("x", "y", "θ") if len(scale) == 3 else ("all",)
-        scaled = ", ".join(f"{float(v):.3g} ({d})" for v, d in zip(scale, dims, strict=True))  # type: ignore[arg-type]
+        scaled = ", ".join(f"{v:.3g} ({d})" for v, d in zip(scale, dims, strict=True) if isinstance(v, float))
         out.append(
             (
                 "note",
