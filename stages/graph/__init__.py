@@ -71,7 +71,7 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
             (
                 "note",
                 "the odometry has no covariances, so its noise is the settings' (graph.odometry_sigma_*) scaled to "
-                f"the data (graph.noise_estimate=auto): variances x {scaled}",
+                f"the data (graph.noise_estimate=auto): its variances scaled by {scaled}",
             )
         )
     health = summary.get("health")
