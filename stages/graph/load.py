@@ -64,7 +64,9 @@ class LoadedGraph(GraphProblem):
 
     def consider_term(self) -> ConsiderTerm | None:
         """The calibration's uncertainty that covariances computed from :attr:`graph` lack (its ``marginals``
-        already hold it): see :mod:`stages.graph.consider`."""
+        already hold it; None when the run was not calibrated): see :mod:`stages.graph.consider`."""
+        if self.calibration is None:  # no linearisation of the whole graph for nothing
+            return None
         return consider_term(self.rows, self.graph.linearize(self.values), key_dims(self.values), self.calibration)
 
 
