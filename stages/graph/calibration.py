@@ -580,7 +580,10 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
         sol.optimizer,
         time.perf_counter() - t0,
     )
-    jacobian = np.stack([np.linalg.solve(_whitening(current.rows[i].covariance), a_c[i]) for i in odo])
+    dim = 3 if problem.model == "planar" else 6
+    jacobian = np.zeros((len(odo), dim, 3))
+    for n, i in enumerate(odo):
+        jacobian[n] = np.linalg.solve(_whitening(current.rows[i].covariance), a_c[i])
     calibration = OdometryCalibration(s.c.copy(), cov_c, np.asarray(odo, dtype=np.int64), jacobian)
     return CalibrationResult(current, graph, solution, marginals, summary, calibration)
 
@@ -603,6 +606,8 @@ def _next_noise(lam: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
     if len(lam) == 1:
         return np.array([_clip(float(lam[0]) * pooled)])
     chi, red = stats["odometry_chi2_by_dimension"], stats["odometry_redundancy_by_dimension"]
+    if len(chi) != len(lam):  # no odometry factor to tell the dimensions apart
+        return np.array([_clip(float(v) * pooled) for v in lam])
     ratio = [c / r if r >= MIN_REDUNDANCY_PER_DIMENSION else pooled for c, r in zip(chi, red, strict=True)]
     return np.array([_clip(float(v) * q) for v, q in zip(lam, ratio, strict=True)])
 
