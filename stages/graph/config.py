@@ -73,8 +73,9 @@ class GraphConfig(SettingsModel):
     noise_estimate: Literal["auto", "off", "odometry", "odometry_and_tags"] = Field(
         "auto",
         description="Scale the odometry (and tag) covariances until each group's whitened chi-square matches its "
-        "redundancy (variance component estimation), for messages whose covariances are wrong, zero or absent. "
-        "auto: odometry when the odometry calibration runs, else off.",
+        "redundancy (variance component estimation; planar odometry: one scale per dimension x, y, θ), for "
+        "messages whose covariances are wrong, zero or absent. auto: odometry when the odometry calibration runs "
+        "or when the odometry's noise comes from the settings (zero or absent message covariances), else off.",
     )
     calibration_test_threshold: float = Field(
         5.99,
