@@ -10,10 +10,10 @@ from __future__ import annotations
 import difflib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from pipeline.errors import ConfigError
 from pipeline.json_types import JSONObject
@@ -29,6 +29,33 @@ class SettingsModel(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _yaml_words(cls, data: Any) -> Any:
+        """YAML reads an unquoted ``off`` / ``on`` (also ``no`` / ``yes``) as a boolean, so ``--set
+        graph.noise_estimate=off`` or ``noise_estimate: off`` in a file reached a choice field as False. A choice field
+        whose choices hold the word takes it back as the word."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for key, value in data.items():
+            info = cls.model_fields.get(key)
+            if not isinstance(value, bool) or info is None:
+                continue
+            choices = [str(a) for a in _literal_choices(info.annotation)]
+            for word in ("on", "yes", "true") if value else ("off", "no", "false"):
+                if word in choices:
+                    out[key] = word
+                    break
+        return out
+
+
+def _literal_choices(annotation: Any) -> tuple[Any, ...]:
+    """The values of a ``Literal[...]`` annotation, also inside a union (``bool | Literal["auto"]``); () for others."""
+    if get_origin(annotation) is Literal:
+        return get_args(annotation)
+    return tuple(v for arg in get_args(annotation) for v in _literal_choices(arg))
 
 
 class RecordingSettings(SettingsModel):

@@ -91,3 +91,17 @@ def test_default_yaml_loads_back_and_documents_every_key(tmp_path: Path) -> None
         for key, info in model.model_fields.items():
             assert info.description, f"{name}.{key} has no description"
             assert f"  # {info.description}" in text
+
+
+def test_yaml_words_off_and_on_reach_choice_fields_as_words(tmp_path: Path) -> None:
+    """YAML 1.1 reads an unquoted off / no as False: a choice field that offers the word gets the word back, from
+    --set and from a file alike; a field that is a bool (or a bool or a word) keeps the bool."""
+    s = load_settings(REGISTRY.models(), None, ["graph.noise_estimate=off", "graph.odometry_calibration=off"])
+    assert s["graph"].noise_estimate == "off"
+    assert s["graph"].odometry_calibration is False
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("graph:\n  noise_estimate: off\n  strict: yes\n")
+    s = load_settings(REGISTRY.models(), cfg)
+    assert s["graph"].noise_estimate == "off" and s["graph"].strict is True
+    with pytest.raises(ConfigError, match="noise_estimate"):  # 'on' is not one of its choices
+        load_settings(REGISTRY.models(), None, ["graph.noise_estimate=on"])
