@@ -41,7 +41,7 @@ from stages.graph import se2
 from stages.graph.config import GraphConfig
 from stages.graph.consider import OdometryCalibration
 from stages.graph.factors import FactorRow, build_graph
-from stages.graph.marginals import selected_inverse, whitened_system
+from stages.graph.marginals import factor_row_starts, hat_trace, selected_inverse, whitened_system
 from stages.graph.problem import GraphProblem
 from stages.graph.solve import Solution, optimise
 
@@ -629,7 +629,7 @@ def _noise_statistics(
     """
     J, b = whitened_system(joint)
     n = J.shape[1]
-    starts = np.concatenate([[0], np.cumsum([r.dim for r in problem.rows] + [3])])
+    starts = factor_row_starts([r.dim for r in problem.rows] + [3])
 
     def rows_of(idx: list[int]) -> np.ndarray:
         return np.concatenate([np.arange(starts[i], starts[i + 1]) for i in idx]) if idx else np.zeros(0, int)
@@ -642,11 +642,7 @@ def _noise_statistics(
     groups = [list(joint.at(i).keys()) for i in odo + other]
     Z = selected_inverse(joint, dims, groups, last=list(problem.landmark_keys.values()))
 
-    def hat_trace(rows: np.ndarray) -> float:  # tr(H⁻¹ J_rᵀ J_r): both sparse on the factors' blocks
-        Jr = J[rows]
-        return float((Jr.T @ Jr).multiply(Z).sum())
-
-    tr_odo, tr_other = hat_trace(odo_rows), hat_trace(other_rows)
+    tr_odo, tr_other = hat_trace(J, Z, odo_rows), hat_trace(J, Z, other_rows)
     # the same per dimension of the odometry's residual (whitened component d of each odometry factor)
     odo_dim = problem.rows[odo[0]].dim if odo else 0
     by_dim = [np.array([starts[i] + d for i in odo], dtype=int) for d in range(odo_dim)]
@@ -662,7 +658,7 @@ def _noise_statistics(
         "odometry_redundancy": r_odo,
         "odometry_ratio": chi_odo / r_odo if r_odo > 0 else 1.0,
         "odometry_chi2_by_dimension": [float(b[r] @ b[r]) for r in by_dim],
-        "odometry_redundancy_by_dimension": [float(len(r) - hat_trace(r)) for r in by_dim],
+        "odometry_redundancy_by_dimension": [float(len(r) - hat_trace(J, Z, r)) for r in by_dim],
         "tag_chi2": chi_tag,
         "tag_redundancy": r_tag,
         "tag_ratio": chi_tag / r_tag if r_tag > 0 else 1.0,

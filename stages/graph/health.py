@@ -4,8 +4,9 @@ A graph can finish with a wrong map and nothing to show for it: a wrong tag size
 optimiser that stopped at its cap, odometry covariances that do not describe the wheels. Each check below
 gives its figures and, when it fails, one line that says what is wrong and which setting to look at:
 
-- ``chi2``: the whitened χ² of each factor kind over its share of the degrees of freedom (``dof = dims ·
-  (M − N) / M`` for M measurement and N unknown dimensions). Noise models that describe the data give about
+- ``chi2``: the whitened χ² of each factor kind over its redundancy (``dof = Σ_f (dim_f − tr(J_f H⁻¹ J_fᵀ))``,
+  :func:`redundancy_by_kind`; ``dims · (M − N) / M`` for M measurement and N unknown dimensions when the system
+  cannot be factorised). Noise models that describe the data give about
   1 (less when they are conservative); above :data:`CHI2_PER_DOF_MAX` the fit is far outside them.
 - ``tag_scale``: the shared tag scale more than :data:`SCALE_PRIOR_SIGMAS` prior sigmas from 1: the printed
   tags are not ``detect.tag_size_m``; the line names the size the data suggest (current size × scale).
@@ -102,7 +103,7 @@ def graph_health(
     checks: dict[str, dict[str, Any]] = {}
     warnings: list[str] = []
     for name, (figures, warning) in (
-        ("chi2", _chi2_check(problem, chi2)),
+        ("chi2", _chi2_check(problem, chi2, redundancy_by_kind(problem, graph, values))),
         ("tag_scale", _scale_check(problem, values, marginals, tag_size_m)),
         ("iterations", _iterations_check(iterations, max_iterations, section)),
         ("moved_tags", _moved_tags_check(problem, chi2)),
@@ -121,7 +122,44 @@ def _dof_share(problem: GraphProblem) -> float:
     return max(m - n, 0) / m if m else 0.0
 
 
-def _chi2_check(problem: GraphProblem, chi2: np.ndarray) -> tuple[dict[str, Any], str | None]:
+def redundancy_by_kind(
+    problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+) -> dict[str, float] | None:
+    """Each factor kind's redundancy at ``values``: its measurement dimensions less its share of the hat matrix's
+    trace, ``Σ_f (dim_f − tr(J_f H⁻¹ J_fᵀ))`` (``E[χ²]`` of the kind when its noise model is right; the kinds' sum is
+    ``M − N``). From one selected inverse on the factors' blocks, linear in the graph. None when the system cannot be
+    factorised (the caller falls back to shares in proportion to the dimensions).
+
+    The shares matter on reduced graphs: there an odometry chain adds no redundancy of its own (each factor places
+    the next pose), so nearly all of it is the tags', where dimensions in proportion gave the tags 6 of ~120 and
+    their χ² per degree of freedom read 5.9 for 0.3 (c93's focus, info; docs/graph.md)."""
+    from stages.graph.marginals import factor_row_starts, hat_trace, key_dims, selected_inverse, whitened_system
+
+    linear = graph.linearize(values)
+    if linear.size() != len(problem.rows):
+        return None
+    try:
+        J, _ = whitened_system(linear)
+        groups = [list(linear.at(i).keys()) for i in range(linear.size())]
+        Z = selected_inverse(linear, key_dims(values), groups, last=list(problem.landmark_keys.values()))
+    except RuntimeError:
+        return None
+    starts = factor_row_starts([r.dim for r in problem.rows])
+    if int(starts[-1]) != J.shape[0]:
+        return None
+    rows_of: dict[str, list[np.ndarray]] = {}
+    for i, row in enumerate(problem.rows):
+        rows_of.setdefault(row.kind, []).append(np.arange(starts[i], starts[i + 1]))
+    out = {}
+    for kind, parts in rows_of.items():
+        rows = np.concatenate(parts)
+        out[kind] = float(len(rows) - hat_trace(J, Z, rows))
+    return out
+
+
+def _chi2_check(
+    problem: GraphProblem, chi2: np.ndarray, redundancy: dict[str, float] | None = None
+) -> tuple[dict[str, Any], str | None]:
     share = _dof_share(problem)
     by_kind: dict[str, dict[str, float]] = {}
     for row, c in zip(problem.rows, chi2, strict=True):
@@ -130,7 +168,7 @@ def _chi2_check(problem: GraphProblem, chi2: np.ndarray) -> tuple[dict[str, Any]
         k["chi2"] += float(c)
     bad = []
     for kind, k in by_kind.items():
-        k["dof"] = round(k["dims"] * share, 2)
+        k["dof"] = round(redundancy[kind] if redundancy is not None else k["dims"] * share, 2)
         k["chi2_per_dof"] = round(k["chi2"] / k["dof"], 4) if k["dof"] > 0 else float("nan")
         k["chi2"] = round(k["chi2"], 3)
         if k["dof"] >= CHI2_MIN_DOF and k["chi2_per_dof"] > CHI2_PER_DOF_MAX:

@@ -169,6 +169,19 @@ def _clique_covariances(
             stack.extend((clique[c], at, cov) for c in range(clique.nrChildren()))
 
 
+def hat_trace(J: sp.csr_matrix, Z: sp.csr_matrix, rows: np.ndarray) -> float:
+    """``tr(H⁻¹ J_rᵀ J_r)``, the hat matrix's trace over the rows ``rows`` of the whitened Jacobian ``J`` (their
+    share of the parameters; a row set's redundancy is its count less this), with ``Z`` the
+    :func:`selected_inverse` on the blocks of those rows' factors: both are sparse on the same blocks."""
+    Jr = J[rows]
+    return float((Jr.T @ Jr).multiply(Z).sum())
+
+
+def factor_row_starts(row_dims: Sequence[int]) -> np.ndarray:
+    """Where each factor's rows start in :func:`whitened_system`'s ``J`` (factor order), and the end last."""
+    return np.concatenate([[0], np.cumsum(np.asarray(row_dims, dtype=np.int64))])
+
+
 def whitened_system(linear: gtsam.GaussianFactorGraph) -> tuple[sp.csr_matrix, np.ndarray]:
     """The whitened Jacobian ``J`` (rows in factor order, columns by sorted key as ``sparseJacobian_`` lays them
     out) and right-hand side ``b`` of a Gaussian factor graph."""
