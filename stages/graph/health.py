@@ -127,8 +127,10 @@ def redundancy_by_kind(
 ) -> dict[str, float] | None:
     """Each factor kind's redundancy at ``values``: its measurement dimensions less its share of the hat matrix's
     trace, ``Σ_f (dim_f − tr(J_f H⁻¹ J_fᵀ))`` (``E[χ²]`` of the kind when its noise model is right; the kinds' sum is
-    ``M − N``). From one selected inverse on the factors' blocks, linear in the graph. None when the system cannot be
-    factorised (the caller falls back to shares in proportion to the dimensions).
+    ``M − N``). From one selected inverse on the blocks of every kind's factors but the largest kind's, which takes
+    the rest of ``tr(H⁻¹ H) = N`` (an hour's tag factors would have added 140 MiB to the stage's peak); linear in the
+    graph. None when the system cannot be factorised (the caller falls back to shares in proportion to the
+    dimensions).
 
     The shares matter on reduced graphs: there an odometry chain adds no redundancy of its own (each factor places
     the next pose), so nearly all of it is the tags', where dimensions in proportion gave the tags 6 of ~120 and
@@ -136,24 +138,32 @@ def redundancy_by_kind(
     from stages.graph.marginals import factor_row_starts, hat_trace, key_dims, selected_inverse, whitened_system
 
     linear = graph.linearize(values)
-    if linear.size() != len(problem.rows):
+    if linear.size() != len(problem.rows) or not problem.rows:
         return None
+    dims: dict[str, int] = {}
+    for row in problem.rows:
+        dims[row.kind] = dims.get(row.kind, 0) + row.dim
+    rest = max(dims, key=lambda kind: dims[kind])  # the largest kind takes what the others leave (tr(H⁻¹ H) = n)
+    traced = [i for i, row in enumerate(problem.rows) if row.kind != rest]
     try:
         J, _ = whitened_system(linear)
-        groups = [list(linear.at(i).keys()) for i in range(linear.size())]
-        Z = selected_inverse(linear, key_dims(values), groups, last=list(problem.landmark_keys.values()))
+        groups = [list(linear.at(i).keys()) for i in traced]
+        key_dim = key_dims(values)
+        Z = selected_inverse(linear, key_dim, groups, last=list(problem.landmark_keys.values()))
     except RuntimeError:
         return None
     starts = factor_row_starts([r.dim for r in problem.rows])
     if int(starts[-1]) != J.shape[0]:
         return None
     rows_of: dict[str, list[np.ndarray]] = {}
-    for i, row in enumerate(problem.rows):
-        rows_of.setdefault(row.kind, []).append(np.arange(starts[i], starts[i + 1]))
+    for i in traced:
+        rows_of.setdefault(problem.rows[i].kind, []).append(np.arange(starts[i], starts[i + 1]))
     out = {}
     for kind, parts in rows_of.items():
         rows = np.concatenate(parts)
         out[kind] = float(len(rows) - hat_trace(J, Z, rows))
+    n = sum(key_dim[int(k)] for k in linear.keyVector())
+    out[rest] = float(dims[rest] - (n - sum(dims[k] - r for k, r in out.items())))
     return out
 
 
