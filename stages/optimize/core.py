@@ -30,7 +30,7 @@ import numpy.typing as npt
 from pipeline.errors import StageError
 from stages.estimation.gaussian import entropy_from_logdet, gaussian_entropy
 from stages.estimation.linear_system import landmark_prior_sigmas
-from stages.graph.consider import ConsiderTerm, consider_term
+from stages.graph.consider import ConsiderTerm, OdometryCalibration, consider_term
 from stages.graph.factors import FactorRow, build_graph
 from stages.graph.load import LoadedGraph
 from stages.graph.marginals import key_dims, sparse_joint_covariance, tree_marginals
@@ -127,14 +127,7 @@ def solve_reduced(
     t2 = time.perf_counter()
     scored = focused if entropy_tag_ids is None else sorted({int(t) for t in entropy_tag_ids})
     focused_obs = [t for t in scored if t in set(observed)]
-    marginals, joint = _marginals(problem, graph, solution, focused_obs)
-    consider = None
-    if loaded.calibration is not None:
-        linear = graph.linearize(solution.values)
-        consider = consider_term(rows, linear, key_dims(solution.values), loaded.calibration, keep)
-    if consider is not None:  # the calibrated odometry, as uncertain as the whole recording left the calibration
-        marginals = consider.add_to_marginals(marginals)
-        joint = joint + consider.joint([problem.landmark_keys[t] for t in focused_obs])
+    marginals, joint, consider = _marginals(problem, graph, solution, focused_obs, loaded.calibration, keep)
     t3 = time.perf_counter()
     h_obs = gaussian_entropy(joint)
     missing_dims = [
@@ -218,9 +211,16 @@ def marginals_of(problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, solut
 
 
 def _marginals(
-    problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, solution: Solution, focused_observed: list[int]
-) -> tuple[dict[int, FloatArray], FloatArray]:
-    """Every variable's marginal covariance and the joint covariance of the observed focused landmarks."""
+    problem: GraphProblem,
+    graph: gtsam.NonlinearFactorGraph,
+    solution: Solution,
+    focused_observed: list[int],
+    calibration: OdometryCalibration | None = None,
+    full_index: npt.NDArray[np.int64] | None = None,
+) -> tuple[dict[int, FloatArray], FloatArray, ConsiderTerm | None]:
+    """Every variable's marginal covariance and the joint covariance of the observed focused landmarks, with the
+    odometry calibration's consider term added when the rows were corrected by one (the calibrated odometry, as
+    uncertain as the whole recording left the calibration; ``full_index``: each row's index in the full graph)."""
     try:
         values = solution.values
         linear, dims = graph.linearize(values), key_dims(values)
@@ -236,7 +236,11 @@ def _marginals(
             joint = np.zeros((0, 0))
     except RuntimeError as err:
         raise StageError(indeterminant_message(problem, err, "computing marginals")) from err
-    return marginals, joint
+    consider = consider_term(problem.rows, linear, dims, calibration, full_index)
+    if consider is not None:
+        marginals = consider.add_to_marginals(marginals)
+        joint = joint + consider.joint([problem.landmark_keys[t] for t in focused_observed])
+    return marginals, joint, consider
 
 
 def landmark_errors(
