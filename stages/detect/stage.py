@@ -7,7 +7,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -48,6 +48,7 @@ from stages.detect.core import (
 )
 from stages.detect.edges import run_shift
 from stages.detect.pose import pose_covariance
+from stages.frames import frame_blob
 from stages.ingest.artifacts import CAMERA as CAMERA_MODEL
 from stages.ingest.artifacts import (
     CAMERAS,
@@ -441,17 +442,9 @@ def _log_frames(rec: rr.RecordingStream, jobs: list[FrameJob], result: BatchResu
             rec.log("/detect/stats/reprojection_px", rr.Scalars([float(np.mean([r.reprojection_px for r in rows]))]))
         if job.frame % stride:
             continue
-        if job.data is not None and job.format in ("jpeg", "png"):
-            rec.log("/detect/camera/image", rr.EncodedImage(contents=job.data, media_type=f"image/{job.format}"))
-        elif job.data is not None and job.format in ("mono8", "bgr8", "rgb8"):
-            ch = 1 if job.format == "mono8" else 3
-            row = job.width * ch
-            buf = np.frombuffer(job.data, np.uint8)
-            if buf.size >= job.step * job.height and job.step >= row:
-                pix = buf[: job.step * job.height].reshape(job.height, job.step)[:, :row]
-                pix = pix.reshape(job.height, job.width, ch)
-                model: Literal["L", "BGR", "RGB"] = "L" if ch == 1 else ("BGR" if job.format == "bgr8" else "RGB")
-                rec.log("/detect/camera/image", rr.Image(pix if ch == 3 else pix[:, :, 0], color_model=model))
+        blob = None if job.data is None else frame_blob(job.format, job.width, job.height, job.step, job.data)
+        if blob is not None:
+            rec.log("/detect/camera/image", rr.EncodedImage(contents=blob[0], media_type=blob[1]))
         strips = [np.vstack([np.reshape(r.corners, (4, 2)), np.reshape(r.corners, (4, 2))[:1]]) for r in rows]
         ids = np.array([r.tag_id for r in rows])
         rec.log(

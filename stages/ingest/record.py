@@ -13,8 +13,8 @@ import rerun as rr
 from pipeline.artifacts import StageInput
 from pipeline.context import StageContext
 from pipeline.contracts import Column
-from pipeline.recording import set_stamp
 from stages.columns import POSITION, QUATERNION, STAMP_NS
+from stages.frames import frame_blob
 from stages.ingest.artifacts import (
     ANGLE_INCREMENT,
     ANGLE_MIN,
@@ -159,27 +159,26 @@ class FrameLog:
     """The camera frames drawn in ``ingest.rrd`` (every ``image_stride``-th), logged as ingest reads them.
 
     Reading the frames back from ``frames.parquet`` once the stage has written it cost a quarter of the sample's
-    ingest; the rows are the same ones the table receives. JPEG/PNG frames go in one call per ``batch`` drawn
-    frames (a row each, as :func:`image_archetype`'s); raw pixels one at a time.
+    ingest; the rows are the same ones the table receives. They go in one call per ``batch`` drawn frames, as
+    :func:`stages.frames.frame_blob` encodes them (raw pixels as JPEG).
     """
 
     def __init__(self, rec: rr.RecordingStream, stride: int, batch: int = 64) -> None:
         self.rec, self.stride, self.batch = rec, max(1, stride), batch
         self.seen = 0
-        self.encoded: list[dict[str, Any]] = []
+        self.encoded: list[tuple[int, bytes, str]] = []  # stamp, blob, media type
 
     def add(self, row: dict[str, Any]) -> None:
         """A row of ``frames.parquet`` as it is written."""
         k, self.seen = self.seen, self.seen + 1
         if k % self.stride:
             return
-        if row[FORMAT] in _MEDIA_TYPES:
-            self.encoded.append(row)
-            if len(self.encoded) >= self.batch:
-                self.flush()
+        blob = frame_blob(row[FORMAT], row[WIDTH], row[HEIGHT], row[STEP] or 0, row[DATA])
+        if blob is None:
             return
-        set_stamp(self.rec, row[STAMP_NS])
-        self.rec.log("/ingest/camera/image", image_archetype(row))
+        self.encoded.append((row[STAMP_NS], *blob))
+        if len(self.encoded) >= self.batch:
+            self.flush()
 
     def flush(self) -> None:
         if not self.encoded:
@@ -187,28 +186,6 @@ class FrameLog:
         rows, self.encoded = self.encoded, []
         self.rec.send_columns(
             "/ingest/camera/image",
-            indexes=[rr.TimeColumn("time", timestamp=np.array([r[STAMP_NS] for r in rows], "datetime64[ns]"))],
-            columns=rr.EncodedImage.columns(
-                blob=[r[DATA] for r in rows], media_type=[_MEDIA_TYPES[r[FORMAT]] for r in rows]
-            ),
+            indexes=[rr.TimeColumn("time", timestamp=np.array([r[0] for r in rows], "datetime64[ns]"))],
+            columns=rr.EncodedImage.columns(blob=[r[1] for r in rows], media_type=[r[2] for r in rows]),
         )
-
-
-_MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
-
-
-def image_archetype(row: dict[str, Any]) -> Any:
-    """A Rerun image for a frames.parquet row: compressed bytes as they are, raw pixels with their layout."""
-    fmt = row[FORMAT]
-    if fmt in ("jpeg", "png"):
-        return rr.EncodedImage(contents=row[DATA], media_type=_MEDIA_TYPES[fmt])
-    h, w, step = row[HEIGHT], row[WIDTH], row[STEP]
-    buf = np.frombuffer(row[DATA], dtype=np.uint8)
-    if fmt in ("mono8", "8UC1"):
-        return rr.Image(buf.reshape(h, step)[:, :w], color_model="L")
-    if fmt in ("mono16", "16UC1"):
-        return rr.Image(buf.view(np.uint16).reshape(h, step // 2)[:, :w], color_model="L")
-    if fmt in ("bgr8", "rgb8"):
-        img = buf.reshape(h, step)[:, : w * 3].reshape(h, w, 3)
-        return rr.Image(img, color_model="BGR" if fmt == "bgr8" else "RGB")
-    return rr.TextLog(f"frame in encoding {fmt!r} not drawn")

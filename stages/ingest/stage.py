@@ -146,6 +146,10 @@ def _tags_summary(tags: TagsFile) -> dict[str, Any]:
 
 _BATCH = 1024
 """Odometry and scan messages parsed at a time (:func:`stages.ingest.fast.odometry_batch`)."""
+FRAME_GROUP_BYTES = 32 << 20
+"""Image bytes per row group of ``frames.parquet`` at most (plus one frame): ingest holds one group before writing
+it and detect reads one at a time, so this bounds both stages' memory on raw images (256 JPEG frames at 640x480
+stay well under it)."""
 
 
 def run(ctx: StageContext, cfg: IngestConfig) -> dict[str, Any]:
@@ -292,7 +296,12 @@ class _Reading:
         self.dropped: dict[str, Counter[str]] = {}
         """Per topic, the messages dropped (--salvage) for each reason: values out of range, or no decoding."""
         self.frames: TableWriter[dict[str, Any]] = TableWriter(
-            out, FRAMES, batch=256, stored=(DATA,) if compressed else ()
+            out,
+            FRAMES,
+            batch=256,
+            stored=(DATA,) if compressed else (),
+            weight=lambda row: len(row[DATA] or b""),
+            max_bytes=FRAME_GROUP_BYTES,
         )
         """Frames; when every image topic is a CompressedImage, their bytes are stored as they are."""
         self.odom = TableWriter(out, ODOMETRY, batch=4096, table=odometry_table)

@@ -229,3 +229,33 @@ def test_salvage_reads_a_truncated_mcap_file(recording, tmp_path: Path) -> None:
     assert summary["reader"] == "mcap" and summary["salvaged"]["stopped_at"]
     assert 0 < summary["frames"] < len(_written(recording, "ImageMsg"))
     assert 0 < summary["odometry"] < len(_written(recording, "OdometryMsg"))
+
+
+def test_raw_frames_row_groups_and_drawings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Raw bgr8 frames: frames.parquet keeps their bytes exactly, in row groups bounded by their bytes (readers
+    hold a group at a time), and ingest.rrd draws them as JPEG showing the same picture."""
+    import cv2
+
+    import stages.ingest.stage as ingest_stage
+
+    rec = simulate(SimConfig(seed=5, path="corridor", duration_s=3.0, image_format="bgr8"))
+    bag = write_bag(rec, tmp_path / "raw.bag", "ros1")
+    frame_bytes = 640 * 480 * 3
+    monkeypatch.setattr(ingest_stage, "FRAME_GROUP_BYTES", 4 * frame_bytes)
+    run = _ingest(bag, tmp_path, "rerun.image_stride=2")
+    path = run.stage_dir("ingest") / "frames.parquet"
+    meta = pq.ParquetFile(path).metadata
+    images = _written(rec, "ImageMsg")
+    assert meta.num_rows == len(images) > 8
+    sizes = [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]
+    assert max(sizes) == 4 and sum(sizes) == len(images)
+    frames = pq.read_table(path).to_pylist()
+    assert all(bytes(f["data"]) == bytes(m.payload.data) for f, m in zip(frames, images, strict=True))
+    blobs = _logged(run.rrd_path("ingest"), "/ingest/camera/image", "EncodedImage:blob")
+    kinds = _logged(run.rrd_path("ingest"), "/ingest/camera/image", "EncodedImage:media_type")
+    assert len(blobs) == (len(images) + 1) // 2 and {k[0] for k in kinds} == {"image/jpeg"}
+    for f, blob in zip(frames[::2], blobs, strict=True):
+        drawn = cv2.imdecode(np.frombuffer(bytes(blob[0]), np.uint8), cv2.IMREAD_COLOR)
+        raw = np.frombuffer(bytes(f["data"]), np.uint8).reshape(480, 640, 3)
+        assert len(bytes(blob[0])) < frame_bytes / 5
+        assert np.abs(drawn.astype(int) - raw).mean() < 3.0
