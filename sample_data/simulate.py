@@ -68,13 +68,15 @@ import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 
-ImageFormat = Literal["jpeg", "png", "mono8", "bgr8"]
+ImageFormat = Literal["jpeg", "png", "mono8", "bgr8", "bayer_rggb8", "yuv422"]
 BagFormat = Literal["ros1", "ros2-sqlite", "ros2-mcap", "mcap"]
 Compression = Literal["bz2", "lz4"]
 PathName = Literal["office", "corridor", "corridor_return"]
 
 BAG_FORMATS: Final[tuple[str, ...]] = ("ros1", "ros2-sqlite", "ros2-mcap", "mcap")
-IMAGE_FORMATS: Final[tuple[str, ...]] = ("jpeg", "png", "mono8", "bgr8")
+IMAGE_FORMATS: Final[tuple[str, ...]] = ("jpeg", "png", "mono8", "bgr8", "bayer_rggb8", "yuv422")
+RAW_BYTES_PER_PIXEL: Final = {"mono8": 1, "bgr8": 3, "bayer_rggb8": 1, "yuv422": 2}
+"""Bytes per pixel of the raw formats (sensor_msgs/Image); ``yuv422`` is ROS's UYVY byte order."""
 TAG_FAMILY: Final = "tag36h11"
 DEFAULT_START_NS: Final = 1_700_000_000 * 1_000_000_000
 
@@ -109,7 +111,8 @@ class SimConfig:
     image_width: int = 640
     image_height: int = 480
     image_format: ImageFormat = "jpeg"
-    """jpeg / png -> sensor_msgs/CompressedImage; mono8 / bgr8 -> sensor_msgs/Image."""
+    """jpeg / png -> sensor_msgs/CompressedImage; mono8 / bgr8 / bayer_rggb8 / yuv422 -> sensor_msgs/Image (the
+    grey scene as a colour camera would give it: a Bayer mosaic of it, or UYVY with neutral chroma)."""
     jpeg_quality: int = 85
     fx: float | None = None
     """Focal length in px; None = 0.65 * image_width (416 px at 640, about 75 deg wide)."""
@@ -1341,8 +1344,12 @@ def _encode_image(grey: npt.NDArray[np.uint8], cfg: SimConfig, header: Header) -
     elif cfg.image_format == "png":
         ok, buf = cv2.imencode(".png", grey, [cv2.IMWRITE_PNG_COMPRESSION, 6])
         data = buf.tobytes()
-    elif cfg.image_format == "mono8":
+    elif cfg.image_format in ("mono8", "bayer_rggb8"):  # a grey scene's mosaic holds its grey at every site
         ok, data = True, grey.tobytes()
+    elif cfg.image_format == "yuv422":  # UYVY: U Y0 V Y1, chroma neutral
+        uyvy = np.full((h, 2 * w), 128, np.uint8)
+        uyvy[:, 1::2] = grey
+        ok, data = True, uyvy.tobytes()
     else:
         ok, data = True, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR).tobytes()
     if not ok:
@@ -1352,13 +1359,15 @@ def _encode_image(grey: npt.NDArray[np.uint8], cfg: SimConfig, header: Header) -
 
 
 def decode_image(msg: ImageMsg) -> npt.NDArray[np.uint8]:
-    """Grey uint8 pixels of a simulated image message (any of the four formats)."""
+    """Grey uint8 pixels of a simulated image message (any of its formats)."""
     if msg.encoding in ("jpeg", "png"):
         img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
         return np.asarray(img, dtype=np.uint8)
     arr = np.frombuffer(msg.data, np.uint8)
-    if msg.encoding == "mono8":
+    if msg.encoding in ("mono8", "bayer_rggb8"):
         return arr.reshape(msg.height, msg.width)
+    if msg.encoding == "yuv422":
+        return np.ascontiguousarray(arr.reshape(msg.height, 2 * msg.width)[:, 1::2])
     return cv2.cvtColor(arr.reshape(msg.height, msg.width, 3), cv2.COLOR_BGR2GRAY)
 
 
@@ -1424,14 +1433,13 @@ class _RosBuilder:
             data = np.frombuffer(p.data, dtype=np.uint8).copy()
             if p.encoding in ("jpeg", "png"):
                 return T["sensor_msgs/msg/CompressedImage"](header=hdr, format=p.encoding, data=data)
-            channels = 1 if p.encoding == "mono8" else 3
             return T["sensor_msgs/msg/Image"](
                 header=hdr,
                 height=p.height,
                 width=p.width,
                 encoding=p.encoding,
                 is_bigendian=0,
-                step=p.width * channels,
+                step=p.width * RAW_BYTES_PER_PIXEL[p.encoding],
                 data=data,
             )
         if isinstance(p, CameraInfoMsg):

@@ -248,7 +248,7 @@ def test_detector_finds_tags_where_ground_truth_says(office_rec: Recording) -> N
 def test_image_formats_decode_to_the_same_picture() -> None:
     base = SimConfig(seed=4, duration_s=0.5, image_width=160, image_height=120)
     images = {}
-    for fmt in ("png", "mono8", "bgr8", "jpeg"):
+    for fmt in ("png", "mono8", "bgr8", "jpeg", "bayer_rggb8", "yuv422"):
         rec = simulate(SimConfig(**{**base.__dict__, "image_format": fmt}))
         msg = _payloads(rec, ImageMsg)[0]
         assert msg.encoding == fmt
@@ -258,6 +258,8 @@ def test_image_formats_decode_to_the_same_picture() -> None:
     assert images["png"].shape == (120, 160)
     assert np.array_equal(images["png"], images["mono8"])
     assert np.array_equal(images["png"], images["bgr8"])
+    assert np.array_equal(images["png"], images["bayer_rggb8"])  # the grey scene's mosaic
+    assert np.array_equal(images["png"], images["yuv422"])
     assert np.abs(images["png"] - images["jpeg"]).mean() < 3.0
 
 

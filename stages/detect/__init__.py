@@ -1,6 +1,6 @@
 """Stage ``detect``: AprilTags in every ingested frame, with each tag's pose in the camera and its 6x6 covariance.
 
-Public pieces: :class:`~stages.detect.config.DetectConfig`, :func:`~stages.detect.images.decode_frame`,
+Public pieces: :class:`~stages.detect.config.DetectConfig`, :func:`~stages.frames.decode_frame`,
 :func:`~stages.detect.backends.make_detector`, :func:`~stages.detect.pose.estimate_tag_pose`,
 :func:`stages.camera.load_camera_file` and :data:`STAGE`.
 """

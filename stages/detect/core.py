@@ -17,8 +17,8 @@ from stages.camera import colmap_camera
 from stages.detect.backends import Detector, TagObservation, make_detector, shortest_side_px
 from stages.detect.config import DetectConfig
 from stages.detect.edges import BORDER_CELLS, edge_shifts, shift_corners
-from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import TagPose, estimate_tag_poses
+from stages.frames import CorruptFrameError, decode_frame
 from stages.ingest.artifacts import CameraModel
 
 # Reasons a detection is dropped before its pose is kept (summary keys).

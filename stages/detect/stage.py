@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from typing import Any
@@ -48,7 +48,7 @@ from stages.detect.core import (
 )
 from stages.detect.edges import run_shift
 from stages.detect.pose import pose_covariance
-from stages.frames import frame_blob
+from stages.frames import RAW_ENCODINGS, frame_blob, readable_encoding
 from stages.ingest.artifacts import CAMERA as CAMERA_MODEL
 from stages.ingest.artifacts import (
     CAMERAS,
@@ -265,6 +265,27 @@ def sizes_from_tags(cfg: DetectConfig, tags: TagsInfo) -> DetectConfig:
     return cfg.model_copy(update={"tag_size_m": size, "tag_sizes": (*cfg.tag_sizes, *extra)})
 
 
+def _check_encodings(ingest: StageInput) -> None:
+    """Stop before reading any pixels when no frame is in an encoding :func:`decode_frame` reads; warn once per
+    encoding it does not read when others remain.
+
+    Raises:
+        InputError: every frame is in such an encoding.
+    """
+    counts = Counter(FRAMES.read(ingest, columns=[FORMAT]).column(FORMAT).to_pylist())
+    unread = {f: n for f, n in counts.items() if not readable_encoding(str(f))}
+    if not unread:
+        return
+    listed = ", ".join(f"{f!r} ({n} frames)" for f, n in sorted(unread.items()))
+    known = "jpeg, png and the raw encodings " + ", ".join(RAW_ENCODINGS)
+    if len(unread) == len(counts):
+        raise InputError(
+            f"the camera frames are in encoding {listed}, which detect does not decode (it reads {known}); "
+            "republish the images in one of those, or record the tag detections instead"
+        )
+    log.warning("%s skipped: detect does not decode that encoding (it reads %s)", listed, known)
+
+
 def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Iterable[list[FrameJob]], int, int]:
     """The work in batches (the bag's detections, or the frames), how many batches, and how many workers."""
     if from_bag:
@@ -273,6 +294,7 @@ def _batches(ingest: StageInput, cfg: DetectConfig, from_bag: bool) -> tuple[Ite
     total_frames = FRAMES.num_rows(ingest)
     if total_frames == 0:
         raise InputError(f"no frames in {ingest.file(FRAMES.file)}; check the camera topic given to ingest")
+    _check_encodings(ingest)
     total = (total_frames + cfg.batch_frames - 1) // cfg.batch_frames
     stride = max(1, -(-total_frames // cfg.edge_frames)) if cfg.corner_shift_px == "auto" else 0
     return _frame_jobs(ingest, cfg.batch_frames, stride), total, cfg.workers
@@ -314,8 +336,12 @@ def _detect(
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+    by_reason: dict[str, list[int]] = {}
     for frame, why in found.corrupt:
-        log.warning("frame %d skipped: %s", frame, why)
+        by_reason.setdefault(why, []).append(frame)
+    for why, frames in by_reason.items():  # one line per reason, not per frame
+        shown = ", ".join(str(f) for f in frames[:5]) + (f", … ({len(frames)} in all)" if len(frames) > 5 else "")
+        log.warning("%s %s skipped: %s", "frame" if len(frames) == 1 else "frames", shown, why)
     return found
 
 

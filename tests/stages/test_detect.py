@@ -3,6 +3,7 @@ and its covariance (Monte Carlo), calibration files, and the stage on a run fold
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.config import load_settings
-from pipeline.errors import InputError
+from pipeline.errors import InputError, StageError
 from pipeline.run_folder import RunFolder
 from pipeline.runner import run_stage
 from stages import REGISTRY
@@ -21,8 +22,8 @@ from stages.detect.artifacts import DETECTIONS
 from stages.detect.backends import make_detector, shortest_side_px
 from stages.detect.config import DetectConfig
 from stages.detect.core import detect_image
-from stages.detect.images import CorruptFrameError, decode_frame
 from stages.detect.pose import estimate_tag_pose
+from stages.frames import CorruptFrameError, decode_frame
 from tests.fixtures.detect_runs import camera_model as _camera
 from tests.fixtures.detect_runs import fake_ingest as _fake_ingest
 from tests.fixtures.shared_data import need_shared
@@ -52,10 +53,44 @@ def test_decode_frame_every_encoding() -> None:
     assert np.abs(decode_frame("mono16", 5, 6, 10, mono16).astype(int) - (gray * (255 / gray.max()))).max() <= 1
 
 
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_decode_frame_bayer_mosaics_give_the_scene_grey(pattern: str) -> None:
+    """A colour camera's raw mosaic (ROS names the first row's first two sites) demosaics to the grey of the
+    scene; a pattern read the wrong way round swaps red and blue, which this picture's grey tells apart."""
+    h, w = 40, 48
+    y, x = np.mgrid[0:h, 0:w]
+    bgr = np.dstack([40 + 4 * y, np.full((h, w), 120), 30 + 4 * x]).astype(np.uint8)  # blue down, red across
+    channel = {"b": 0, "g": 1, "r": 2}
+    mosaic = np.empty((h, w), np.uint8)
+    for k, c in enumerate(pattern):
+        dy, dx = divmod(k, 2)
+        mosaic[dy::2, dx::2] = bgr[dy::2, dx::2, channel[c]]
+    want = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(int)[2:-2, 2:-2]
+    got = decode_frame(f"bayer_{pattern}8", w, h, w, mosaic.tobytes()).astype(int)[2:-2, 2:-2]
+    assert np.abs(got - want).mean() < 2.0
+    swapped = bgr[:, :, ::-1]
+    assert np.abs(cv2.cvtColor(swapped, cv2.COLOR_BGR2GRAY).astype(int)[2:-2, 2:-2] - want).mean() > 5.0
+    deep = (mosaic.astype("<u2") * 256).tobytes()  # 16 bits: scaled by the frame's own range
+    got16 = decode_frame(f"BAYER_{pattern.upper()}16", w, h, 2 * w, deep).astype(int)[2:-2, 2:-2]
+    assert np.abs(got16 - want * 255 / mosaic.max()).mean() < 2.0
+
+
+def test_decode_frame_yuv422_is_its_luma() -> None:
+    rng = np.random.default_rng(2)
+    luma = rng.integers(0, 256, (6, 8), dtype=np.uint8)
+    chroma = rng.integers(0, 256, (6, 8), dtype=np.uint8)
+    uyvy = np.empty((6, 16), np.uint8)
+    uyvy[:, 0::2], uyvy[:, 1::2] = chroma, luma
+    yuyv = np.empty((6, 16), np.uint8)
+    yuyv[:, 0::2], yuyv[:, 1::2] = luma, chroma
+    for fmt, data in (("yuv422", uyvy), ("uyvy", uyvy), ("yuv422_yuy2", yuyv), ("yuyv", yuyv)):
+        assert np.array_equal(decode_frame(fmt, 8, 6, 16, data.tobytes()), luma), fmt
+
+
 @pytest.mark.parametrize(
-    ("fmt", "data"), [("jpeg", b"\xff\xd8garbage"), ("png", b""), ("mono8", b"\x00" * 10), ("yuv422", b"\x00" * 60)]
+    ("fmt", "data"), [("jpeg", b"\xff\xd8garbage"), ("png", b""), ("mono8", b"\x00" * 10), ("nv12", b"\x00" * 45)]
 )
-def test_decode_frame_corrupt_raises(fmt: str, data: bytes) -> None:
+def test_decode_frame_corrupt_raises(fmt: str, data: bytes) -> None:  # nv12: not an encoding we read
     with pytest.raises(CorruptFrameError):
         decode_frame(fmt, 5, 6, 0, data)
 
@@ -290,6 +325,27 @@ def test_stage_writes_detections_skips_corrupt_and_empty_frames(tmp_path: Path) 
         cov = np.reshape(r["pose_cov"], (6, 6))
         assert np.all(np.linalg.eigvalsh(cov) > 0)
     assert (run.path / "detect.rrd").exists()
+
+
+def test_frames_detect_cannot_decode_one_line_each(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Frames in an encoding detect does not read: with other frames, one warning names it; alone, one error
+    before any pixel is read, and no detections are written. Damaged frames: one warning per reason."""
+    camera = _camera()
+    img = render_frame(colmap_camera(camera), [], noise_sigma=2.0, rng=np.random.default_rng(0))
+    good = ("png", cv2.imencode(".png", img)[1].tobytes())
+    jobs = [good, good, *[("nv12", bytes(640 * 720))] * 3, *[("jpeg", b"\xff\xd8 cut")] * 7]
+    run = _fake_ingest(tmp_path / "mixed", jobs, camera, 640, 480)
+    settings = load_settings(REGISTRY.models(), None, [*_SETTINGS, "detect.workers=1"])
+    with caplog.at_level(logging.WARNING), pytest.raises(StageError, match="no tag36h11 tags found"):
+        run_stage(run, REGISTRY, "detect", settings)
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert [m for m in lines if "'nv12' (3 frames) skipped: detect does not decode" in m] != []
+    damaged = [m for m in lines if "do not decode" in m and "jpeg" in m]
+    assert len(damaged) == 1 and "(7 in all)" in damaged[0]
+    only = _fake_ingest(tmp_path / "only", [("nv12", bytes(640 * 720))] * 3, camera, 640, 480)
+    with pytest.raises(InputError, match=r"^the camera frames are in encoding 'nv12' \(3 frames\), which detect"):
+        run_stage(only, REGISTRY, "detect", settings)
+    assert not (only.stage_dir("detect") / "detections.parquet").exists()
 
 
 def test_detections_made_into_arrow_in_chunks_equal_the_table_made_at_once(
