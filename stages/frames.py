@@ -35,6 +35,7 @@ def frame_blob(fmt: str, width: int, height: int, step: int, data: bytes) -> tup
     if fmt in MEDIA_TYPES:
         return data, MEDIA_TYPES[fmt]
     import cv2  # only here: ingest does not load OpenCV for compressed frames
+
     colour = _COLOUR.get(fmt.lower())
     pix: npt.NDArray[np.uint8]
     if colour is not None:

@@ -42,6 +42,7 @@ from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
+from stages.graph.size_check import tag_odometry_ratio
 from stages.graph.variables import SCALE
 from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount, TagsInfo
 from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
@@ -117,6 +118,8 @@ def build_problem(
     order = usable[np.argsort(stamps[usable], kind="stable")]
     scale_keys = (SCALE_KEY,) if cfg.tag_scale_sigma > 0 else ()
     sightings = _tag_rows(model, cfg, det, order, path, scale_keys, extrinsics, info)
+    if odom is not None:
+        info["tag_odometry_ratio"] = _tag_odometry_ratio(det, order, path, extrinsics)
     rows += sightings.rows
     known = _known_tag_rows(model, tags, sightings, info) if tags is not None else []
     surveyed = {int(r.tag_id): pose3_from_vector(r.measurement) for r in known if r.tag_id is not None}
@@ -225,6 +228,24 @@ def _keyframe_path(
     info["keyframes_outside_odometry"] = int(((stamps < odom.stamps_ns[0]) | (stamps > odom.stamps_ns[-1])).sum())
     origin = odo_poses[0].inverse()
     return _KeyframePath(stamps, is_tag, pose_keys, [origin.compose(p) for p in odo_poses], odo_poses, odo_covs)
+
+
+def _tag_odometry_ratio(
+    det: dict[str, list[Any]], order: np.ndarray, path: _KeyframePath, extrinsics: Extrinsics | None
+) -> dict[str, Any]:
+    """The camera motion the tags measure against the odometry's (:mod:`stages.graph.size_check`)."""
+    mounts: dict[str, np.ndarray] = {}
+    for cam in {str(det[CAMERA][r]) for r in order}:
+        mounts[cam] = camera_extrinsic(extrinsics, cam)[0].matrix()
+    kf_index = path.index
+    T_camera_tag = np.asarray([det[T_CAMERA_TAG][r] for r in order], dtype=float).reshape(-1, 4, 4)
+    return tag_odometry_ratio(
+        np.asarray([kf_index[int(det[STAMP_NS][r])] for r in order], dtype=np.int64),
+        np.asarray([int(det[TAG_ID][r]) for r in order], dtype=np.int64),
+        np.asarray([mounts[str(det[CAMERA][r])] for r in order]).reshape(-1, 4, 4),
+        T_camera_tag[:, :3, 3],
+        np.asarray([p.matrix() for p in path.odometry_poses]).reshape(-1, 4, 4),
+    )
 
 
 def _prior_rows(model: GraphModel, cfg: GraphConfig, first_pose: int) -> list[FactorRow]:

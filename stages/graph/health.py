@@ -10,6 +10,10 @@ gives its figures and, when it fails, one line that says what is wrong and which
   1 (less when they are conservative); above :data:`CHI2_PER_DOF_MAX` the fit is far outside them.
 - ``tag_scale``: the shared tag scale more than :data:`SCALE_PRIOR_SIGMAS` prior sigmas from 1: the printed
   tags are not ``detect.tag_size_m``; the line names the size the data suggest (current size × scale).
+- ``tag_size``: the camera's motion between two sightings of one tag, as the tags measure it, against the wheel
+  odometry's (:mod:`stages.graph.size_check`, computed before the solve): more than 10 % apart, the tag size is
+  wrong (or the wheels are that far off). It catches what the scale check cannot: a size wrong by tens of percent,
+  where the scale's prior holds and the odometry or its calibration bends instead.
 - ``iterations``: the optimiser stopped at its iteration cap before converging.
 - ``moved_tags``: tags whose measurements disagree with one position (a tag that moved, a duplicated id, a tag on
   something that moves), judged twice: at the solution (the mean whitened χ² per measurement dimension of the tag's
@@ -47,6 +51,7 @@ import numpy as np
 
 from stages.graph.factors import FactorRow, build_graph, make_factor
 from stages.graph.problem import GraphProblem
+from stages.graph.size_check import MIN_PAIRS, RATIO_MAX, size_warning
 
 CHI2_PER_DOF_MAX = 5.0
 """A factor kind whose whitened χ² per degree of freedom exceeds this is far outside its noise model."""
@@ -68,7 +73,7 @@ TAG_DR_MAX_TAGS = 400
 DEAD_RECKONING_D2_PER_DIM_MAX = 25.0
 """Largest squared Mahalanobis distance per dimension between the trajectory and dead reckoning (5 σ)."""
 
-CHECKS = ("chi2", "tag_scale", "iterations", "moved_tags", "dead_reckoning")
+CHECKS = ("chi2", "tag_scale", "tag_size", "iterations", "moved_tags", "dead_reckoning")
 
 
 def row_chi2(problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> np.ndarray:
@@ -105,6 +110,7 @@ def graph_health(
     for name, (figures, warning) in (
         ("chi2", _chi2_check(problem, chi2, redundancy_by_kind(problem, graph, values))),
         ("tag_scale", _scale_check(problem, values, marginals, tag_size_m)),
+        ("tag_size", _size_check(problem, tag_size_m)),
         ("iterations", _iterations_check(iterations, max_iterations, section)),
         ("moved_tags", _moved_tags_check(problem, chi2)),
         ("dead_reckoning", _dead_reckoning_check(problem, values, marginals)),
@@ -234,6 +240,14 @@ def _scale_check(
         f"(graph.tag_scale_sigma={prior_sigma:g}) from 1: {size}; measure the printed tags' black square and "
         "set detect.tag_size_m"
     )
+
+
+def _size_check(problem: GraphProblem, tag_size_m: float | None) -> tuple[dict[str, Any], str | None]:
+    figures = problem.info.get("tag_odometry_ratio")
+    if figures is None:  # no odometry, or a reduced graph (optimize): the graph stage judged it
+        return {"judged": False}, None
+    judged = figures.get("pairs", 0) >= MIN_PAIRS
+    return {"judged": judged, **figures, "max": RATIO_MAX}, size_warning(figures, tag_size_m)
 
 
 def _iterations_check(iterations: int, max_iterations: int, section: str) -> tuple[dict[str, Any], str | None]:

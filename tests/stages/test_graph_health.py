@@ -64,6 +64,7 @@ def test_a_world_with_correct_settings_passes_every_check(good: dict[str, Any]) 
     assert checks["moved_tags"]["odometry"]["worst_chi2_per_dim"] < 3  # every tag agrees with the odometry alone
     assert checks["dead_reckoning"]["compared"] == good["poses"]
     assert checks["dead_reckoning"]["max_d2_per_dim"] < 25
+    assert checks["tag_size"]["judged"] and abs(checks["tag_size"]["ratio"] - 1) < 0.02
     # a wheeled robot on a flat floor: auto picks the planar model and says why
     assert good["model"] == "planar" and good["model_choice"]["setting"] == "auto"
     assert good["model_choice"]["reason"].startswith("planar motion")
@@ -77,6 +78,26 @@ def test_a_wrong_tag_size_names_the_setting_and_the_size_the_data_suggest(tmp_pa
     assert scale["value"] > 1.05 and scale["prior_sigmas_from_1"] > 3
     line = next(w for w in summary["health"]["warnings"] if "tag scale" in w)
     assert "detect.tag_size_m=0.16" in line and f"{SIZE * scale['value']:.3f} m" in line
+    assert summary["health"]["checks"]["tag_size"]["ratio"] == pytest.approx(0.162 / 0.20, abs=0.01)
+
+
+@pytest.mark.parametrize("calibration", ["auto", "true", "false"])
+def test_a_tag_size_tens_of_percent_off_is_named_whatever_the_solve_bends(tmp_path: Path, calibration: str) -> None:
+    """0.30 m tags detected as 0.162 m: the scale's prior holds it near 1 and the odometry (or its calibrated
+    distance scale) bends instead, so the scale check can stay quiet; the tags' own motion against the odometry's
+    names the size, before any solve."""
+    _, summary = _graph(
+        tmp_path,
+        synthetic_run(seed=3, loops=2.0, range_scale=0.162 / 0.30),
+        f"graph.odometry_calibration={calibration}",
+    )
+    assert "tag_size" in _failed(summary)
+    size = summary["health"]["checks"]["tag_size"]
+    assert size["ratio"] == pytest.approx(0.54, abs=0.01) and size["pairs"] >= 20
+    line = next(w for w in summary["health"]["warnings"] if "disagree on distances" in w)
+    assert "detect.tag_size_m=0.16 m" in line
+    suggested = float(line.split("the tags are ")[1].split(" m")[0])
+    assert suggested == pytest.approx(SIZE / 0.54, rel=0.02)  # the synthetic detections assume 0.16 m
 
 
 def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
