@@ -12,7 +12,16 @@ import rerun as rr
 
 from pipeline.artifacts import StageOutput
 from pipeline.errors import StageError
-from stages.graph.calibration import CalibrationResult, calibrate, calibration_test, map_shift, shift_warning, tested
+from stages.graph.calibration import (
+    CalibrationResult,
+    calibrate,
+    calibration_test,
+    calibration_value,
+    implausible,
+    map_shift,
+    shift_warning,
+    tested,
+)
 from stages.graph.calibration import applies as calibration_applies
 from stages.graph.config import GraphConfig
 from stages.graph.consider import OdometryCalibration
@@ -120,9 +129,13 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
         decision, steps = calibration_test(solved, graph, solution.values, cfg)
         if decision["applied"]:
             result = calibrate(problem, cfg, initial=solution.values)
-            result.summary["decision"] = decision
-            seconds = (time.perf_counter() - t0, 0.0)
-            return _calibrated(result, seconds)
+            far = implausible(calibration_value(result.summary), cfg)
+            if far is None:
+                result.summary["decision"] = decision
+                seconds = (time.perf_counter() - t0, 0.0)
+                return _calibrated(result, seconds)
+            # the test's step was a wheel's, but the calibration went where no wheel is: keep the uncalibrated map
+            decision.update(applied=False, rejected=True, reason=_far_calibration(far, "was left off"))
     t1 = time.perf_counter()
     if noise is not None:
         marginals = noise.marginals
@@ -172,12 +185,19 @@ def _health(s: _Solved, cfg: GraphConfig) -> dict[str, Any]:
 
 
 def _calibration_checks(s: _Solved, health: dict[str, Any], cfg: GraphConfig) -> None:
-    """The checks of ``odometry_calibration: auto``, when it ran its test: ``odometry_calibration`` fails when the
-    odometry disagrees with the tags in a way no wheel calibration explains
-    (:func:`stages.graph.calibration.implausible`); ``wheel_scale`` when the calibration stayed off but would have
-    moved the map beyond its σ (:func:`stages.graph.calibration.shift_warning`; not when the ``tag_scale`` check
-    has already named a wrong tag size, the likelier cause then)."""
+    """The checks of the odometry calibration. ``odometry_calibration`` fails when the odometry disagrees with the
+    tags in a way no wheel calibration explains (:func:`stages.graph.calibration.implausible`): ``auto``'s test
+    step, or its calibrated result (then left off, :func:`_solve`), or a calibration set on that ended there (then
+    kept). ``wheel_scale`` fails when the calibration stayed off but would have moved the map beyond its σ
+    (:func:`stages.graph.calibration.shift_warning`; not when the ``tag_scale`` check has already named a wrong tag
+    size, the likelier cause then)."""
     decision = (s.calibration or {}).get("decision") or {}
+    calibration = s.calibration or {}
+    if calibration.get("estimated") and (far := implausible(calibration_value(calibration), cfg)):
+        reason = _far_calibration(far, "is kept (graph.odometry_calibration=true)")  # set on: warn, keep it
+        health["checks"]["odometry_calibration"] = {"ok": False, "reason": reason}
+        health["warnings"].append(reason)
+        health["ok"] = False
     if decision.get("rejected"):
         health["checks"]["odometry_calibration"] = {"ok": False, "reason": decision["reason"]}
         health["warnings"].append(decision["reason"])
@@ -190,6 +210,13 @@ def _calibration_checks(s: _Solved, health: dict[str, Any], cfg: GraphConfig) ->
     if warning is not None:
         health["warnings"].append(warning)
         health["ok"] = False
+
+
+def _far_calibration(far: str, what: str) -> str:
+    return (
+        f"the odometry calibration came out where no wheel error is ({far}), so it {what}: the tags, the camera "
+        "model or the extrinsics disagree with the odometry (see the tag_size check), or the wheels are broken"
+    )
 
 
 def _without_tag(problem: GraphProblem, tag_id: int) -> GraphProblem:

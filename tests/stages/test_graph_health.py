@@ -98,6 +98,14 @@ def test_a_tag_size_tens_of_percent_off_is_named_whatever_the_solve_bends(tmp_pa
     assert "detect.tag_size_m=0.16 m" in line
     suggested = float(line.split("the tags are ")[1].split(" m")[0])
     assert suggested == pytest.approx(SIZE / 0.54, rel=0.02)  # the synthetic detections assume 0.16 m
+    # a calibration that absorbed the wrong size is where no wheel is: auto leaves it off, a forced one is kept
+    result = summary.get("odometry_calibration") or {}
+    if calibration == "true":
+        assert "odometry_calibration" in _failed(summary)
+        assert any("came out where no wheel error is" in w for w in summary["health"]["warnings"])
+    if calibration == "auto":  # here its test's step is already where no wheel is
+        assert "odometry_calibration" in _failed(summary)
+        assert result["decision"]["rejected"] and not result["estimated"]
 
 
 def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
