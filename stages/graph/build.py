@@ -42,7 +42,7 @@ from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
-from stages.graph.size_check import tag_odometry_ratio
+from stages.graph.size_check import motion_pairs, mounting_figures, ratio_figures
 from stages.graph.variables import SCALE
 from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount, TagsInfo
 from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
@@ -119,7 +119,7 @@ def build_problem(
     scale_keys = (SCALE_KEY,) if cfg.tag_scale_sigma > 0 else ()
     sightings = _tag_rows(model, cfg, det, order, path, scale_keys, extrinsics, info)
     if odom is not None:
-        info["tag_odometry_ratio"] = _tag_odometry_ratio(det, order, path, extrinsics)
+        info["tag_odometry_ratio"], info["camera_mounting"] = _tags_against_odometry(det, order, path, extrinsics)
     rows += sightings.rows
     known = _known_tag_rows(model, tags, sightings, info) if tags is not None else []
     surveyed = {int(r.tag_id): pose3_from_vector(r.measurement) for r in known if r.tag_id is not None}
@@ -230,22 +230,30 @@ def _keyframe_path(
     return _KeyframePath(stamps, is_tag, pose_keys, [origin.compose(p) for p in odo_poses], odo_poses, odo_covs)
 
 
-def _tag_odometry_ratio(
+def _tags_against_odometry(
     det: dict[str, list[Any]], order: np.ndarray, path: _KeyframePath, extrinsics: Extrinsics | None
-) -> dict[str, Any]:
-    """The camera motion the tags measure against the odometry's (:mod:`stages.graph.size_check`)."""
-    mounts: dict[str, np.ndarray] = {}
-    for cam in {str(det[CAMERA][r]) for r in order}:
-        mounts[cam] = camera_extrinsic(extrinsics, cam)[0].matrix()
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The camera motion the tags measure against the odometry's (:mod:`stages.graph.size_check`): the distance
+    ratio over every pair, and each camera's mounting rotation."""
+    cams = sorted({str(det[CAMERA][r]) for r in order})
+    mounts = {cam: camera_extrinsic(extrinsics, cam) for cam in cams}
+    index = {cam: i for i, cam in enumerate(cams)}
     kf_index = path.index
     T_camera_tag = np.asarray([det[T_CAMERA_TAG][r] for r in order], dtype=float).reshape(-1, 4, 4)
-    return tag_odometry_ratio(
+    pairs = motion_pairs(
         np.asarray([kf_index[int(det[STAMP_NS][r])] for r in order], dtype=np.int64),
         np.asarray([int(det[TAG_ID][r]) for r in order], dtype=np.int64),
-        np.asarray([mounts[str(det[CAMERA][r])] for r in order]).reshape(-1, 4, 4),
+        np.asarray([index[str(det[CAMERA][r])] for r in order], dtype=np.int64),
+        np.asarray([mounts[str(det[CAMERA][r])][0].matrix() for r in order]).reshape(-1, 4, 4),
         T_camera_tag[:, :3, 3],
         np.asarray([p.matrix() for p in path.odometry_poses]).reshape(-1, 4, 4),
     )
+    mounting = {}
+    for cam in cams:
+        mount = camera_mount(extrinsics, cam)
+        source = mount.source if mount is not None and mount.source else mounts[cam][1]
+        mounting[cam] = {**mounting_figures(pairs, index[cam], mounts[cam][0].rotation().matrix()), "source": source}
+    return ratio_figures(pairs), mounting
 
 
 def _prior_rows(model: GraphModel, cfg: GraphConfig, first_pose: int) -> list[FactorRow]:

@@ -10,6 +10,10 @@ gives its figures and, when it fails, one line that says what is wrong and which
   1 (less when they are conservative); above :data:`CHI2_PER_DOF_MAX` the fit is far outside them.
 - ``tag_scale``: the shared tag scale more than :data:`SCALE_PRIOR_SIGMAS` prior sigmas from 1: the printed
   tags are not ``detect.tag_size_m``; the line names the size the data suggest (current size × scale).
+- ``extrinsics``: per camera, the rotation that best turns the directions of the camera's motion between two
+  sightings of a tag, as the odometry and the extrinsics give them, into those the tags measure
+  (:func:`stages.graph.size_check.mounting_figures`, before the solve): beyond 2 degrees the camera's mounting
+  rotation is off, which bends the map and moves the tag scale (so the scale check's advice would be wrong).
 - ``tag_size``: the camera's motion between two sightings of one tag, as the tags measure it, against the wheel
   odometry's (:mod:`stages.graph.size_check`, computed before the solve): more than 10 % apart, the tag size is
   wrong (or the wheels are that far off). It catches what the scale check cannot: a size wrong by tens of percent,
@@ -51,7 +55,7 @@ import numpy as np
 
 from stages.graph.factors import FactorRow, build_graph, make_factor
 from stages.graph.problem import GraphProblem
-from stages.graph.size_check import MIN_PAIRS, RATIO_MAX, size_warning
+from stages.graph.size_check import MIN_PAIRS, MOUNT_MAX_DEG, RATIO_MAX, mounting_warning, size_warning
 
 CHI2_PER_DOF_MAX = 5.0
 """A factor kind whose whitened χ² per degree of freedom exceeds this is far outside its noise model."""
@@ -73,7 +77,7 @@ TAG_DR_MAX_TAGS = 400
 DEAD_RECKONING_D2_PER_DIM_MAX = 25.0
 """Largest squared Mahalanobis distance per dimension between the trajectory and dead reckoning (5 σ)."""
 
-CHECKS = ("chi2", "tag_scale", "tag_size", "iterations", "moved_tags", "dead_reckoning")
+CHECKS = ("chi2", "extrinsics", "tag_scale", "tag_size", "iterations", "moved_tags", "dead_reckoning")
 
 
 def row_chi2(problem: GraphProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> np.ndarray:
@@ -109,12 +113,17 @@ def graph_health(
     warnings: list[str] = []
     for name, (figures, warning) in (
         ("chi2", _chi2_check(problem, chi2, redundancy_by_kind(problem, graph, values))),
+        ("extrinsics", _mounting_check(problem)),
         ("tag_scale", _scale_check(problem, values, marginals, tag_size_m)),
         ("tag_size", _size_check(problem, tag_size_m)),
         ("iterations", _iterations_check(iterations, max_iterations, section)),
         ("moved_tags", _moved_tags_check(problem, chi2)),
         ("dead_reckoning", _dead_reckoning_check(problem, values, marginals)),
     ):
+        if warning is not None and name in ("tag_scale", "tag_size") and not checks["extrinsics"]["ok"]:
+            warning += (
+                " (but the camera's mounting looks rotated, see above, which also moves the scale: fix that first)"
+            )
         checks[name] = {"ok": warning is None, **figures}
         if warning is not None:
             warnings.append(warning)
@@ -240,6 +249,15 @@ def _scale_check(
         f"(graph.tag_scale_sigma={prior_sigma:g}) from 1: {size}; measure the printed tags' black square and "
         "set detect.tag_size_m"
     )
+
+
+def _mounting_check(problem: GraphProblem) -> tuple[dict[str, Any], str | None]:
+    cameras = problem.info.get("camera_mounting")
+    if cameras is None:  # no odometry, or a reduced graph (optimize): the graph stage judged it
+        return {"judged": False}, None
+    lines = [w for cam, f in cameras.items() if (w := mounting_warning(cam, f, f.get("source", "?"))) is not None]
+    figures = {"judged": any("angle_deg" in f for f in cameras.values()), "max_deg": MOUNT_MAX_DEG, "cameras": cameras}
+    return figures, "; ".join(lines) if lines else None
 
 
 def _size_check(problem: GraphProblem, tag_size_m: float | None) -> tuple[dict[str, Any], str | None]:

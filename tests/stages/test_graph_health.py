@@ -65,6 +65,7 @@ def test_a_world_with_correct_settings_passes_every_check(good: dict[str, Any]) 
     assert checks["dead_reckoning"]["compared"] == good["poses"]
     assert checks["dead_reckoning"]["max_d2_per_dim"] < 25
     assert checks["tag_size"]["judged"] and abs(checks["tag_size"]["ratio"] - 1) < 0.02
+    assert checks["extrinsics"]["judged"] and checks["extrinsics"]["cameras"]["camera"]["angle_deg"] < 1.0
     # a wheeled robot on a flat floor: auto picks the planar model and says why
     assert good["model"] == "planar" and good["model_choice"]["setting"] == "auto"
     assert good["model_choice"]["reason"].startswith("planar motion")
@@ -106,6 +107,31 @@ def test_a_tag_size_tens_of_percent_off_is_named_whatever_the_solve_bends(tmp_pa
     if calibration == "auto":  # here its test's step is already where no wheel is
         assert "odometry_calibration" in _failed(summary)
         assert result["decision"]["rejected"] and not result["estimated"]
+
+
+def test_a_camera_mounted_otherwise_than_its_extrinsics_say_is_named_before_the_tag_size(tmp_path: Path) -> None:
+    """The extrinsics say the camera looks 5 degrees further left than it does: the map bends and the tag scale
+    moves, and the scale check alone would blame the tag size. The extrinsics check names the turn to undo, and
+    the scale line says to fix the mounting first."""
+    import dataclasses
+    import math
+
+    sim = synthetic_run(seed=3, loops=2.0)
+    mount = sim.extrinsics.sensors["camera"]
+    T = np.asarray(mount.T_base_sensor, dtype=float)
+    c, s = math.cos(math.radians(5.0)), math.sin(math.radians(5.0))
+    T[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ T[:3, :3]
+    wrong = sim.extrinsics.model_copy(
+        update={"sensors": {**sim.extrinsics.sensors, "camera": mount.model_copy(update={"T_base_sensor": T.tolist()})}}
+    )
+    _, summary = _graph(tmp_path, dataclasses.replace(sim, extrinsics=wrong))
+    assert "extrinsics" in _failed(summary)
+    figures = summary["health"]["checks"]["extrinsics"]["cameras"]["camera"]
+    roll, pitch, yaw = figures["correction_roll_pitch_yaw_deg"]
+    assert yaw == pytest.approx(-5.0, abs=1.0) and abs(roll) < 0.5 and abs(pitch) < 0.5
+    line = next(w for w in summary["health"]["warnings"] if "mounting rotation looks off" in w)
+    assert "check the camera's transform" in line
+    assert all("fix that first" in w for w in summary["health"]["warnings"] if "tag scale" in w)
 
 
 def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
