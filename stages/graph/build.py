@@ -42,7 +42,7 @@ from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
-from stages.graph.size_check import motion_pairs, mounting_figures, ratio_figures
+from stages.graph.tag_motion import motion_pairs, mounting_figures, ratio_figures
 from stages.graph.variables import SCALE
 from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount, TagsInfo
 from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
@@ -233,7 +233,7 @@ def _keyframe_path(
 def _tags_against_odometry(
     det: dict[str, list[Any]], order: np.ndarray, path: _KeyframePath, extrinsics: Extrinsics | None
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The camera motion the tags measure against the odometry's (:mod:`stages.graph.size_check`): the distance
+    """The camera motion the tags measure against the odometry's (:mod:`stages.graph.tag_motion`): the distance
     ratio over every pair, and each camera's mounting rotation."""
     cams = sorted({str(det[CAMERA][r]) for r in order})
     mounts = {cam: camera_extrinsic(extrinsics, cam) for cam in cams}

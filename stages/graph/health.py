@@ -12,10 +12,10 @@ gives its figures and, when it fails, one line that says what is wrong and which
   tags are not ``detect.tag_size_m``; the line names the size the data suggest (current size × scale).
 - ``extrinsics``: per camera, the rotation that best turns the directions of the camera's motion between two
   sightings of a tag, as the odometry and the extrinsics give them, into those the tags measure
-  (:func:`stages.graph.size_check.mounting_figures`, before the solve): beyond 2 degrees the camera's mounting
+  (:func:`stages.graph.tag_motion.mounting_figures`, before the solve): beyond 2 degrees the camera's mounting
   rotation is off, which bends the map and moves the tag scale (so the scale check's advice would be wrong).
 - ``tag_size``: the camera's motion between two sightings of one tag, as the tags measure it, against the wheel
-  odometry's (:mod:`stages.graph.size_check`, computed before the solve): more than 10 % apart, the tag size is
+  odometry's (:mod:`stages.graph.tag_motion`, computed before the solve): more than 10 % apart, the tag size is
   wrong (or the wheels are that far off). It catches what the scale check cannot: a size wrong by tens of percent,
   where the scale's prior holds and the odometry or its calibration bends instead.
 - ``iterations``: the optimiser stopped at its iteration cap before converging.
@@ -55,7 +55,7 @@ import numpy as np
 
 from stages.graph.factors import FactorRow, build_graph, make_factor
 from stages.graph.problem import GraphProblem
-from stages.graph.size_check import MIN_PAIRS, MOUNT_MAX_DEG, RATIO_MAX, mounting_warning, size_warning
+from stages.graph.tag_motion import MIN_PAIRS, MOUNT_MAX_DEG, RATIO_MAX, mounting_warning, size_warning
 
 CHI2_PER_DOF_MAX = 5.0
 """A factor kind whose whitened χ² per degree of freedom exceeds this is far outside its noise model."""

@@ -1,5 +1,6 @@
-"""The tag size against the wheel odometry, before any solve: how far the camera moved between two sightings of
-one tag, measured by the tag and by the odometry.
+"""The camera's motion as the tags measure it against the wheel odometry's, before any solve: how far the camera
+moved between two sightings of one tag (the tag size, :func:`ratio_figures`) and in which direction (the camera's
+mounting rotation, :func:`mounting_figures`).
 
 A detection gives the tag's position in the camera frame, ``m = f t`` where ``f`` is the assumed tag size over
 the true one (the tag looks nearer when it is larger than assumed). For two sightings ``i``, ``j`` of one tag, the
@@ -152,18 +153,6 @@ def ratio_figures(pairs: MotionPairs) -> dict[str, Any]:
             "ratio_iqr": [round(float(q1), 4), round(float(q3), 4)],
         }
     return out
-
-
-def tag_odometry_ratio(
-    keyframe: np.ndarray,
-    tag: np.ndarray,
-    T_base_camera: np.ndarray,
-    t_camera_tag: np.ndarray,
-    T_odom_base: np.ndarray,
-) -> dict[str, Any]:
-    """:func:`ratio_figures` of the :func:`motion_pairs` of one camera's sightings."""
-    one = np.zeros(len(keyframe), dtype=np.int64)
-    return ratio_figures(motion_pairs(keyframe, tag, one, T_base_camera, t_camera_tag, T_odom_base))
 
 
 def _kabsch(u: np.ndarray, v: np.ndarray) -> np.ndarray:

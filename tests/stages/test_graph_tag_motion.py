@@ -1,4 +1,4 @@
-"""The tag size against the odometry (stages.graph.size_check): the ratio of the camera motion two sightings of a
+"""The tag size against the odometry (stages.graph.tag_motion): the ratio of the camera motion two sightings of a
 tag measure to the odometry's, exact on noiseless sightings from a camera mounted off the base's axis."""
 
 from __future__ import annotations
@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from stages.graph.size_check import (
+from stages.graph.tag_motion import (
     MIN_PAIRS,
     MOUNT_MAX_DEG,
     motion_pairs,
     mounting_figures,
     mounting_warning,
+    ratio_figures,
     size_warning,
-    tag_odometry_ratio,
 )
 
 
@@ -46,9 +46,9 @@ def test_the_ratio_is_the_tag_size_error_with_a_lever_arm(f: float) -> None:
                 ids.append(i)
                 t_ct.append(f * local)  # tags of another size than assumed: every translation f times
     n = len(kf)
-    out = tag_odometry_ratio(
-        np.array(kf), np.array(ids), np.repeat(T_base_camera[None], n, axis=0), np.array(t_ct), np.array(base)
-    )
+    one = np.zeros(n, dtype=int)
+    mounts = np.repeat(T_base_camera[None], n, axis=0)
+    out = ratio_figures(motion_pairs(np.array(kf), np.array(ids), one, mounts, np.array(t_ct), np.array(base)))
     assert out["pairs"] >= MIN_PAIRS
     assert out["ratio"] == pytest.approx(f, abs=1e-4) and out["ratio_se"] < 1e-4
     warning = size_warning(out, 0.162)
