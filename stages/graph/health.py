@@ -247,7 +247,7 @@ def _scale_check(
     return figures, (
         f"the shared tag scale is {s:.3f} ± {sigma:.3f}, {abs(z):.1f} sigma of its prior "
         f"(graph.tag_scale_sigma={prior_sigma:g}) from 1: {size}; measure the printed tags' black square and "
-        "set detect.tag_size_m"
+        "set detect.tag_size_m (a camera model whose focal length is off by that factor does the same)"
     )
 
 

@@ -277,6 +277,7 @@ def size_warning(figures: dict[str, Any], tag_size_m: float | None) -> str | Non
     return (
         f"the tags and the wheel odometry disagree on distances: the camera's motion between two sightings of a tag "
         f"is {ratio:.3f} ± {se:.3f} times the odometry's (median of {figures['pairs']} pairs): {size}; measure the "
-        "printed tags' black square and set detect.tag_size_m (if the tags are right, the wheel odometry's "
-        "distances are off by that factor: graph.odometry_calibration=true estimates it)"
+        "printed tags' black square and set detect.tag_size_m (if the tags are right, the camera model's focal "
+        "length or the wheel odometry's distances are off by that factor; graph.odometry_calibration=true "
+        "estimates the wheels')"
     )
