@@ -244,6 +244,12 @@ def _scale_check(
         if tag_size_m is not None
         else "the tag size the detections assumed (detect.tag_size_m) is wrong by that factor"
     )
+    if not 0.25 <= s <= 4.0:  # a collapsed or flipped map: no tag size explains it
+        return figures, (
+            f"the shared tag scale is {s:.3f} ± {sigma:.3f}, {abs(z):.1f} sigma of its prior from 1: no tag size "
+            "explains that, the map has collapsed or flipped (a duplicated tag id, wrong extrinsics: see the other "
+            "checks)"
+        )
     return figures, (
         f"the shared tag scale is {s:.3f} ± {sigma:.3f}, {abs(z):.1f} sigma of its prior "
         f"(graph.tag_scale_sigma={prior_sigma:g}) from 1: {size}; measure the printed tags' black square and "

@@ -126,7 +126,18 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
     decision: dict[str, Any] | None = None
     steps: dict[int, np.ndarray] = {}
     if tested(problem, cfg):
-        decision, steps = calibration_test(solved, graph, solution.values, cfg)
+        try:
+            decision, steps = calibration_test(solved, graph, solution.values, cfg)
+        except RuntimeError as err:  # GTSAM: the joint system with the calibration is singular here
+            decision = {
+                "setting": "auto",
+                "applied": False,
+                "rejected": False,
+                "skipped": True,
+                "reason": "not tested: the graph with the calibration cannot be solved ("
+                + " ".join(str(err).split()).split(". ")[0]
+                + "); see the health checks",
+            }
         if decision["applied"]:
             result = calibrate(problem, cfg, initial=solution.values)
             far = implausible(calibration_value(result.summary), cfg)

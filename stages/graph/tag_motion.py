@@ -29,6 +29,8 @@ MAX_SPAN_M = 3.0
 """... and at most this much odometry path between them (the odometry's drift stays small)."""
 MIN_PAIRS = 20
 """Fewer pairs are not judged."""
+MAX_SIZE_FACTOR = 4.0
+"""A ratio beyond this factor either way is not read as a tag size (a motion at right angles gives about 0)."""
 OUTLIER_DEG = 20.0
 """Pairs whose directions differ by more than this after the first rotation fit are left out of the second."""
 MAX_TURN_DEG = 10.0
@@ -268,6 +270,12 @@ def size_warning(figures: dict[str, Any], tag_size_m: float | None) -> str | Non
     ratio, se = figures["ratio"], figures["ratio_se"]
     if abs(ratio - 1.0) <= max(RATIO_MAX, 3.0 * se):
         return None
+    if not 1.0 / MAX_SIZE_FACTOR <= ratio <= MAX_SIZE_FACTOR:  # no tag size explains that: the motions' directions
+        return (
+            f"the camera's motion between two sightings of a tag follows the odometry's nowhere near (its component "
+            f"along the odometry's is {ratio:.3f} times as long, median of {figures['pairs']} pairs): the camera's "
+            "extrinsics are likely wrong (see the extrinsics check), or the odometry is not this robot's"
+        )
     size = (
         f"if the wheels' distances are right, the tags are {tag_size_m / ratio:.3f} m, not "
         f"detect.tag_size_m={tag_size_m:g} m"

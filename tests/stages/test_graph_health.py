@@ -134,6 +134,21 @@ def test_a_camera_mounted_otherwise_than_its_extrinsics_say_is_named_before_the_
     assert all("fix that first" in w for w in summary["health"]["warnings"] if "tag scale" in w)
 
 
+def test_an_identity_camera_mount_finishes_with_the_extrinsics_named(tmp_path: Path) -> None:
+    """A bag without the camera's transform and extrinsics taken as identity (the camera's optical axis up): the
+    tags' motion is at right angles to the odometry's. The stage used to stop on a division by zero (the distance
+    ratio about 0) or on the calibration test's singular system; it now finishes and names the mounting."""
+    import dataclasses
+
+    sim = synthetic_run(seed=3, loops=2.0)
+    mount = sim.extrinsics.sensors["camera"].model_copy(update={"T_base_sensor": np.eye(4).tolist()})
+    wrong = sim.extrinsics.model_copy(update={"sensors": {**sim.extrinsics.sensors, "camera": mount}})
+    _, summary = _graph(tmp_path, dataclasses.replace(sim, extrinsics=wrong))
+    assert "extrinsics" in _failed(summary)
+    assert summary["health"]["checks"]["extrinsics"]["cameras"]["camera"]["angle_deg"] > 45
+    assert not any("the tags are" in w for w in summary["health"]["warnings"])  # no tag size is suggested
+
+
 def test_a_tag_that_moved_is_named(tmp_path: Path) -> None:
     """Tag 3 (south wall) slides 0.5 m along its wall halfway through two loops."""
     _, summary = _graph(tmp_path, synthetic_run(seed=3, loops=2.0, moved_tag=(3, 0.5, (0.5, 0.0, 0.0))))
