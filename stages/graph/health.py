@@ -12,7 +12,7 @@ gives its figures and, when it fails, one line that says what is wrong and which
   tags are not ``detect.tag_size_m``; the line names the size the data suggest (current size × scale).
 - ``extrinsics``: per camera, the rotation that best turns the directions of the camera's motion between two
   sightings of a tag, as the odometry and the extrinsics give them, into those the tags measure
-  (:func:`stages.graph.tag_motion.mounting_figures`, before the solve): beyond 2 degrees the camera's mounting
+  (:func:`stages.graph.tag_motion.mounting_figures`, before the solve): beyond 3 degrees the camera's mounting
   rotation is off, which bends the map and moves the tag scale (so the scale check's advice would be wrong).
 - ``tag_size``: the camera's motion between two sightings of one tag, as the tags measure it, against the wheel
   odometry's (:mod:`stages.graph.tag_motion`, computed before the solve): more than 10 % apart, the tag size is

@@ -228,12 +228,11 @@ def mounting_figures(pairs: MotionPairs, camera: int, R_base_camera: np.ndarray,
         R = fitted[0]
         Q = T[:3, :3] @ R.T @ T[:3, :3].T @ Q  # this round's correction on top of the last
     assert fitted is not None
-    _, u, v = fitted
+    R, u, v = fitted
     rng = np.random.default_rng(seed)
-    R = fitted[0]
     spread = [_angle_deg(R.T @ _fit(u[k], v[k])) for k in (rng.integers(0, len(u), len(u)) for _ in range(BOOTSTRAP))]
     return {
-        "pairs": len(u),
+        "pairs": int(np.sum((pairs.camera == camera) & (pairs.turn_deg < MAX_TURN_DEG))),
         "pairs_fitted": len(u),
         "collinear": bool(np.linalg.svd(u, compute_uv=False)[1] ** 2 < COLLINEAR * len(u)),
         "angle_deg": round(_angle_deg(Q), 3),
