@@ -40,12 +40,10 @@ def frame_blob(fmt: str, width: int, height: int, step: int, data: bytes) -> tup
     pix: npt.NDArray[np.uint8]
     if colour is not None:
         channels, convert = colour
-        row = width * channels
-        step = step or row
-        if width <= 0 or height <= 0 or step < row or len(data) < step * height:
+        try:
+            pix = _pixel_rows(fmt.lower(), width, height, step, data).reshape(height, width, channels)
+        except CorruptFrameError:
             return None
-        rows = np.frombuffer(data, np.uint8, count=step * height).reshape(height, step)[:, :row]
-        pix = np.ascontiguousarray(rows).reshape(height, width, channels)
         if convert is not None:
             pix = np.asarray(cv2.cvtColor(pix, getattr(cv2, f"COLOR_{convert}")), dtype=np.uint8)
     else:
@@ -91,6 +89,24 @@ def readable_encoding(fmt: str) -> bool:
     return fmt.lower() in _COMPRESSED or fmt.lower() in _RAW_LAYOUT
 
 
+def _pixel_rows(fmt: str, width: int, height: int, step: int, data: bytes) -> npt.NDArray[np.uint8]:
+    """A raw frame's pixel bytes, height x (width x bytes per pixel), without the rows' padding (the last row's
+    padding may be missing: it is zeros here).
+
+    Raises:
+        CorruptFrameError: the bytes cannot hold the stated image.
+    """
+    bytes_per, samples = _RAW_LAYOUT[fmt]
+    row = width * samples * bytes_per
+    step = step or row
+    buf = np.frombuffer(data, dtype=np.uint8)
+    if width <= 0 or height <= 0 or step < row or buf.size < step * (height - 1) + row:
+        raise CorruptFrameError(f"{buf.size} B cannot hold a {width}x{height} {fmt} image with step {step}")
+    padded = np.zeros(step * height, dtype=np.uint8)
+    padded[: min(buf.size, padded.size)] = buf[: padded.size]
+    return np.ascontiguousarray(padded.reshape(height, step)[:, :row])
+
+
 def decode_frame(fmt: str, width: int, height: int, step: int, data: bytes) -> npt.NDArray[np.uint8]:
     """Decode one frame of ``frames.parquet`` into a grayscale uint8 image (height x width).
 
@@ -121,13 +137,7 @@ def decode_frame(fmt: str, width: int, height: int, step: int, data: bytes) -> n
             f"unsupported encoding {fmt!r}; expected jpeg, png or one of {', '.join(RAW_ENCODINGS)}"
         )
     bytes_per, samples = _RAW_LAYOUT[fmt]
-    row = width * samples * bytes_per
-    step = step or row
-    if width <= 0 or height <= 0 or step < row or buf.size < step * (height - 1) + row:
-        raise CorruptFrameError(f"{buf.size} B cannot hold a {width}x{height} {fmt} image with step {step}")
-    padded = np.zeros(step * height, dtype=np.uint8)
-    padded[: min(buf.size, padded.size)] = buf[: padded.size]
-    rows = np.ascontiguousarray(padded.reshape(height, step)[:, :row])
+    rows = _pixel_rows(fmt, width, height, step, data)
     if bytes_per == 2:
         # ROS 16-bit images are little-endian on every platform we read; scale to 8 bits by the image's own range.
         img16 = rows.view("<u2").reshape(height, width).astype(np.float32)

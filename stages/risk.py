@@ -741,3 +741,14 @@ def map_covariances(
     if covs:
         local = LocalCovariances.from_pairs(np.concatenate(kfs), np.concatenate(map_rows), np.concatenate(covs), L)
     return local, joint
+
+
+def full_local_map(loaded: LoadedGraph, geometry: PathGeometry) -> LandmarkMap:
+    """The full graph's map with each landmark's covariance as seen from the keyframes that see it
+    (:func:`map_covariances`), the odometry calibration's uncertainty included (select_landmarks' risk model and
+    optimize's full-map risk)."""
+    lm = LandmarkMap.from_graph(loaded)
+    lm.local, lm.joint = map_covariances(
+        loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry, loaded.consider_term()
+    )
+    return lm

@@ -271,11 +271,6 @@ def implausible(c: np.ndarray, cfg: GraphConfig) -> str | None:
     return "; ".join(far) if far else None
 
 
-def calibration_value(summary: dict[str, Any]) -> np.ndarray:
-    """``c = (k_d, k_w, b)`` from a calibration's summary (:func:`calibrate`'s)."""
-    return np.array([float(summary[p]["value"]) for p in PARAMETERS])
-
-
 def corrected_increment(m: np.ndarray, c: np.ndarray, model: str) -> np.ndarray:
     """The odometry measurement ``m`` (a row's layout) corrected by the calibration ``c = (k_d, k_w, b)``."""
     if model == "planar":

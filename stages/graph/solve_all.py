@@ -16,7 +16,6 @@ from stages.graph.calibration import (
     CalibrationResult,
     calibrate,
     calibration_test,
-    calibration_value,
     implausible,
     map_shift,
     shift_warning,
@@ -140,7 +139,7 @@ def _solve(problem: GraphProblem, cfg: GraphConfig) -> _Solved:
             }
         if decision["applied"]:
             result = calibrate(problem, cfg, initial=solution.values)
-            far = implausible(calibration_value(result.summary), cfg)
+            far = implausible(result.calibration.value, cfg)
             if far is None:
                 result.summary["decision"] = decision
                 seconds = (time.perf_counter() - t0, 0.0)
@@ -203,8 +202,7 @@ def _calibration_checks(s: _Solved, health: dict[str, Any], cfg: GraphConfig) ->
     (:func:`stages.graph.calibration.shift_warning`; not when the ``tag_scale`` check has already named a wrong tag
     size, the likelier cause then)."""
     decision = (s.calibration or {}).get("decision") or {}
-    calibration = s.calibration or {}
-    if calibration.get("estimated") and (far := implausible(calibration_value(calibration), cfg)):
+    if s.applied is not None and (far := implausible(s.applied.value, cfg)):
         reason = _far_calibration(far, "is kept (graph.odometry_calibration=true)")  # set on: warn, keep it
         health["checks"]["odometry_calibration"] = {"ok": False, "reason": reason}
         health["warnings"].append(reason)

@@ -26,7 +26,6 @@ if TYPE_CHECKING:
     from stages.optimize.artifacts import read_reduced
     from stages.optimize.core import (
         ReducedMap,
-        full_local_map,
         gaussian_entropy,
         landmark_errors,
         local_map,
@@ -42,7 +41,6 @@ __getattr__ = lazy_exports(
         "artifacts": ("read_reduced",),
         "core": (
             "ReducedMap",
-            "full_local_map",
             "gaussian_entropy",
             "landmark_errors",
             "local_map",
@@ -113,7 +111,6 @@ __all__ = [
     "OptimizeConfig",
     "ReducedMap",
     "blueprint",
-    "full_local_map",
     "gaussian_entropy",
     "landmark_errors",
     "local_map",

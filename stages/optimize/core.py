@@ -315,12 +315,3 @@ def local_map(reduced: ReducedMap, geometry: PathGeometry) -> LandmarkMap:
         reduced.problem, graph, reduced.solution.values, reduced.marginals, lm, geometry, reduced.consider
     )
     return lm
-
-
-def full_local_map(loaded: LoadedGraph, geometry: PathGeometry) -> LandmarkMap:
-    """The full graph's map with local covariances (see :func:`local_map`)."""
-    lm = LandmarkMap.from_graph(loaded)
-    lm.local, lm.joint = map_covariances(
-        loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry, loaded.consider_term()
-    )
-    return lm

@@ -36,7 +36,6 @@ from stages.optimize.checks import reduced_health
 from stages.optimize.config import OptimizeConfig
 from stages.optimize.core import (
     ReducedMap,
-    full_local_map,
     landmark_errors,
     local_map,
     map_size,
@@ -44,7 +43,16 @@ from stages.optimize.core import (
     solve_reduced,
     solve_settings,
 )
-from stages.risk import LandmarkMap, PathGeometry, PathRisk, RiskParams, path_geometry, path_risk, read_path_inputs
+from stages.risk import (
+    LandmarkMap,
+    PathGeometry,
+    PathRisk,
+    RiskParams,
+    full_local_map,
+    path_geometry,
+    path_risk,
+    read_path_inputs,
+)
 from stages.select_landmarks.artifacts import CLEARANCE_M, FOCUSED, LOCALISED, SIGMA_STAR, xy_blocks
 from stages.select_measurements.artifacts import SELECTION
 

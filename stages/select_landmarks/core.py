@@ -33,8 +33,8 @@ from stages.risk import (
     PathGeometry,
     PathRisk,
     RiskParams,
+    full_local_map,
     landmark_contributions,
-    map_covariances,
     path_geometry,
     path_risk,
     read_path_inputs,
@@ -86,11 +86,7 @@ class LandmarkInputs:
         if not loaded.landmark_keys:
             raise StageError("the graph has no landmarks, so there is nothing to select; check 'focusmap graph'")
         geometry = path_geometry(loaded, scans, T_base_laser, detections, params)
-        lm = LandmarkMap.from_graph(loaded)
-        if geometry.has_laser:
-            lm.local, lm.joint = map_covariances(
-                loaded, loaded.graph, loaded.values, loaded.marginals, lm, geometry, loaded.consider_term()
-            )
+        lm = full_local_map(loaded, geometry) if geometry.has_laser else LandmarkMap.from_graph(loaded)
         return cls(loaded, lm, geometry, params, laser_note)
 
     @classmethod
