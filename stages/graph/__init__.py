@@ -74,6 +74,9 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
                 f"the data (graph.noise_estimate=auto): its variances scaled by {scaled}",
             )
         )
+    from stages.graph.rig import rig_remarks  # gtsam: loaded only once the stage has run
+
+    out += rig_remarks(summary.get("rig_calibration"))
     health = summary.get("health")
     warnings = health.get("warnings") if isinstance(health, dict) else None
     if isinstance(warnings, list):

@@ -243,8 +243,29 @@ CALIBRATION: Final = FileSpec(
     optional=True,
 )
 
+CAMERA_POSES: Final = FileSpec(
+    "camera_poses.yaml",
+    "when the rig calibration estimated a camera's mount: every camera's pose in the base frame, in TagSLAM's "
+    "`camera_poses.yaml` layout (`camN: pose: {position: {x, y, z}, rotation: {x, y, z} (angle-axis, rad), R: the "
+    "6x6 information in gtsam's tangent order rotation, translation}`); given mounts are written with R = 1e6 I "
+    "(held fixed); `--extrinsics` reads it back",
+    optional=True,
+)
+
 ARTIFACTS: Final = ArtifactSet(
     "graph",
     "The full factor graph of the run, optimised, with the marginal covariance of every variable.",
-    [FACTORS, VALUES, MARGINALS, POSES, LANDMARKS, TRAJECTORY, DEAD_RECKONING, G2O, G2O_META, CALIBRATION],
+    [
+        FACTORS,
+        VALUES,
+        MARGINALS,
+        POSES,
+        LANDMARKS,
+        TRAJECTORY,
+        DEAD_RECKONING,
+        G2O,
+        G2O_META,
+        CALIBRATION,
+        CAMERA_POSES,
+    ],
 )

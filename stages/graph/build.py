@@ -22,12 +22,14 @@ interpolated on SE(2)/SE(3) to the keyframe stamps. Factors:
 
 from __future__ import annotations
 
+import copy
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
 import numpy as np
+import numpy.typing as npt
 import pyarrow as pa
 from gtsam.symbol_shorthand import L, X
 
@@ -42,10 +44,13 @@ from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
+from stages.graph.rig import MountEstimate, inflated, initial_mounts, refine_mounts
 from stages.graph.tag_motion import motion_pairs, mounting_figures, ratio_figures
 from stages.graph.variables import SCALE
 from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount, TagsInfo
 from stages.ingest.artifacts import POSE_COV as ODOMETRY_POSE_COV
+
+FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["MIN_PLANAR_RANGE_M", "Odometry", "build_problem", "camera_extrinsic", "camera_mount"]
 
@@ -102,11 +107,58 @@ def build_problem(
         StageError: when nothing is left to build a graph from.
         InputError: when the detection table lacks a needed column.
     """
-    det, usable, info = _usable_detections(detections, cfg, extrinsics, tags.ignore_tags if tags else ())
+    det, usable, info = _usable_detections(
+        detections, cfg, extrinsics, tags.ignore_tags if tags else (), keep_unmounted=cfg.rig_calibration
+    )
     if tags is not None and tags.tag_id_remap:
         _remap_ids(det, tags, extrinsics, info)
-    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)
     odom = Odometry.from_table(odometry)
+    estimates, usable = _initial_rig(det, usable, extrinsics, cfg, info)
+    if not estimates:
+        return _assemble(det, usable, odom, extrinsics, cfg, tags, info)[0]
+    placed = _with_mounts(extrinsics, estimates, "initial")
+    spatial = cfg.model_copy(update={"model": "3d", "odometry_calibration": False})
+    problem3, row_cameras = _assemble(det, usable, odom, placed, spatial, tags, copy.deepcopy(info))
+    figures = refine_mounts(problem3.rows, row_cameras, problem3.initial, estimates)
+    problem = _assemble(
+        det, usable, odom, _with_mounts(extrinsics, estimates, "estimated"), cfg, tags, info, estimates
+    )[0]
+    base = extrinsics.base_frame if extrinsics is not None else "base"
+    given = {}
+    for cam in sorted({str(det[CAMERA][r]) for r in usable} - set(estimates)):
+        mount = camera_mount(extrinsics, cam)
+        given[cam] = {
+            "frame_id": mount.frame_id if mount is not None else cam,
+            "T_base_camera": np.asarray(camera_extrinsic(extrinsics, cam)[0].matrix()).round(9).tolist(),
+        }
+    cameras = {}
+    for cam, est in sorted(estimates.items()):
+        mount = camera_mount(extrinsics, cam)
+        cameras[cam] = {"frame_id": mount.frame_id if mount is not None else cam, **est.summary(base)}
+        if est.covariance is not None:
+            cameras[cam]["covariance"] = np.asarray(est.covariance).tolist()
+    problem.info["rig_calibration"] = {
+        "cameras": cameras,
+        "given": given,
+        "solve": figures,
+        **problem.info.get("rig_calibration", {}),
+    }
+    return problem
+
+
+def _assemble(
+    det: dict[str, list[Any]],
+    usable: np.ndarray,
+    odom: Odometry | None,
+    extrinsics: Extrinsics | None,
+    cfg: GraphConfig,
+    tags: TagsInfo | None,
+    info: dict[str, Any],
+    mounts: dict[str, MountEstimate] | None = None,
+) -> tuple[GraphProblem, list[str | None]]:
+    """The graph of the usable detections with the mounts ``extrinsics`` gives (``mounts``: cameras whose mount
+    was estimated, their sightings carrying its covariance), and the camera of each row (None for non-tag rows)."""
+    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)
     choice = choose_model(cfg.model, odom, det, usable, lambda cam: camera_extrinsic(extrinsics, cam)[0], det[TAG_ID])
     model = graph_model(choice.model)
     info["model_choice"] = choice.summary()
@@ -117,7 +169,8 @@ def build_problem(
     rows += _motion_rows(model, cfg, odom, path, info)
     order = usable[np.argsort(stamps[usable], kind="stable")]
     scale_keys = (SCALE_KEY,) if cfg.tag_scale_sigma > 0 else ()
-    sightings = _tag_rows(model, cfg, det, order, path, scale_keys, extrinsics, info)
+    covs = {c: m.covariance for c, m in (mounts or {}).items() if m.covariance is not None}
+    sightings = _tag_rows(model, cfg, det, order, path, scale_keys, extrinsics, info, covs)
     if odom is not None:
         info["tag_odometry_ratio"], info["camera_mounting"] = _tags_against_odometry(det, order, path, extrinsics)
     rows += sightings.rows
@@ -135,7 +188,7 @@ def build_problem(
     info["keyframes"] = len(path.stamps_ns)
     info["tag_keyframes"] = int(path.is_tag.sum())
     info["odometry_keyframes"] = int(len(path.stamps_ns) - path.is_tag.sum())
-    return GraphProblem(
+    problem = GraphProblem(
         model=model.name,
         rows=rows,
         initial=initial,
@@ -146,6 +199,49 @@ def build_problem(
         landmark_heights=sightings.landmark_heights(),
         info=info,
     )
+    camera_of = {id(r): c for r, c in zip(sightings.rows, sightings.cameras, strict=True)}
+    return problem, [camera_of.get(id(r)) for r in rows]
+
+
+def _initial_rig(
+    det: dict[str, list[Any]], usable: np.ndarray, extrinsics: Extrinsics | None, cfg: GraphConfig, info: dict[str, Any]
+) -> tuple[dict[str, MountEstimate], np.ndarray]:
+    """Initial mounts of the rig's cameras that have none (:mod:`stages.graph.rig`), and the usable rows without
+    the sightings of those that cannot be placed."""
+    cams = np.asarray([str(c) for c in det[CAMERA]], dtype=object)
+    unmounted = _cameras_without_mount(list(cams[usable]), extrinsics) if cfg.rig_calibration else set()
+    if not unmounted:
+        return {}, usable
+    known = {str(c): camera_extrinsic(extrinsics, str(c))[0] for c in set(cams[usable]) - unmounted}
+    T = np.asarray([det[T_CAMERA_TAG][r] for r in usable], dtype=float).reshape(-1, 4, 4)
+    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)[usable]
+    tag_ids = np.asarray(det[TAG_ID], dtype=np.int64)[usable]
+    estimates, unplaced = initial_mounts(stamps, tag_ids, cams[usable], T, known, unmounted)
+    if unplaced:
+        off = np.isin(cams[usable], unplaced)
+        info["rig_calibration"] = {
+            "unplaced": {c: int((cams[usable] == c).sum()) for c in unplaced},
+        }
+        usable = usable[~off]
+    return estimates, usable
+
+
+def _with_mounts(extrinsics: Extrinsics | None, estimates: dict[str, MountEstimate], how: str) -> Extrinsics:
+    """``extrinsics`` with the mounts of ``estimates``' cameras in place of the assumed ones."""
+    base = extrinsics if extrinsics is not None else Extrinsics(base_frame="base")
+    sensors = dict(base.sensors)
+    for cam, est in estimates.items():
+        mount = camera_mount(base, cam)
+        role = next((r for r, m in base.sensors.items() if m is mount), cam)
+        frame = mount.frame_id if mount is not None else cam
+        sensors[role] = SensorMount(
+            frame_id=frame,
+            T_base_sensor=np.asarray(est.pose.matrix()).tolist(),
+            assumed=False,
+            topic=mount.topic if mount is not None else cam,
+            source=f"{how} from {est.pairs} sightings shared with {est.via} (graph rig calibration)",
+        )
+    return base.model_copy(update={"sensors": sensors})
 
 
 def _common_size(sizes: list[Any], usable: np.ndarray) -> float | None:
@@ -155,7 +251,11 @@ def _common_size(sizes: list[Any], usable: np.ndarray) -> float | None:
 
 
 def _usable_detections(
-    detections: pa.Table, cfg: GraphConfig, extrinsics: Extrinsics | None = None, ignore_tags: Any = ()
+    detections: pa.Table,
+    cfg: GraphConfig,
+    extrinsics: Extrinsics | None = None,
+    ignore_tags: Any = (),
+    keep_unmounted: bool = False,
 ) -> tuple[dict[str, list[Any]], np.ndarray, dict[str, Any]]:
     """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
     if missing := sorted(set(DETECTION_COLUMNS) - set(detections.column_names)):
@@ -179,7 +279,7 @@ def _usable_detections(
         info["dropped_ignored_tags"] = int((ignored & keep).sum())
         info["ignored_tags_seen"] = sorted({int(t) for t, i in zip(det[TAG_ID], ignored, strict=True) if i})
         keep &= ~ignored
-    if unmounted := _cameras_without_mount(det[CAMERA], extrinsics):
+    if not keep_unmounted and (unmounted := _cameras_without_mount(det[CAMERA], extrinsics)):
         off = np.isin(np.asarray(det[CAMERA], dtype=object), sorted(unmounted))
         info["dropped_camera_without_extrinsics"] = {
             c: int((off & keep)[np.asarray(det[CAMERA]) == c].sum()) for c in sorted(unmounted)
@@ -334,6 +434,8 @@ class _TagSightings:
     """(keyframe, tag id, landmark relative to the keyframe) of every measurement, in time order."""
     heights: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
     """Planar: tag id to the (z, var z) of each sighting."""
+    cameras: list[str] = field(default_factory=list)
+    """The camera of each row."""
 
     def add(self, row: FactorRow, k: int, tag: int, relative: Any, height: tuple[float, float] | None) -> None:
         self.rows.append(row)
@@ -362,6 +464,7 @@ def _tag_rows(
     scale_keys: tuple[int, ...],
     extrinsics: Extrinsics | None,
     info: dict[str, Any],
+    mount_covs: dict[str, FloatArray] | None = None,
 ) -> _TagSightings:
     """One tag row per usable detection, in ``order`` (time order), from the keyframe of its frame."""
     extrinsic_cache: dict[str, tuple[gtsam.Pose3, str]] = {}
@@ -374,8 +477,11 @@ def _tag_rows(
         cam = str(det[CAMERA][r])
         if cam not in extrinsic_cache:
             extrinsic_cache[cam] = camera_extrinsic(extrinsics, cam)
-        T_base_tag = extrinsic_cache[cam][0].compose(pose3_from_matrix(det[T_CAMERA_TAG][r]))
+        Z = pose3_from_matrix(det[T_CAMERA_TAG][r])
+        T_base_tag = extrinsic_cache[cam][0].compose(Z)
         cov6 = cfg.tag_covariance_scale * np.asarray(det[DETECTION_POSE_COV][r], dtype=float).reshape(6, 6) + floor
+        if mount_covs and cam in mount_covs:
+            cov6 = inflated(cov6, Z, mount_covs[cam])
         meas = model.tag_measurement(T_base_tag, cov6)
         if meas is None:
             dropped_close += 1
@@ -396,6 +502,7 @@ def _tag_rows(
             stamp_ns=stamp,
         )
         out.add(row, k, tag, meas.relative, meas.height)
+        out.cameras.append(cam)
     info["dropped_too_close"] = dropped_close
     info["extrinsics"] = {cam: src for cam, (_, src) in extrinsic_cache.items()}
     return out

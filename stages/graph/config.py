@@ -111,6 +111,13 @@ class GraphConfig(SettingsModel):
         description="Stop when the calibration moves less than this many sigmas and the noise scales by less than "
         "this fraction.",
     )
+    # rigs
+    rig_calibration: bool = Field(
+        True,
+        description="A camera of a rig with no mount (no transform in --extrinsics or on /tf_static) is estimated "
+        "from the tags it sees at the same moments as a placed camera: one Pose3 shared by its sightings "
+        "(graph/camera_poses.yaml). false: its detections are left out.",
+    )
     # no odometry
     motion_prior: bool = Field(
         True, description="Without odometry, join consecutive keyframes with a weak zero-motion prior."

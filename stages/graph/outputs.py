@@ -21,6 +21,7 @@ from pipeline.recording import ellipses_2d, ellipsoids, set_stamp
 from stages.columns import POSITION, QUATERNION, YAW
 from stages.geometry import pose3_to_vector
 from stages.graph.artifacts import (
+    CAMERA_POSES,
     DEAD_RECKONING,
     FACTORS,
     G2O,
@@ -40,6 +41,7 @@ from stages.graph.artifacts import (
 from stages.graph.factors import rows_to_table
 from stages.graph.g2o import g2o_metadata, write_g2o
 from stages.graph.problem import GraphProblem, values_to_arrays
+from stages.graph.rig import camera_poses_yaml
 from stages.graph.solve import Solution
 
 ENTITY = "/graph"
@@ -82,6 +84,7 @@ def write_artifacts(
     LANDMARKS.write(out, landmarks_table(problem, solution.values, marginals))
     out.write_text(G2O.file, write_g2o(problem, solution.values))
     G2O_META.write(out, G2oMetadata(**g2o_metadata(problem, solution.values)))
+    _write_camera_poses(out, problem)
     kinds = Counter(r.kind for r in problem.rows)
     return {
         "tag_scale": _tag_scale(problem, solution, marginals),
@@ -97,6 +100,23 @@ def write_artifacts(
         "iterations": solution.iterations,
         "optimise_seconds": round(solution.seconds, 4),
     }
+
+
+def _write_camera_poses(out: StageOutput, problem: GraphProblem) -> None:
+    """``camera_poses.yaml`` when the rig calibration estimated a mount (given mounts held fixed)."""
+    rig = problem.info.get("rig_calibration")
+    if not isinstance(rig, dict) or not rig.get("cameras"):
+        out.file(CAMERA_POSES.file).unlink(missing_ok=True)
+        return
+    mounts: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    for entry in rig.get("given", {}).values():
+        mounts[str(entry["frame_id"])] = (np.asarray(entry["T_base_camera"]), None)
+    base = "base"
+    for entry in rig["cameras"].values():
+        cov = entry.get("covariance")
+        mounts[str(entry["frame_id"])] = (np.asarray(entry["T_base_camera"]), None if cov is None else np.asarray(cov))
+        base = str(entry.get("base_frame", base))
+    out.write_text(CAMERA_POSES.file, camera_poses_yaml(dict(sorted(mounts.items())), base))
 
 
 def _write_values(
@@ -202,6 +222,7 @@ def log_recording(
             ),
             static=True,
         )
+    _log_mounts(rec, problem, n_sigma)
     idx = list(range(0, len(problem.pose_keys), max(1, pose_stride)))
     if idx:
         kind = problem.graph_model.pose
@@ -223,6 +244,29 @@ def log_recording(
         q: gtsam.Quaternion = poses3[i].rotation().toQuaternion()
         xyzw = rr.Quaternion(xyzw=[q.x(), q.y(), q.z(), q.w()])
         rec.log(f"{ENTITY}/pose", rr.Transform3D(translation=path[i], quaternion=xyzw))
+
+
+def _log_mounts(rec: rr.RecordingStream, problem: GraphProblem, n_sigma: float) -> None:
+    """The rig's cameras under the moving ``pose``: estimated mounts with their ellipsoids, given ones as points."""
+    rig = problem.info.get("rig_calibration")
+    if not isinstance(rig, dict) or not rig.get("cameras"):
+        return
+    xyz, covs, labels = [], [], []
+    for entry in rig["cameras"].values():
+        T = np.asarray(entry["T_base_camera"], dtype=float)
+        cov = np.asarray(entry.get("covariance", np.zeros((6, 6))), dtype=float)[3:, 3:]
+        xyz.append(T[:3, 3])
+        covs.append(T[:3, :3] @ cov @ T[:3, :3].T)
+        labels.append(str(entry["frame_id"]))
+    rec.log(
+        f"{ENTITY}/pose/cameras",
+        ellipsoids(np.array(xyz), covs, n_sigma, colors=[[220, 40, 160]], labels=labels),
+        static=True,
+    )
+    given = [np.asarray(e["T_base_camera"], dtype=float)[:3, 3] for e in rig.get("given", {}).values()]
+    if given:
+        names = [str(e["frame_id"]) for e in rig["given"].values()]
+        rec.log(f"{ENTITY}/pose/cameras_given", rr.Points3D(np.array(given), labels=names, radii=0.01), static=True)
 
 
 def _log_landmarks(

@@ -531,10 +531,18 @@ def _write_calibration(
         sensors["camera" if i == 0 else topic] = mount.model_copy(update={"topic": topic})
     if reading.scan_frame:
         sensors["laser"] = _mount(reading, file, base, reading.scan_frame, ())
+    placed_cameras = [r for r, m in sensors.items() if r != "laser" and not m.assumed]
     for role, mount in sensors.items():
         if mount.assumed:
             what = "camera" if role == "camera" else ("laser" if role == "laser" else f"camera {role}")
             where = f"in {Path(file.path).name} or " if file else ""
+            if len(models) > 1 and role != "laser" and placed_cameras:
+                notes.append(
+                    f"no transform {where}on /tf_static from {base!r} to the {what} frame {mount.frame_id!r}: the "
+                    "graph estimates its mount from the tags it sees with the rig's placed cameras "
+                    "(graph.rig_calibration)"
+                )
+                continue
             consequence = "its detections are left out of the graph" if len(models) > 1 else "identity assumed"
             warnings.append(
                 f"no transform {where}on /tf_static from {base!r} to the {what} frame {mount.frame_id!r}; "

@@ -201,14 +201,18 @@ def test_stereo_tagslam_recording_uses_each_cameras_calibration(tmp_path: Path) 
     assert "dropped_camera_without_extrinsics" not in g
 
 
-def test_camera_without_extrinsics_is_a_warning_and_left_out(tmp_path: Path) -> None:
-    """test_2's own camera_poses.yaml places only cam0: the right camera's mount is a warning line, and the
-    graph leaves its detections out instead of assuming identity."""
+def test_camera_without_extrinsics_is_calibrated_from_the_tags_it_shares(tmp_path: Path) -> None:
+    """test_2's own camera_poses.yaml places only cam0: the graph estimates the right camera's mount from the tags
+    both cameras see (TagSLAM does the same), within 1 cm and 0.5° of the mount test_3's camera_poses.yaml gives for
+    the same rig, and writes it as a camera_poses.yaml that --extrinsics reads back. With
+    ``graph.rig_calibration=false`` the camera is left out instead, as before."""
     from pipeline.config import load_settings
     from pipeline.registry import Registry
     from pipeline.run_folder import RunFolder
     from pipeline.runner import run_stage
     from stages import detect, graph, ingest
+    from stages.extrinsics import load_extrinsics_file
+    from stages.graph import remarks as graph_remarks
     from stages.ingest import remarks
     from tests.fixtures.shared_data import need_shared
 
@@ -218,19 +222,32 @@ def test_camera_without_extrinsics_is_a_warning_and_left_out(tmp_path: Path) -> 
     sets = [
         f"ingest.camera_file={folder / 'cameras.yaml'}",
         f"ingest.extrinsics_file={folder / 'camera_poses.yaml'}",
-        "ingest.start_s=29",
-        "ingest.end_s=37",
         "detect.tag_size_m=0.16",
         "graph.model=3d",
     ]
     run = RunFolder.create(tmp_path / "run", bag)
     settings = load_settings(registry.models(), None, sets)
     summary: dict[str, Any] = run_stage(run, registry, "ingest", settings).summary
-    (warning,) = summary["warnings"]
-    assert "'cam1'" in warning and "left out of the graph" in warning and "--extrinsics" in warning
-    assert ("warning", warning) in remarks(summary)
+    assert summary["warnings"] == []
+    (note,) = [n for n in summary["notes"] if "'cam1'" in n]
+    assert "estimates its mount" in note and ("note", note) in remarks(summary)
     run_stage(run, registry, "detect", settings)
     g: dict[str, Any] = run_stage(run, registry, "graph", settings).summary
+    assert "dropped_camera_without_extrinsics" not in g
+    assert set(g["extrinsics"]) == {"/stereo/left/tags", "/stereo/right/tags"}
+    cam = g["rig_calibration"]["cameras"]["/stereo/right/tags"]
+    assert cam["frame_id"] == "cam1" and cam["placed_from"] == "/stereo/left/tags"
+    T = np.asarray(cam["T_base_camera"])
+    truth = load_extrinsics_file(need_shared("tagslam-test/test_3/camera_poses.yaml")).mounts["cam1"]
+    angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ truth[:3, :3]) - 1) / 2, -1, 1)))
+    assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.01 and angle < 0.5
+    assert 0 < max(cam["sigma_translation_m"]) < 0.01
+    assert any(kind == "note" and "camera cam1" in text for kind, text in graph_remarks(g))
+    written = load_extrinsics_file(run.stage_dir("graph") / "camera_poses.yaml")
+    assert set(written.mounts) == {"cam0", "cam1"}
+    assert np.allclose(written.mounts["cam1"], T, atol=1e-6) and np.allclose(written.mounts["cam0"], np.eye(4))
+    off = load_settings(registry.models(), None, [*sets, "graph.rig_calibration=false"])
+    g = run_stage(run, registry, "graph", off).summary
     assert list(g["dropped_camera_without_extrinsics"]) == ["/stereo/right/tags"]
-    assert g["dropped_camera_without_extrinsics"]["/stereo/right/tags"] > 0
-    assert set(g["extrinsics"]) == {"/stereo/left/tags"}
+    assert set(g["extrinsics"]) == {"/stereo/left/tags"} and "rig_calibration" not in g
+    assert not (run.stage_dir("graph") / "camera_poses.yaml").exists()

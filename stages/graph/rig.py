@@ -1,0 +1,380 @@
+"""Rig calibration: the mount of each camera of a rig that has none, estimated from the tags it shares with the others.
+
+TagSLAM users give the pose of one camera of a rig (``camera_poses.yaml`` with ``cam0`` only) and let the rest be
+found from the data. focusmap does the same in three steps, inside the graph stage:
+
+1. **Initial value** (:func:`initial_mounts`). When a camera ``a`` with a mount ``T_base_a`` and a camera ``c``
+   without one see the same tag at the same stamp, ``T_base_c = T_base_a T_a_tag T_c_tag⁻¹``. Every such pair gives
+   one estimate; their robust mean (chordal mean of the rotations after dropping those beyond three median
+   deviations, median translation) is the initial mount. Cameras are reached breadth first, so a camera that
+   shares tags only with another uncalibrated camera is placed through it (TagSLAM's quadruple rig: the top left
+   camera never sees a tag at the moment the calibrated one does).
+2. **Estimate** (:func:`refine_mounts`). The full 3D graph of the run with one ``Pose3`` variable ``C(i)`` per
+   camera to calibrate, shared by all its sightings: the factor ``e = Log((C Z)⁻¹ X⁻¹ L)`` (the tag factor with
+   ``T_base_tag = C Z`` for the sighting ``Z = T_camera_tag``; gtsam's ``BetweenFactorPose3`` at ``C`` fixed)
+   with exact Jacobians. Levenberg-Marquardt from the initial values; the marginal covariance of each ``C`` is
+   the mount's 6x6 covariance (tangent order rotation, translation; right perturbation).
+3. **Use**. The graph the later stages read is built with the estimated mount, and each sighting of such a camera
+   carries the mount's uncertainty in its covariance: ``Σ_Z + Ad(Z⁻¹) Σ_C Ad(Z⁻¹)ᵀ`` (``C Exp(ξ) Z = C Z
+   Exp(Ad(Z⁻¹) ξ)``). That treats the mount's error as independent between sightings, which it is not; the
+   inflation is small beside the detection noise when the mount rests on many pairs (it is listed per camera).
+
+A camera that never sees a tag at the same stamp as a placed camera cannot be placed: it is named and its
+detections are left out.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import gtsam
+import numpy as np
+import numpy.typing as npt
+
+from stages.geometry import pose3_from_matrix, pose3_from_vector
+from stages.graph.factors import FactorRow, make_factor, noise_model
+
+FloatArray = npt.NDArray[np.float64]
+
+MOUNT_CHR = "c"
+"""Symbol character of a camera mount variable ``C(i)`` in the calibration solve."""
+MIN_PAIRS = 3
+"""A camera is placed from another only through at least this many shared sightings."""
+
+
+def mount_key(index: int) -> int:
+    """Key of the mount variable of the ``index``-th camera to calibrate."""
+    return int(gtsam.symbol(MOUNT_CHR, index))
+
+
+@dataclass
+class MountEstimate:
+    """The mount of a camera found from the data."""
+
+    camera: str
+    pose: gtsam.Pose3
+    """``T_base_camera``."""
+    pairs: int
+    """Sightings shared with the camera it was placed from (the initial value's support)."""
+    via: str
+    """The camera it was placed from."""
+    spread_deg: float
+    """The median angle of the pair estimates from their mean (how well the pairs agree), degrees."""
+    covariance: FloatArray | None = None
+    """6x6 marginal covariance (rotation, translation), once estimated in the graph."""
+    initial: gtsam.Pose3 | None = None
+
+    def summary(self, base_frame: str) -> dict[str, Any]:
+        """The camera's block of the graph summary's ``rig_calibration``."""
+        T = np.asarray(self.pose.matrix())
+        out: dict[str, Any] = {
+            "T_base_camera": T.round(6).tolist(),
+            "base_frame": base_frame,
+            "placed_from": self.via,
+            "shared_sightings": self.pairs,
+            "pair_spread_deg": round(self.spread_deg, 3),
+        }
+        if self.covariance is not None:
+            sig = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+            out["sigma_rotation_deg"] = np.degrees(sig[:3]).round(4).tolist()
+            out["sigma_translation_m"] = sig[3:].round(5).tolist()
+        if self.initial is not None:
+            d = self.initial.between(self.pose)
+            out["moved_from_initial_m"] = round(float(np.linalg.norm(np.asarray(d.translation()))), 5)
+            out["moved_from_initial_deg"] = round(float(np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))), 4)
+        return out
+
+
+def rotation_mean(rotations: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The chordal mean of ``rotations`` (n x 3 x 3) after dropping those beyond three median deviations from a first
+    mean (and at least 2°), and which were kept."""
+    keep = np.ones(len(rotations), dtype=bool)
+    mean = np.eye(3)
+    for _ in range(3):
+        U, _, Vt = np.linalg.svd(rotations[keep].sum(axis=0))
+        mean = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        angles = _angles(rotations, mean)
+        cut = max(3.0 * float(np.median(angles[keep])), np.radians(2.0))
+        new = angles <= cut
+        if new.sum() < 1 or np.array_equal(new, keep):
+            break
+        keep = new
+    return mean, keep
+
+
+def _angles(rotations: FloatArray, mean: FloatArray) -> FloatArray:
+    """The angle of each rotation from ``mean``, radians."""
+    c = (np.einsum("nij,ij->n", rotations, mean) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def pair_estimate(T_base_a: FloatArray, T_a_tag: FloatArray, T_c_tag: FloatArray) -> tuple[gtsam.Pose3, float, int]:
+    """The robust mean of ``T_base_a T_a_tag T_c_tag⁻¹`` over the pairs (n x 4 x 4 each), the median angle of the
+    kept pair estimates from it (degrees), and how many were kept."""
+    inv_c = np.linalg.inv(T_c_tag)
+    est = np.einsum("nij,njk->nik", np.einsum("ij,njk->nik", T_base_a, T_a_tag), inv_c)
+    R, keep = rotation_mean(est[:, :3, :3])
+    spread = float(np.degrees(np.median(_angles(est[keep, :3, :3], R))))
+    return _mean_pose(est), spread, int(keep.sum())
+
+
+def initial_mounts(
+    stamps: npt.ArrayLike,
+    tags: npt.ArrayLike,
+    cameras: Iterable[str],
+    T_camera_tag: FloatArray,
+    known: Mapping[str, gtsam.Pose3],
+    unknown: Iterable[str],
+) -> tuple[dict[str, MountEstimate], list[str]]:
+    """Initial mounts of the ``unknown`` cameras from same-stamp sightings of one tag by a placed camera (breadth
+    first: the placed camera with the most shared sightings first), and the cameras that could not be placed.
+
+    ``stamps``, ``tags``, ``cameras``, ``T_camera_tag`` (n x 4 x 4): the usable sightings.
+    """
+    cams = np.asarray(list(cameras), dtype=object)
+    seen: dict[tuple[int, int], dict[str, int]] = defaultdict(dict)
+    for i, (s, g, c) in enumerate(zip(np.asarray(stamps), np.asarray(tags), cams, strict=True)):
+        seen[(int(s), int(g))].setdefault(str(c), i)
+    shared: dict[tuple[str, str], list[tuple[int, int]]] = defaultdict(list)
+    for by_cam in seen.values():
+        if len(by_cam) < 2:
+            continue
+        for a, ia in by_cam.items():
+            for c, ic in by_cam.items():
+                if a != c:
+                    shared[(a, c)].append((ia, ic))
+    placed = {str(c): np.asarray(p.matrix()) for c, p in known.items()}
+    todo = set(unknown)
+    out: dict[str, MountEstimate] = {}
+    while todo:
+        best = max(
+            ((len(shared.get((a, c), [])), a, c) for c in sorted(todo) for a in sorted(placed)),
+            default=(0, "", ""),
+        )
+        n, a, c = best
+        if n < MIN_PAIRS:
+            linked = _through_tag_pairs(stamps, tags, cams, T_camera_tag, placed, todo)
+            if linked is None:
+                break
+            out[linked.camera] = linked
+            placed[linked.camera] = np.asarray(linked.pose.matrix())
+            todo.discard(linked.camera)
+            continue
+        rows_a, rows_c = (np.array(x) for x in zip(*shared[(a, c)], strict=True))
+        pose, spread, _ = pair_estimate(placed[a], T_camera_tag[rows_a], T_camera_tag[rows_c])
+        out[c] = MountEstimate(c, pose, n, a, spread, initial=pose)
+        placed[c] = np.asarray(pose.matrix())
+        todo.discard(c)
+    return out, sorted(todo)
+
+
+def _through_tag_pairs(
+    stamps: npt.ArrayLike,
+    tags: npt.ArrayLike,
+    cams: npt.NDArray[np.object_],
+    T_camera_tag: FloatArray,
+    placed: Mapping[str, FloatArray],
+    todo: set[str],
+) -> MountEstimate | None:
+    """The unplaced camera with the most moments at which a placed camera sees tag ``t1`` and it sees another tag
+    ``t2`` whose pose relative to ``t1`` some camera measured in one frame: ``T_base_c = T_base_a T_a_t1 T_t1_t2
+    T_c_t2⁻¹`` (``T_t1_t2`` the robust mean of its single-frame measurements). None when no camera has
+    :data:`MIN_PAIRS` such moments."""
+    stamps_a, tags_a = np.asarray(stamps, dtype=np.int64), np.asarray(tags, dtype=np.int64)
+    frames: dict[tuple[int, str], dict[int, int]] = defaultdict(dict)
+    for i, (s, g, c) in enumerate(zip(stamps_a, tags_a, cams, strict=True)):
+        frames[(int(s), str(c))].setdefault(int(g), i)
+    rel_samples: dict[tuple[int, int], list[FloatArray]] = defaultdict(list)
+    for by_tag in frames.values():
+        for t1, i1 in by_tag.items():
+            for t2, i2 in by_tag.items():
+                if t1 != t2:
+                    rel_samples[(t1, t2)].append(np.linalg.inv(T_camera_tag[i1]) @ T_camera_tag[i2])
+    rel: dict[tuple[int, int], FloatArray] = {}
+    best: tuple[int, str, str, list[FloatArray]] = (0, "", "", [])
+    by_stamp: dict[int, dict[str, dict[int, int]]] = defaultdict(dict)
+    for (s, c), by_tag in frames.items():
+        by_stamp[s][c] = by_tag
+    for c in sorted(todo):
+        for a in sorted(placed):
+            est: list[FloatArray] = []
+            for views in by_stamp.values():
+                if a not in views or c not in views:
+                    continue
+                for t1, i1 in views[a].items():
+                    for t2, i2 in views[c].items():
+                        if (t1, t2) not in rel_samples:
+                            continue
+                        if (t1, t2) not in rel:
+                            rel[(t1, t2)] = np.asarray(_mean_pose(np.asarray(rel_samples[(t1, t2)])).matrix())
+                        est.append(placed[a] @ T_camera_tag[i1] @ rel[(t1, t2)] @ np.linalg.inv(T_camera_tag[i2]))
+            if len(est) > best[0]:
+                best = (len(est), a, c, est)
+    n, a, c, est = best
+    if n < MIN_PAIRS:
+        return None
+    Ts = np.asarray(est)
+    pose = _mean_pose(Ts)
+    spread = float(np.degrees(np.median(_angles(Ts[:, :3, :3], np.asarray(pose.rotation().matrix())))))
+    return MountEstimate(c, pose, n, f"{a} (through tags seen together)", spread, initial=pose)
+
+
+def _mean_pose(Ts: FloatArray) -> gtsam.Pose3:
+    """The robust mean of rigid transforms (n x 4 x 4): chordal mean rotation of the inliers, median translation."""
+    R, keep = rotation_mean(Ts[:, :3, :3])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.median(Ts[keep, :3, 3], axis=0)
+    return pose3_from_matrix(T)
+
+
+def mount_error(
+    X: gtsam.Pose3, L: gtsam.Pose3, C: gtsam.Pose3, T_camera_tag: gtsam.Pose3
+) -> tuple[FloatArray, list[FloatArray]]:
+    """``e = Log((C Z)⁻¹ X⁻¹ L)`` and its Jacobians with respect to X, L and C (right perturbations, tangent order
+    rotation, translation)."""
+    Hx, Hl = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    P = X.between(L, Hx, Hl)
+    Hc = np.zeros((6, 6), order="F")
+    Hz = np.zeros((6, 6), order="F")
+    Q = C.compose(T_camera_tag, Hc, Hz)
+    Hq, Hp = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    D = Q.between(P, Hq, Hp)
+    Hlog = np.zeros((6, 6), order="F")
+    e = gtsam.Pose3.Logmap(D, Hlog)
+    return np.asarray(e, dtype=float), [Hlog @ Hp @ Hx, Hlog @ Hp @ Hl, Hlog @ Hq @ Hc]
+
+
+def mount_factor(
+    keys: tuple[int, int, int], T_camera_tag: gtsam.Pose3, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """The tag factor of a sighting by a camera whose mount ``C`` (key ``keys[2]``) is unknown."""
+    kx, kl, kc = keys
+
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list[FloatArray] | None) -> FloatArray:
+        e, J = mount_error(v.atPose3(kx), v.atPose3(kl), v.atPose3(kc), T_camera_tag)
+        if H is not None:
+            H[0], H[1], H[2] = J
+        return e
+
+    return gtsam.CustomFactor(noise, list(keys), error)
+
+
+def inflated(cov6: FloatArray, T_camera_tag: gtsam.Pose3, mount_cov: FloatArray | None) -> FloatArray:
+    """A sighting's covariance with its camera mount's uncertainty carried in: ``Σ + Ad(Z⁻¹) Σ_C Ad(Z⁻¹)ᵀ``."""
+    if mount_cov is None:
+        return cov6
+    Ad = np.asarray(T_camera_tag.inverse().AdjointMap())
+    return np.asarray(cov6 + Ad @ mount_cov @ Ad.T)
+
+
+def refine_mounts(
+    rows: list[FactorRow],
+    row_cameras: list[str | None],
+    initial: gtsam.Values,
+    estimates: dict[str, MountEstimate],
+    max_iterations: int = 100,
+) -> dict[str, Any]:
+    """Estimate the mounts of ``estimates``' cameras in the 3D graph of ``rows`` (built with their initial mounts;
+    ``row_cameras[i]`` is the camera of tag row ``i``): each becomes one ``Pose3`` variable shared by its sightings.
+    Updates ``pose`` and ``covariance`` of each estimate in place; returns the solve's figures.
+
+    The tag scale, when the graph has one, is held at 1 here (its prior row is left out, its key dropped)."""
+    order = sorted(estimates)
+    keys = {cam: mount_key(i) for i, cam in enumerate(order)}
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    used: set[int] = set()
+    for row, cam in zip(rows, row_cameras, strict=True):
+        if row.kind == "scale_prior":
+            continue
+        plain = replace(row, keys=row.keys[:2]) if row.kind == "tag" else row
+        used.update(plain.keys)
+        if row.kind == "tag" and cam in keys:
+            Z = estimates[cam].pose.inverse().compose(pose3_from_vector(row.measurement))
+            noise = noise_model(np.asarray(row.covariance, dtype=float).reshape(6, 6), row.robust, row.robust_k)
+            graph.add(mount_factor((plain.keys[0], plain.keys[1], keys[cam]), Z, noise))
+        else:
+            graph.add(make_factor(plain))
+    for k in sorted(used):
+        values.insert(k, initial.atPose3(k))
+    for cam, key in keys.items():
+        values.insert(key, estimates[cam].pose)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = optimizer.optimize()
+    figures: dict[str, Any] = {
+        "iterations": int(optimizer.iterations()),
+        "error_before": float(graph.error(values)),
+        "error_after": float(graph.error(result)),
+    }
+    try:
+        marginals = gtsam.Marginals(graph, result)
+    except RuntimeError as err:
+        marginals = None
+        figures["marginals"] = f"not computed: {str(err).splitlines()[0]}"
+    for cam, key in keys.items():
+        est = estimates[cam]
+        est.pose = result.atPose3(key)
+        if marginals is not None:
+            est.covariance = np.asarray(marginals.marginalCovariance(key), dtype=float)
+    return figures
+
+
+GIVEN_INFORMATION = 1e6
+"""The information (R) written for a mount that was given, not estimated: held fixed."""
+
+
+def camera_poses_yaml(mounts: Mapping[str, tuple[FloatArray, FloatArray | None]], base_frame: str) -> str:
+    """TagSLAM's ``camera_poses.yaml`` for ``mounts`` (name to ``T_base_camera`` and its 6x6 covariance, None when
+    given): the pose as position and angle-axis rotation, ``R`` the information."""
+    lines = [f"# camera poses in the {base_frame!r} frame, written by focusmap's rig calibration (graph stage)"]
+    for name, (T, cov) in mounts.items():
+        pose = pose3_from_matrix(np.asarray(T, dtype=float))
+        rot = np.asarray(gtsam.Rot3.Logmap(pose.rotation()), dtype=float)
+        pos = np.asarray(pose.translation(), dtype=float)
+        info = np.eye(6) * GIVEN_INFORMATION if cov is None else np.linalg.inv(0.5 * (cov + cov.T))
+        lines += [
+            f"{name}:",
+            "  pose:",
+            "    position:",
+            *(f"      {a}: {v:.9g}" for a, v in zip("xyz", pos, strict=True)),
+            "    rotation:",
+            *(f"      {a}: {v:.9g}" for a, v in zip("xyz", rot, strict=True)),
+            "    R:",
+            "      [ " + ",\n        ".join(", ".join(f"{v:.9g}" for v in row) for row in info) + " ]",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def rig_remarks(block: Any) -> list[tuple[str, str]]:
+    """The graph stage's lines about the rig calibration (its summary block ``rig_calibration``)."""
+    if not isinstance(block, dict):
+        return []
+    out: list[tuple[str, str]] = []
+    for cam, c in (block.get("cameras") or {}).items():
+        sig_t, sig_r = c.get("sigma_translation_m"), c.get("sigma_rotation_deg")
+        sigma = f"σ {1000 * max(sig_t):.1f} mm, {max(sig_r):.2f}°" if sig_t and sig_r else "its covariance not computed"
+        out.append(
+            (
+                "note",
+                f"camera {c.get('frame_id', cam)} ({cam}) had no mount: estimated from {c.get('shared_sightings')} "
+                f"sightings shared with {c.get('placed_from')} and all its own ({sigma}); graph/camera_poses.yaml "
+                "holds it for --extrinsics",
+            )
+        )
+    for cam, n in (block.get("unplaced") or {}).items():
+        out.append(
+            (
+                "warning",
+                f"camera {cam} has no mount and shares no tag with the placed cameras (the same tag at the same "
+                f"moment, or a tag seen in one frame with theirs, at least {MIN_PAIRS} times): its {n} detections "
+                "are left out; placing it from its motion alone (hand-eye) is not done; give its mount with "
+                "--extrinsics",
+            )
+        )
+    return out
