@@ -45,6 +45,10 @@ class ExtrinsicsFile:
     mounts: dict[str, FloatArray] = field(default_factory=dict)
     via: str = ""
     """How the file's transforms were changed before use (appended to each mount's source), e.g. by a tags file."""
+    information: dict[str, FloatArray] = field(default_factory=dict)
+    """Per entry whose TagSLAM ``R`` is given: the mount's 6x6 information ``RᵀR`` (``R`` is gtsam's square-root
+    information; tangent order rotation, translation, right perturbation, so moving the mount into another base
+    leaves it unchanged)."""
 
     def find(self, *names: str | None) -> tuple[str, FloatArray] | None:
         """The first entry named by one of ``names`` (a camera name, frame id or topic), with its name."""
@@ -95,8 +99,24 @@ def _xyz(node: Any, where: str) -> FloatArray:
         raise InputError(f"{where}: needs x, y and z numbers") from err
 
 
+def _information(value: Any, where: str) -> FloatArray:
+    """TagSLAM's ``R``: 36 numbers, gtsam's square-root information of the mount (upper triangular as TagSLAM writes
+    it, from ``noiseModel::Gaussian::R()``): the information is ``RᵀR``, which must be positive definite."""
+    try:
+        R = np.asarray(value, dtype=float).reshape(6, 6)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{where}: expected 36 numbers (a 6x6 square-root information matrix)") from err
+    if not np.all(np.isfinite(R)):
+        raise InputError(f"{where}: the 6x6 square-root information matrix has a value that is not a number")
+    information = R.T @ R
+    if float(np.linalg.eigvalsh(information).min()) <= 1e-12 * float(np.abs(information).max() or 1.0):
+        raise InputError(f"{where}: the 6x6 square-root information matrix is singular (a direction with no noise)")
+    return information
+
+
 def _tagslam(doc: dict[str, Any], path: str) -> ExtrinsicsFile:
     mounts = {}
+    information = {}
     for name, entry in doc.items():
         pose = entry.get("pose") if isinstance(entry, dict) else None
         if not isinstance(pose, dict):
@@ -105,7 +125,9 @@ def _tagslam(doc: dict[str, Any], path: str) -> ExtrinsicsFile:
         T[:3, :3] = rotation_from_rotvec(_xyz(pose.get("rotation"), f"{path!r} {name}.pose.rotation"))
         T[:3, 3] = _xyz(pose.get("position"), f"{path!r} {name}.pose.position")
         mounts[str(name)] = T
-    return ExtrinsicsFile(path, "tagslam camera_poses", "rig", mounts)
+        if pose.get("R") is not None:
+            information[str(name)] = _information(pose["R"], f"{path!r} {name}.pose.R")
+    return ExtrinsicsFile(path, "tagslam camera_poses", "rig", mounts, information=information)
 
 
 def _kalibr(doc: dict[str, Any], path: str) -> ExtrinsicsFile:

@@ -246,9 +246,9 @@ CALIBRATION: Final = FileSpec(
 CAMERA_POSES: Final = FileSpec(
     "camera_poses.yaml",
     "when the rig calibration estimated a camera's mount: every camera's pose in the base frame, in TagSLAM's "
-    "`camera_poses.yaml` layout (`camN: pose: {position: {x, y, z}, rotation: {x, y, z} (angle-axis, rad), R: the "
-    "6x6 information in gtsam's tangent order rotation, translation}`); given mounts are written with R = 1e6 I "
-    "(held fixed); `--extrinsics` reads it back",
+    "`camera_poses.yaml` layout (`camN: pose: {position: {x, y, z}, rotation: {x, y, z} (angle-axis, rad), R}`, R "
+    "gtsam's upper-triangular square-root information, tangent order rotation, translation, as TagSLAM writes it); "
+    "given mounts held fixed are written with R = 1e6 I; `--extrinsics` reads it back",
     optional=True,
 )
 

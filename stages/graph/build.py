@@ -44,7 +44,15 @@ from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
 from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
-from stages.graph.rig import MountEstimate, inflated, initial_mounts, refine_mounts
+from stages.graph.rig import (
+    GIVEN_PRIOR,
+    MountEstimate,
+    given_mount_figures,
+    inflated,
+    initial_mounts,
+    is_loose,
+    refine_mounts,
+)
 from stages.graph.tag_motion import motion_pairs, mounting_figures, ratio_figures
 from stages.graph.variables import SCALE
 from stages.ingest.artifacts import EXTRINSICS, Extrinsics, SensorMount, TagsInfo
@@ -114,6 +122,8 @@ def build_problem(
         _remap_ids(det, tags, extrinsics, info)
     odom = Odometry.from_table(odometry)
     estimates, usable = _initial_rig(det, usable, extrinsics, cfg, info)
+    if checked := _given_mounts_against_data(det, usable, extrinsics, set(estimates)):
+        info["rig_check"] = checked
     if not estimates:
         return _assemble(det, usable, odom, extrinsics, cfg, tags, info)[0]
     placed = _with_mounts(extrinsics, estimates, "initial")
@@ -209,14 +219,23 @@ def _initial_rig(
     """Initial mounts of the rig's cameras that have none (:mod:`stages.graph.rig`), and the usable rows without
     the sightings of those that cannot be placed."""
     cams = np.asarray([str(c) for c in det[CAMERA]], dtype=object)
-    unmounted = _cameras_without_mount(list(cams[usable]), extrinsics) if cfg.rig_calibration else set()
-    if not unmounted:
+    if not cfg.rig_calibration:
         return {}, usable
+    unmounted = _cameras_without_mount(list(cams[usable]), extrinsics)
     known = {str(c): camera_extrinsic(extrinsics, str(c))[0] for c in set(cams[usable]) - unmounted}
+    loose = {}
+    for c in sorted(known):
+        mount = camera_mount(extrinsics, c)
+        if mount is not None and is_loose(mount.information):
+            info_c = np.asarray(mount.information, dtype=float)
+            loose[c] = MountEstimate(c, known[c], 0, GIVEN_PRIOR, 0.0, initial=known[c], prior=info_c)
+    if not unmounted and not loose:
+        return {}, usable
     T = np.asarray([det[T_CAMERA_TAG][r] for r in usable], dtype=float).reshape(-1, 4, 4)
     stamps = np.asarray(det[STAMP_NS], dtype=np.int64)[usable]
     tag_ids = np.asarray(det[TAG_ID], dtype=np.int64)[usable]
     estimates, unplaced = initial_mounts(stamps, tag_ids, cams[usable], T, known, unmounted)
+    estimates.update(loose)
     if unplaced:
         off = np.isin(cams[usable], unplaced)
         info["rig_calibration"] = {
@@ -224,6 +243,20 @@ def _initial_rig(
         }
         usable = usable[~off]
     return estimates, usable
+
+
+def _given_mounts_against_data(
+    det: dict[str, list[Any]], usable: np.ndarray, extrinsics: Extrinsics | None, estimated: set[str]
+) -> dict[str, dict[str, Any]]:
+    """Each given camera mount of a rig against the one its sightings shared with the other given cameras imply
+    (:func:`stages.graph.rig.given_mount_figures`); empty for a single camera."""
+    cams = np.asarray([str(c) for c in det[CAMERA]], dtype=object)[usable]
+    given = {c: camera_extrinsic(extrinsics, c)[0] for c in sorted(set(cams) - estimated)}
+    if len(given) < 2 or _cameras_without_mount(list(given), extrinsics):
+        return {}
+    T = np.asarray([det[T_CAMERA_TAG][r] for r in usable], dtype=float).reshape(-1, 4, 4)
+    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)[usable]
+    return given_mount_figures(stamps, np.asarray(det[TAG_ID], dtype=np.int64)[usable], cams, T, given)
 
 
 def _with_mounts(extrinsics: Extrinsics | None, estimates: dict[str, MountEstimate], how: str) -> Extrinsics:

@@ -14,6 +14,9 @@ gives its figures and, when it fails, one line that says what is wrong and which
   sightings of a tag, as the odometry and the extrinsics give them, into those the tags measure
   (:func:`stages.graph.tag_motion.mounting_figures`, before the solve): beyond 3 degrees the camera's mounting
   rotation is off, which bends the map and moves the tag scale (so the scale check's advice would be wrong).
+- ``rig``: per given camera of a rig with two or more given mounts, the mount its same-stamp sightings of the other
+  given cameras' tags imply, against the given one (:func:`stages.graph.rig.given_mount_figures`, before the
+  solve): more than 3 degrees, or more than 3 cm and 3 standard errors, apart, the given mount is wrong.
 - ``tag_size``: the camera's motion between two sightings of one tag, as the tags measure it, against the wheel
   odometry's (:mod:`stages.graph.tag_motion`, computed before the solve): more than 10 % apart, the tag size is
   wrong (or the wheels are that far off). It catches what the scale check cannot: a size wrong by tens of percent,
@@ -55,6 +58,7 @@ import numpy as np
 
 from stages.graph.factors import FactorRow, build_graph, make_factor
 from stages.graph.problem import GraphProblem
+from stages.graph.rig import given_mount_warning
 from stages.graph.tag_motion import MIN_PAIRS, MOUNT_MAX_DEG, RATIO_MAX, mounting_warning, size_warning
 
 CHI2_PER_DOF_MAX = 5.0
@@ -114,6 +118,7 @@ def graph_health(
     for name, (figures, warning) in (
         ("chi2", _chi2_check(problem, chi2, redundancy_by_kind(problem, graph, values))),
         ("extrinsics", _mounting_check(problem)),
+        ("rig", _rig_check(problem)),
         ("tag_scale", _scale_check(problem, values, marginals, tag_size_m)),
         ("tag_size", _size_check(problem, tag_size_m)),
         ("iterations", _iterations_check(iterations, max_iterations, section)),
@@ -264,6 +269,14 @@ def _mounting_check(problem: GraphProblem) -> tuple[dict[str, Any], str | None]:
     lines = [w for cam, f in cameras.items() if (w := mounting_warning(cam, f, f.get("source", "?"))) is not None]
     figures = {"judged": any("angle_deg" in f for f in cameras.values()), "max_deg": MOUNT_MAX_DEG, "cameras": cameras}
     return figures, "; ".join(lines) if lines else None
+
+
+def _rig_check(problem: GraphProblem) -> tuple[dict[str, Any], str | None]:
+    cameras = problem.info.get("rig_check")
+    if not cameras:  # one camera, too few shared sightings, or a reduced graph (optimize): the graph stage judged it
+        return {"judged": False}, None
+    lines = [w for cam, f in cameras.items() if (w := given_mount_warning(cam, f)) is not None]
+    return {"judged": True, "cameras": cameras}, "; ".join(lines) if lines else None
 
 
 def _size_check(problem: GraphProblem, tag_size_m: float | None) -> tuple[dict[str, Any], str | None]:

@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from stages.geometry import pose3_from_matrix, pose3_from_vector
 from stages.graph.factors import FactorRow, make_factor, noise_model
+from stages.graph.tag_motion import MOUNT_MAX_DEG
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -43,6 +44,19 @@ MOUNT_CHR = "c"
 """Symbol character of a camera mount variable ``C(i)`` in the calibration solve."""
 MIN_PAIRS = 3
 """A camera is placed from another only through at least this many shared sightings."""
+LOOSE_INFORMATION = 1e6
+"""A given mount whose information (``RᵀR`` of TagSLAM's ``R``) is at least this in every direction (σ ≤ 1 mm,
+1 mrad) is held fixed; a looser one is estimated with it as its prior."""
+GIVEN_INFORMATION = 1e6
+"""The square-root information ``R`` written for a mount held fixed (TagSLAM's own files: σ 1e-6 m, rad)."""
+
+
+def is_loose(information: Any) -> bool:
+    """Whether a given mount's information leaves it to be estimated (:data:`GIVEN_INFORMATION`)."""
+    if information is None:
+        return False
+    R = np.asarray(information, dtype=float).reshape(6, 6)
+    return bool(np.linalg.eigvalsh(0.5 * (R + R.T)).min() < LOOSE_INFORMATION * (1.0 - 1e-6))
 
 
 def mount_key(index: int) -> int:
@@ -65,6 +79,10 @@ class MountEstimate:
     """The median angle of the pair estimates from their mean (how well the pairs agree), degrees."""
     covariance: FloatArray | None = None
     """6x6 marginal covariance (rotation, translation), once estimated in the graph."""
+    translation_se: float = 0.0
+    """Standard error of the initial translation: the pair estimates' spread over the root of their number, m."""
+    prior: FloatArray | None = None
+    """The 6x6 information of a given mount estimated with it as its prior (TagSLAM's ``R``), else None."""
     initial: gtsam.Pose3 | None = None
 
     def summary(self, base_frame: str) -> dict[str, Any]:
@@ -111,14 +129,19 @@ def _angles(rotations: FloatArray, mean: FloatArray) -> FloatArray:
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
-def pair_estimate(T_base_a: FloatArray, T_a_tag: FloatArray, T_c_tag: FloatArray) -> tuple[gtsam.Pose3, float, int]:
+def pair_estimate(
+    T_base_a: FloatArray, T_a_tag: FloatArray, T_c_tag: FloatArray
+) -> tuple[gtsam.Pose3, float, int, float]:
     """The robust mean of ``T_base_a T_a_tag T_c_tag⁻¹`` over the pairs (n x 4 x 4 each), the median angle of the
-    kept pair estimates from it (degrees), and how many were kept."""
+    kept pair estimates from it (degrees), how many were kept, and the standard error of its translation (m)."""
     inv_c = np.linalg.inv(T_c_tag)
     est = np.einsum("nij,njk->nik", np.einsum("ij,njk->nik", T_base_a, T_a_tag), inv_c)
     R, keep = rotation_mean(est[:, :3, :3])
     spread = float(np.degrees(np.median(_angles(est[keep, :3, :3], R))))
-    return _mean_pose(est), spread, int(keep.sum())
+    pose = _mean_pose(est)
+    dev = np.linalg.norm(est[keep, :3, 3] - np.asarray(pose.translation()), axis=1)
+    se = 1.4826 * float(np.median(dev)) / np.sqrt(max(int(keep.sum()), 1))
+    return pose, spread, int(keep.sum()), se
 
 
 def initial_mounts(
@@ -164,8 +187,8 @@ def initial_mounts(
             todo.discard(linked.camera)
             continue
         rows_a, rows_c = (np.array(x) for x in zip(*shared[(a, c)], strict=True))
-        pose, spread, _ = pair_estimate(placed[a], T_camera_tag[rows_a], T_camera_tag[rows_c])
-        out[c] = MountEstimate(c, pose, n, a, spread, initial=pose)
+        pose, spread, _, se = pair_estimate(placed[a], T_camera_tag[rows_a], T_camera_tag[rows_c])
+        out[c] = MountEstimate(c, pose, n, a, spread, initial=pose, translation_se=se)
         placed[c] = np.asarray(pose.matrix())
         todo.discard(c)
     return out, sorted(todo)
@@ -303,6 +326,10 @@ def refine_mounts(
         values.insert(k, initial.atPose3(k))
     for cam, key in keys.items():
         values.insert(key, estimates[cam].pose)
+        prior, given = estimates[cam].prior, estimates[cam].initial
+        if prior is not None and given is not None:
+            noise = gtsam.noiseModel.Gaussian.Information(np.asarray(prior, dtype=float))
+            graph.add(gtsam.PriorFactorPose3(key, given, noise))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -325,19 +352,22 @@ def refine_mounts(
     return figures
 
 
-GIVEN_INFORMATION = 1e6
-"""The information (R) written for a mount that was given, not estimated: held fixed."""
+def sqrt_information(cov: FloatArray) -> FloatArray:
+    """gtsam's square-root information of a covariance: the upper-triangular ``R`` with ``RᵀR = Σ⁻¹``."""
+    information = np.linalg.inv(0.5 * (cov + cov.T))
+    return np.asarray(np.linalg.cholesky(0.5 * (information + information.T)).T)
 
 
 def camera_poses_yaml(mounts: Mapping[str, tuple[FloatArray, FloatArray | None]], base_frame: str) -> str:
     """TagSLAM's ``camera_poses.yaml`` for ``mounts`` (name to ``T_base_camera`` and its 6x6 covariance, None when
-    given): the pose as position and angle-axis rotation, ``R`` the information."""
+    given and held fixed): the pose as position and angle-axis rotation, ``R`` the square-root information
+    (:func:`sqrt_information`; a fixed mount's is :data:`GIVEN_INFORMATION` times the identity)."""
     lines = [f"# camera poses in the {base_frame!r} frame, written by focusmap's rig calibration (graph stage)"]
     for name, (T, cov) in mounts.items():
         pose = pose3_from_matrix(np.asarray(T, dtype=float))
         rot = np.asarray(gtsam.Rot3.Logmap(pose.rotation()), dtype=float)
         pos = np.asarray(pose.translation(), dtype=float)
-        info = np.eye(6) * GIVEN_INFORMATION if cov is None else np.linalg.inv(0.5 * (cov + cov.T))
+        sqrt_info = np.eye(6) * GIVEN_INFORMATION if cov is None else sqrt_information(cov)
         lines += [
             f"{name}:",
             "  pose:",
@@ -346,7 +376,7 @@ def camera_poses_yaml(mounts: Mapping[str, tuple[FloatArray, FloatArray | None]]
             "    rotation:",
             *(f"      {a}: {v:.9g}" for a, v in zip("xyz", rot, strict=True)),
             "    R:",
-            "      [ " + ",\n        ".join(", ".join(f"{v:.9g}" for v in row) for row in info) + " ]",
+            "      [ " + ",\n        ".join(", ".join(f"{v:.9g}" for v in row) for row in sqrt_info) + " ]",
         ]
     return "\n".join(lines) + "\n"
 
@@ -359,6 +389,17 @@ def rig_remarks(block: Any) -> list[tuple[str, str]]:
     for cam, c in (block.get("cameras") or {}).items():
         sig_t, sig_r = c.get("sigma_translation_m"), c.get("sigma_rotation_deg")
         sigma = f"σ {1000 * max(sig_t):.1f} mm, {max(sig_r):.2f}°" if sig_t and sig_r else "its covariance not computed"
+        if c.get("placed_from") == GIVEN_PRIOR:
+            out.append(
+                (
+                    "note",
+                    f"camera {c.get('frame_id', cam)} ({cam}): its given mount is looser than 1 mm or 1 mrad (R in "
+                    "--extrinsics), so the graph estimated it with that as its prior: it moved "
+                    f"{100 * c.get('moved_from_initial_m', 0.0):.1f} cm, {c.get('moved_from_initial_deg', 0.0):.2f}° "
+                    f"({sigma}); graph/camera_poses.yaml holds it",
+                )
+            )
+            continue
         out.append(
             (
                 "note",
@@ -378,3 +419,58 @@ def rig_remarks(block: Any) -> list[tuple[str, str]]:
             )
         )
     return out
+
+
+GIVEN_PRIOR = "its given pose (prior R)"
+"""``placed_from`` of a given mount estimated with its information as prior."""
+
+CHECK_MIN_PAIRS = 20
+"""A given mount is judged against the data only when the camera shares at least this many sightings with the
+rig's other given cameras."""
+CHECK_MAX_M = 0.03
+"""A given mount whose translation differs from the data's by more than this (and 3 standard errors) fails the
+``rig`` health check, m (the ``extrinsics`` check's angle, 3°, bounds the rotation)."""
+
+
+def given_mount_figures(
+    stamps: npt.ArrayLike,
+    tags: npt.ArrayLike,
+    cameras: Iterable[str],
+    T_camera_tag: FloatArray,
+    given: Mapping[str, gtsam.Pose3],
+) -> dict[str, dict[str, Any]]:
+    """Each given camera's mount against the one its same-stamp sightings with the rig's other given cameras imply
+    (leave one out): the angle and distance between them, and the standard error of the data's translation (the
+    spread of the pair estimates over the root of their number)."""
+    cams = list(cameras)
+    out: dict[str, dict[str, Any]] = {}
+    if len(given) < 2:
+        return out
+    for cam, mount in given.items():
+        others = {c: p for c, p in given.items() if c != cam}
+        est, _ = initial_mounts(stamps, tags, cams, T_camera_tag, others, {cam})
+        if cam not in est or est[cam].pairs < CHECK_MIN_PAIRS or "through" in est[cam].via:
+            continue
+        e = est[cam]
+        d = mount.between(e.pose)
+        out[cam] = {
+            "pairs": e.pairs,
+            "from": e.via,
+            "angle_deg": round(float(np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))), 3),
+            "distance_m": round(float(np.linalg.norm(np.asarray(e.pose.translation()) - mount.translation())), 4),
+            "distance_se_m": round(e.translation_se, 5),
+        }
+    return out
+
+
+def given_mount_warning(name: str, figures: Mapping[str, Any]) -> str | None:
+    """The ``rig`` check's line for a given camera mount the data disagree with (None when they agree)."""
+    angle, dist, se = figures["angle_deg"], figures["distance_m"], figures["distance_se_m"]
+    if angle <= MOUNT_MAX_DEG and dist <= max(CHECK_MAX_M, 3.0 * se):
+        return None
+    return (
+        f"the given mount of camera {name!r} is {100 * dist:.1f} cm and {angle:.1f} degrees from where its "
+        f"{figures['pairs']} sightings of the tags {figures['from']!r} sees at the same moments put it: check its "
+        "entry in --extrinsics, or leave it out there and let the graph estimate it (graph.rig_calibration); "
+        "cameras whose frames share a stamp but are not taken at the same moment look the same on a moving rig"
+    )

@@ -153,6 +153,12 @@ class SensorMount(BaseModel):
         description="where the transform came from: `/tf_static`, `base frame` (the sensor is the base), "
         "`FILE (kind) ENTRY` for --extrinsics, or `identity (assumed)`",
     )
+    information: list[list[float]] | None = Field(
+        None,
+        description="the mount's 6x6 information `RᵀR` when the extrinsics file gives TagSLAM's `R` (gtsam's "
+        "square-root information; tangent order rotation, translation); a mount looser than 1 mm or 1 mrad in some "
+        "direction is estimated in the graph with it as its prior",
+    )
 
 
 class Extrinsics(BaseModel):

@@ -576,8 +576,12 @@ def _mount(
     found = file.find(frame, *names) if file else None
     if file is not None and found is not None:
         entry, T = found
+        info = file.information.get(entry)
         return SensorMount(
-            frame_id=frame, T_base_sensor=T.tolist(), source=f"{Path(file.path).name} ({file.kind}) {entry}{file.via}"
+            frame_id=frame,
+            T_base_sensor=T.tolist(),
+            source=f"{Path(file.path).name} ({file.kind}) {entry}{file.via}",
+            information=None if info is None else info.tolist(),
         )
     chained = convert.chain(reading.edges, base, frame)
     if chained is not None:
@@ -615,6 +619,7 @@ def _odometry_mount(
         base_frame or file.base_frame,
         {entry: T_odom_rig @ T for entry, T in file.mounts.items()},
         via=f" moved into the odometry frame by T_body_odom of {name}",
+        information=file.information,
     )
     notes.append(
         f"the cameras of {Path(file.path).name} (in TagSLAM's rig body) are placed in the odometry's child frame "

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from pipeline.errors import InputError
 from stages.extrinsics import invert, load_extrinsics_file, rotation_from_rotvec
@@ -49,7 +50,8 @@ cam0:
   pose:
     position: {x: 0, y: 0, z: 0}
     rotation: {x: 0, y: 0, z: 0}
-    R: [1, 0, 0]
+    R: [1000000, 0, 0, 0, 0, 0,  0, 1000000, 0, 0, 0, 0,  0, 0, 1000000, 0, 0, 0,
+        0, 0, 0, 1000000, 0, 0,  0, 0, 0, 0, 1000000, 0,  0, 0, 0, 0, 0, 1000000]
 cam1:
   pose:
     position: {x: 0.1, y: 0.0, z: 0.0}
@@ -62,6 +64,24 @@ cam1:
     T = f.mounts["cam1"]
     assert np.allclose(T @ [0, 0, 0, 1], [0.1, 0, 0, 1])
     assert np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(f.information["cam0"], np.eye(6) * 1e12) and "cam1" not in f.information
+
+
+def test_tagslam_r_is_the_upper_triangular_square_root_information(tmp_path: Path) -> None:
+    """TagSLAM writes R as gtsam's square-root information (upper triangular, test_3's cam1): the information is
+    RᵀR. An R that is not 36 numbers, or singular, is one line naming the entry."""
+    from tests.fixtures.shared_data import need_shared
+
+    f = load_extrinsics_file(need_shared("tagslam-test/test_3/camera_poses.yaml"))
+    R = np.array(yaml.safe_load(need_shared("tagslam-test/test_3/camera_poses.yaml").read_text())["cam1"]["pose"]["R"])
+    assert np.allclose(f.information["cam1"], R.reshape(6, 6).T @ R.reshape(6, 6))
+    for bad, match in (("[1, 0, 0]", "expected 36 numbers"), ("[" + ", ".join(["0"] * 36) + "]", "singular")):
+        path = _write(
+            tmp_path,
+            f"cam0:\n  pose:\n    position: {{x: 0, y: 0, z: 0}}\n    rotation: {{x: 0, y: 0, z: 0}}\n    R: {bad}\n",
+        )
+        with pytest.raises(InputError, match=f"cam0.pose.R: .*{match}"):
+            load_extrinsics_file(path)
 
 
 def test_kalibr_camchain_is_inverted_and_chained(tmp_path: Path) -> None:
@@ -213,6 +233,7 @@ def test_camera_without_extrinsics_is_calibrated_from_the_tags_it_shares(tmp_pat
     from stages import detect, graph, ingest
     from stages.extrinsics import load_extrinsics_file
     from stages.graph import remarks as graph_remarks
+    from stages.graph.rig import GIVEN_PRIOR, camera_poses_yaml
     from stages.ingest import remarks
     from tests.fixtures.shared_data import need_shared
 
@@ -251,3 +272,18 @@ def test_camera_without_extrinsics_is_calibrated_from_the_tags_it_shares(tmp_pat
     assert list(g["dropped_camera_without_extrinsics"]) == ["/stereo/right/tags"]
     assert set(g["extrinsics"]) == {"/stereo/left/tags"} and "rig_calibration" not in g
     assert not (run.stage_dir("graph") / "camera_poses.yaml").exists()
+    # cam1 given 5 cm off with a loose R (σ 0.1 m, 0.1 rad): estimated with it as its prior, back within 1 cm
+    loose = tmp_path / "camera_poses_loose.yaml"
+    off_by = truth.copy()
+    off_by[:3, 3] += [0.05, 0.0, 0.0]
+    loose.write_text(camera_poses_yaml({"cam0": (np.eye(4), None), "cam1": (off_by, np.eye(6) * 0.01)}, "rig"))
+    sets_loose = [s for s in sets if not s.startswith("ingest.extrinsics_file")]
+    settings_loose = load_settings(registry.models(), None, [*sets_loose, f"ingest.extrinsics_file={loose}"])
+    for stage in ("ingest", "detect"):
+        run_stage(run, registry, stage, settings_loose)
+    g = run_stage(run, registry, "graph", settings_loose).summary
+    cam = g["rig_calibration"]["cameras"]["/stereo/right/tags"]
+    assert cam["placed_from"] == GIVEN_PRIOR
+    T = np.asarray(cam["T_base_camera"])
+    assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.01
+    assert any(kind == "note" and "looser than 1 mm" in text for kind, text in graph_remarks(g))

@@ -147,8 +147,8 @@ def test_refined_mount_covariance_matches_monte_carlo() -> None:
 
 
 def test_camera_poses_yaml_round_trip(tmp_path: Path) -> None:
-    """What the graph writes, ``--extrinsics`` reads back: the same mounts, R the inverse covariance (given mounts
-    held fixed at 1e6)."""
+    """What the graph writes, ``--extrinsics`` reads back: the same mounts and information; R is written as TagSLAM
+    writes it, gtsam's upper-triangular square-root information (given mounts held fixed at 1e6)."""
     import yaml
 
     from stages.extrinsics import load_extrinsics_file
@@ -161,5 +161,29 @@ def test_camera_poses_yaml_round_trip(tmp_path: Path) -> None:
     f = load_extrinsics_file(path)
     assert f.kind == "tagslam camera_poses" and np.allclose(f.mounts["cam1"], T, atol=1e-8)
     doc = yaml.safe_load(path.read_text())
-    assert np.allclose(np.asarray(doc["cam1"]["pose"]["R"]).reshape(6, 6), np.linalg.inv(cov))
+    R = np.asarray(doc["cam1"]["pose"]["R"]).reshape(6, 6)
+    assert np.allclose(R, np.triu(R)) and np.allclose(R.T @ R, np.linalg.inv(cov))  # TagSLAM's: gtsam's sqrt info
+    assert np.allclose(f.information["cam1"], np.linalg.inv(cov))
     assert np.allclose(np.asarray(doc["cam0"]["pose"]["R"]).reshape(6, 6), np.eye(6) * 1e6)
+
+
+def test_given_mount_check_names_a_wrong_given_mount() -> None:
+    """Leave one out: each given mount against what the sightings shared with the other given cameras imply. Right
+    mounts pass; one moved by 5 cm, or turned by 4°, fails with a line naming it."""
+    from stages.graph.rig import given_mount_figures, given_mount_warning
+
+    rng = np.random.default_rng(RNG_SEED + 6)
+    mounts, rig_poses, tags = _rig(rng)
+    who = {"a": set(range(12)), "b": set(range(12)), "c": set(range(6))}
+    stamps, ids, cams, Ts = _sightings(mounts, rig_poses, tags, who)
+    given = {c: mounts[c] for c in ("a", "b", "c")}
+    figures = given_mount_figures(stamps, ids, cams, Ts, given)
+    assert set(figures) == {"a", "b", "c"}
+    assert all(given_mount_warning(c, f) is None for c, f in figures.items())
+    for wrong in (
+        mounts["c"].compose(gtsam.Pose3(gtsam.Rot3(), np.array([0.05, 0.0, 0.0]))),
+        mounts["c"].compose(gtsam.Pose3(gtsam.Rot3.Rz(np.radians(4.0)), np.zeros(3))),
+    ):
+        figures = given_mount_figures(stamps, ids, cams, Ts, {**given, "c": wrong})
+        line = given_mount_warning("c", figures["c"])
+        assert line is not None and "'c'" in line
