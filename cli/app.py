@@ -289,10 +289,18 @@ def _run_stages(run: RunFolder, names: list[str], settings: Settings, force: boo
 def _run_on_bag(
     bag: Path, out: Path, name: str | None, stages: list[str], settings: Settings, force: bool
 ) -> tuple[RunFolder, list[StageResult]]:
-    """Check the recording, create (or reuse) its run folder and run ``stages`` in it, holding its lock."""
+    """Check the recording (and ingest's input files when ingest runs), create (or reuse) its run folder and run
+    ``stages`` in it, holding its lock."""
     from stages.ingest.bags import detect_format
 
     detect_format(bag)
+    if "ingest" in stages:
+        from stages.ingest.config import IngestConfig
+        from stages.ingest.stage import check_input_files
+
+        ingest = settings["ingest"]
+        assert isinstance(ingest, IngestConfig)
+        check_input_files(ingest)  # a tags file that does not read, or a static camera rig: before any folder
     with _new_run(out / _run_name(bag, name), bag) as run:
         results = _run_stages(run, stages, settings, force)
     typer.echo(f"run folder: {run.path}")

@@ -82,6 +82,19 @@ def load_camera_files(path: Path) -> dict[str, CameraModel]:
     return {"camera": load_calibration(path)}
 
 
+def rig_bodies(path: Path) -> dict[str, str]:
+    """Camera name to the ``rig_body`` its TagSLAM ``cameras.yaml`` entry names (the body that carries it); empty
+    for a file that names none (Kalibr, camera_info)."""
+    doc = yaml.safe_load(Path(path).read_text())
+    if not isinstance(doc, dict):
+        return {}
+    return {
+        str(n): str(c["rig_body"])
+        for n, c in doc.items()
+        if isinstance(c, dict) and "intrinsics" in c and c.get("rig_body") not in (None, "")
+    }
+
+
 def _model(path: Path, what: str, **fields: Any) -> CameraModel:
     """The camera model, or an InputError that names the file when the numbers do not make one."""
     try:

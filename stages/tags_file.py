@@ -6,6 +6,14 @@ What is read (TagSLAM's meaning, from its ``body.cpp``, ``tag.cpp`` and ``odomet
   list may give its own ``size``. The run's default size is the ``default_body``'s (else the first body's that
   gives one); every tag a ``tags`` list names is listed with its size (its own, else its body's default).
 - **Ignored tags.** Each body's ``ignore_tags``; their union is left out of the graph.
+- **Moving bodies.** The tags of a body with ``is_static: false`` (its ``tags`` list, or a ``type: board``'s
+  ``board: {tag_start_id, tag_rows, tag_columns}`` grid) move with it: a wand, a cube, a board carried around,
+  or tags on the camera rig itself. A landmark must stay put, so they are left out of the graph (its summary
+  names the body, its tags and the detections left out).
+- **Camera rig.** The body a ``cameras.yaml`` entry names as its ``rig_body`` (else a body of the old
+  ``type: camera_rig``) carries the cameras. focusmap maps static tags from the motion of that rig: a rig with
+  ``is_static: true`` (fixed cameras watching a moving object, TagSLAM's "aviary") is refused before anything
+  runs (:func:`camera_rig_problem`). The rig body is also the base frame of a TagSLAM ``camera_poses.yaml``.
 - **Known tags.** A tag entry with a ``pose`` on a *static* body that has a ``pose`` of its own is a surveyed
   landmark: ``T_world_tag = T_world_body T_body_tag``, each pose ``{position: {x, y, z}, rotation: {x, y, z}}``
   with the rotation an angle-axis vector (radians; ``rotvec`` is read as well). Its noise is TagSLAM's
@@ -100,6 +108,12 @@ class TagsFile:
     T_body_odom: FloatArray | None = None
     odometry_topic: str | None = None
     remaps: list[TagRemap] = field(default_factory=list)
+    moving_tags: dict[str, list[int]] = field(default_factory=dict)
+    """Per body with ``is_static: false``, the ids of its tags (left out of the graph: they move)."""
+    static: dict[str, bool] = field(default_factory=dict)
+    """Each body's ``is_static`` (absent: not given)."""
+    camera_rig_bodies: list[str] = field(default_factory=list)
+    """Bodies of the old ``type: camera_rig``: the rig when a cameras.yaml names none."""
     notes: list[str] = field(default_factory=list)
 
 
@@ -208,11 +222,13 @@ def load_tags_file(path: Path) -> TagsFile:
         body_size = body_sizes.get(body, out.default_tag_size_m)
         T_world_body, body_cov = _body_pose(spec, where)
         overrides = [float(spec.get(k, -1.0)) for k in ("override_tag_rotation_noise", "override_tag_position_noise")]
+        listed: list[int] = []
         for i, tag in enumerate(spec.get("tags") or []):
             tag = _mapping(tag, f"{where} tags[{i}]")
             if "id" not in tag:
                 raise InputError(f"{where} tags[{i}]: needs an id")
             tag_id = int(tag["id"])
+            listed.append(tag_id)
             size = _number(tag["size"], f"{where} tag {tag_id}.size") if "size" in tag else body_size
             if size is not None:
                 out.tag_sizes_m[tag_id] = size
@@ -220,6 +236,15 @@ def load_tags_file(path: Path) -> TagsFile:
                 known = _known_tag(tag_id, body, tag["pose"], spec, T_world_body, body_cov, overrides, where)
                 if known is not None:
                     out.known_tags.append(known)
+        static = _is_static(spec)
+        if static is not None:
+            out.static[body] = static
+        if str(spec.get("type", "")) == "camera_rig":
+            out.camera_rig_bodies.append(body)
+        board = _board_tags(spec, where)
+        out.tag_sizes_m.update(board)
+        if static is False and (ids := sorted({*listed, *board})):
+            out.moving_tags[body] = ids
         if spec.get("is_static") is False and ("T_body_odom" in spec or "odom_topic" in spec):
             out.odometry_body = body
             out.odometry_topic = str(spec["odom_topic"]) if spec.get("odom_topic") else None
@@ -237,6 +262,53 @@ def load_tags_file(path: Path) -> TagsFile:
     if unused:
         out.notes.append(f"{Path(name).name}: {', '.join(unused)} not used (focusmap has no such measurements)")
     return out
+
+
+def _is_static(spec: dict[str, Any]) -> bool | None:
+    """A body's ``is_static`` (YAML true/false, or 1/0), None when not given."""
+    value = spec.get("is_static")
+    return bool(value) if isinstance(value, (bool, int)) else None
+
+
+def _board_tags(spec: dict[str, Any], where: str) -> dict[int, float]:
+    """The tags of a ``type: board`` body (TagSLAM's ``board2.cpp``: ``tag_rows`` x ``tag_columns`` ids from
+    ``tag_start_id``, each ``tag_size``), id to size; empty for another type."""
+    if str(spec.get("type", "")) != "board":
+        return {}
+    board = _mapping(spec.get("board"), f"{where}.board")
+    try:
+        start, rows, cols = (int(board[k]) for k in ("tag_start_id", "tag_rows", "tag_columns"))
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"{where}.board: needs tag_start_id, tag_rows and tag_columns (integers)") from err
+    if start < 0 or rows < 0 or cols < 0:
+        raise InputError(f"{where}.board: tag_start_id, tag_rows and tag_columns must not be negative")
+    size = _number(board.get("tag_size"), f"{where}.board.tag_size")
+    return {start + i: size for i in range(rows * cols)}
+
+
+def camera_rig_problem(tags: TagsFile, rig_bodies: dict[str, str]) -> str | None:
+    """Why focusmap cannot map this setup, None when it can: the cameras sit on a static body.
+
+    Args:
+        tags: the tags file.
+        rig_bodies: camera name to its ``rig_body`` (a cameras.yaml's); without any, the bodies of the old
+            ``type: camera_rig`` stand for the rig.
+    """
+    by_body: dict[str, list[str]] = {}
+    for camera, body in rig_bodies.items():
+        by_body.setdefault(body, []).append(camera)
+    if not by_body:
+        by_body = {body: [] for body in tags.camera_rig_bodies}
+    fixed = [(body, cams) for body, cams in by_body.items() if tags.static.get(body) is True]
+    if not fixed:
+        return None
+    body, cams = fixed[0]
+    which = f" (carrying {', '.join(cams)})" if cams else ""
+    return (
+        f"{Path(tags.path).name} makes the camera rig {body!r}{which} static (is_static: true): focusmap maps static "
+        "tags from a moving camera, and fixed cameras watching a moving object give it no motion to map from; "
+        "map such a setup with TagSLAM, or give a recording whose camera rig moves (is_static: false)"
+    )
 
 
 def _body_pose(spec: dict[str, Any], where: str) -> tuple[FloatArray | None, FloatArray]:

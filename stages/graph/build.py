@@ -38,6 +38,7 @@ from stages.columns import FRAME, POSITION, QUATERNION, STAMP_NS, TAG_ID
 from stages.detect.artifacts import AMBIGUOUS, CAMERA, DETECTIONS, REPROJECTION_PX, SIZE_M, T_CAMERA_TAG
 from stages.detect.artifacts import POSE_COV as DETECTION_POSE_COV
 from stages.geometry import pose3_from_matrix, pose3_from_vector, pose3_to_vector
+from stages.graph.bodies import moving_body_detections
 from stages.graph.config import GraphConfig
 from stages.graph.factors import SCALE_KEY, FactorRow
 from stages.graph.model_choice import choose_model
@@ -115,8 +116,9 @@ def build_problem(
         StageError: when nothing is left to build a graph from.
         InputError: when the detection table lacks a needed column.
     """
+    moving = tags.moving_tags if tags else {}
     det, usable, info = _usable_detections(
-        detections, cfg, extrinsics, tags.ignore_tags if tags else (), keep_unmounted=cfg.rig_calibration
+        detections, cfg, extrinsics, tags.ignore_tags if tags else (), moving, keep_unmounted=cfg.rig_calibration
     )
     if tags is not None and tags.tag_id_remap:
         _remap_ids(det, tags, extrinsics, info)
@@ -288,6 +290,7 @@ def _usable_detections(
     cfg: GraphConfig,
     extrinsics: Extrinsics | None = None,
     ignore_tags: Any = (),
+    moving_tags: dict[str, list[int]] | None = None,
     keep_unmounted: bool = False,
 ) -> tuple[dict[str, list[Any]], np.ndarray, dict[str, Any]]:
     """The detection columns, the indices of the rows the graph uses, and the counts of those it leaves out."""
@@ -312,6 +315,8 @@ def _usable_detections(
         info["dropped_ignored_tags"] = int((ignored & keep).sum())
         info["ignored_tags_seen"] = sorted({int(t) for t, i in zip(det[TAG_ID], ignored, strict=True) if i})
         keep &= ~ignored
+    if moving_tags:  # tags of a moving body (tagslam.yaml is_static: false): stages.graph.bodies
+        keep &= ~moving_body_detections(det[TAG_ID], keep, moving_tags, info)
     if not keep_unmounted and (unmounted := _cameras_without_mount(det[CAMERA], extrinsics)):
         off = np.isin(np.asarray(det[CAMERA], dtype=object), sorted(unmounted))
         info["dropped_camera_without_extrinsics"] = {

@@ -118,8 +118,8 @@ OPTIONS: Final = (
     Option(
         "--tags",
         "tags_file",
-        "TagSLAM tagslam.yaml: tag sizes, ignore_tags, surveyed tag poses (priors) and the odometry body's "
-        "T_body_odom.",
+        "TagSLAM tagslam.yaml: tag sizes, ignore_tags, moving bodies' tags (left out), surveyed tag poses "
+        "(priors) and the odometry body's T_body_odom.",
         Path,
         value=_tags_file,
     ),

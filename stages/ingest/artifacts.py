@@ -234,6 +234,11 @@ class TagsInfo(BaseModel):
         "detect.tag_sizes entries win",
     )
     ignore_tags: list[int] = Field(default_factory=list, description="the bodies' ignore_tags: left out of the graph")
+    moving_tags: dict[str, list[int]] = Field(
+        default_factory=dict,
+        description="per body with is_static: false (a wand, a board carried around), the ids of its tags: they move, "
+        "so the graph leaves them out (no landmark)",
+    )
     known_tags: list[KnownTag] = Field(
         default_factory=list, description="tags with a pose on a static body with a pose: priors on their landmarks"
     )

@@ -38,9 +38,10 @@ class IngestConfig(SettingsModel):
     )
     tags_file: str = Field(
         "",
-        description="TagSLAM tagslam.yaml: default and per-tag sizes (detect), ignore_tags (left out of the "
-        "graph), surveyed tag poses with their noise (priors on those landmarks, 3d model) and the odometry "
-        "body's T_body_odom (applied to the camera mounts of a TagSLAM camera_poses.yaml); empty = none.",
+        description="TagSLAM tagslam.yaml: default and per-tag sizes (detect), ignore_tags and the tags of moving "
+        "bodies (is_static: false; left out of the graph), surveyed tag poses with their noise (priors on those "
+        "landmarks, 3d model) and the odometry body's T_body_odom (applied to the camera mounts of a TagSLAM "
+        "camera_poses.yaml); a static camera rig is refused; empty = none.",
     )
     start_s: float = Field(
         0.0, ge=0, le=MAX_BAG_SECONDS, description="Skip messages before this time, seconds from the bag start."

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -95,9 +95,10 @@ def _calibrated_topics(path: str) -> list[set[str]]:
     return [{name, *(t for t in (m.topic, m.tag_topic) if t)} for name, m in load_camera_files(Path(path)).items()]
 
 
-def _load_cameras(path: str, topics: list[str]) -> dict[str, CameraModel]:
-    """The calibration of each camera topic from the file: the camera whose ``rostopic``/``tagtopic`` (or name)
-    is the topic; a file with one camera serves a single topic whatever its topic names.
+def _load_cameras(path: str, topics: list[str]) -> tuple[dict[str, CameraModel], dict[str, str]]:
+    """The calibration of each camera topic from the file, and the name of its entry (``cam0``): the camera whose
+    ``rostopic``/``tagtopic`` (or name) is the topic; a file with one camera serves a single topic whatever its
+    topic names.
 
     Raises:
         InputError: a topic that no camera of a multi-camera file names.
@@ -106,19 +107,20 @@ def _load_cameras(path: str, topics: list[str]) -> dict[str, CameraModel]:
 
     cams = load_camera_files(Path(path))
     out: dict[str, CameraModel] = {}
+    names: dict[str, str] = {}
     for topic in topics:
-        found = [m for n, m in cams.items() if topic in (n, m.topic, m.tag_topic)]
+        found = [(n, m) for n, m in cams.items() if topic in (n, m.topic, m.tag_topic)]
         if found:
-            out[topic] = found[0]
+            names[topic], out[topic] = found[0]
         elif len(cams) == 1 and len(topics) == 1:
-            out[topic] = load_camera_file(Path(path))
+            names[topic], out[topic] = next(iter(cams)), load_camera_file(Path(path))
         else:
             listed = ", ".join(f"{n} ({m.topic}, {m.tag_topic})" for n, m in cams.items())
             raise InputError(
                 f"no camera in {path!r} for topic {topic!r}; its cameras: {listed}; set its rostopic/tagtopic "
                 "or pick another topic with --set ingest.detections_topic=... / ingest.image_topic=..."
             )
-    return out
+    return out, names
 
 
 def _load_extrinsics_file(path: str) -> ExtrinsicsFile:
@@ -127,10 +129,28 @@ def _load_extrinsics_file(path: str) -> ExtrinsicsFile:
     return load_extrinsics_file(Path(path))
 
 
-def _load_tags_file(path: str) -> TagsFile:
-    from stages.tags_file import load_tags_file
+def check_input_files(cfg: IngestConfig) -> TagsFile | None:
+    """The tags file (``--tags``), read before the recording is: one line, before any stage runs, for a file that
+    does not read or for a setup focusmap cannot map (a static camera rig, :func:`stages.tags_file.camera_rig_problem`:
+    the ``rig_body`` of the ``--camera`` cameras.yaml entries, else a body of ``type: camera_rig``).
 
-    return load_tags_file(Path(path))
+    Raises:
+        InputError: a malformed tags or camera file, or a static camera rig.
+    """
+    if not cfg.tags_file:
+        return None
+    from stages.camera import load_camera_file, rig_bodies
+    from stages.tags_file import camera_rig_problem, load_tags_file
+
+    tags = load_tags_file(Path(cfg.tags_file))
+    rigs: dict[str, str] = {}
+    if cfg.camera_file:
+        load_camera_file(Path(cfg.camera_file))  # one error line for an unreadable or malformed file
+        rigs = rig_bodies(Path(cfg.camera_file))
+    problem = camera_rig_problem(tags, rigs)
+    if problem is not None:
+        raise InputError(problem)
+    return tags
 
 
 def _tags_summary(tags: TagsFile) -> dict[str, Any]:
@@ -139,6 +159,7 @@ def _tags_summary(tags: TagsFile) -> dict[str, Any]:
         "default_tag_size_m": tags.default_tag_size_m,
         "tag_sizes": len(tags.tag_sizes_m),
         "ignore_tags": len(tags.ignore_tags),
+        "moving_tags": sum(len(ids) for ids in tags.moving_tags.values()),
         "known_tags": len(tags.known_tags),
         "T_body_odom": tags.T_body_odom is not None,
     }
@@ -218,6 +239,8 @@ class _Plan:
     end_ns: int | None
     tags: TagsFile | None = None
     """The TagSLAM tagslam.yaml given with --tags."""
+    camera_names: dict[str, str] = field(default_factory=dict)
+    """The name of each camera topic's entry in ``camera_file`` (``cam0``): a camera_poses.yaml entry's name."""
 
     @property
     def camera_topics(self) -> list[str]:
@@ -258,7 +281,9 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
     use_detections = bool(topics["detections"] is not None and (topics["image"] is None or cfg.detections_topic))
     if use_detections and not cfg.image_topic:
         topics["image"], images = None, []
-    cameras = _load_cameras(cfg.camera_file, detections if use_detections else images) if cfg.camera_file else None
+    cameras, names = (
+        _load_cameras(cfg.camera_file, detections if use_detections else images) if cfg.camera_file else (None, {})
+    )
     if cameras is None and topics["camera_info"] is None:
         raise InputError(
             f"{rec.path.name} has no CameraInfo topic; pass the calibration with --camera FILE "
@@ -274,8 +299,20 @@ def _plan(rec: Recording, cfg: IngestConfig) -> _Plan:
             "cameras.yaml (Kalibr/TagSLAM, rostopic/tagtopic naming each topic)"
         )
     extrinsics = _load_extrinsics_file(cfg.extrinsics_file) if cfg.extrinsics_file else None
-    tags = _load_tags_file(cfg.tags_file) if cfg.tags_file else None
-    return _Plan(topics, images, detections, use_detections, cameras, extrinsics, start_ns, end_ns, tags)
+    if extrinsics is not None and extrinsics.kind == "tagslam camera_poses" and cfg.camera_file:
+        extrinsics = _on_rig_body(extrinsics, cfg.camera_file, list(names.values()))
+    tags = check_input_files(cfg)
+    return _Plan(topics, images, detections, use_detections, cameras, extrinsics, start_ns, end_ns, tags, names)
+
+
+def _on_rig_body(file: ExtrinsicsFile, camera_file: str, cameras: list[str]) -> ExtrinsicsFile:
+    """A TagSLAM camera_poses.yaml whose base frame is the ``rig_body`` its cameras.yaml names for the cameras read
+    (the first one's), whatever that body is called; ``rig`` (TagSLAM's usual name) when it names none."""
+    from stages.camera import rig_bodies
+
+    bodies = rig_bodies(Path(camera_file))
+    body = next((bodies[c] for c in cameras if c in bodies), None)
+    return file if body is None else replace(file, base_frame=body)
 
 
 class _Reading:
@@ -527,7 +564,8 @@ def _write_calibration(
         )
     sensors: dict[str, SensorMount] = {}
     for i, (topic, model) in enumerate(models.items()):
-        mount = _mount(reading, file, base, model.frame_id, (topic, model.topic, model.tag_topic))
+        names = (plan.camera_names.get(topic), topic, model.topic, model.tag_topic)
+        mount = _mount(reading, file, base, model.frame_id, names)
         sensors["camera" if i == 0 else topic] = mount.model_copy(update={"topic": topic})
     if reading.scan_frame:
         sensors["laser"] = _mount(reading, file, base, reading.scan_frame, ())
@@ -636,6 +674,7 @@ def _tags_info(tags: TagsFile, applied: bool, notes: list[str]) -> TagsInfo:
         default_tag_size_m=tags.default_tag_size_m,
         tag_sizes_m=dict(sorted(tags.tag_sizes_m.items())),
         ignore_tags=tags.ignore_tags,
+        moving_tags=tags.moving_tags,
         tag_id_remap=[
             TagRemap(id=r.tag_id, remap_id=r.remap_id, start_ns=r.start_ns, end_ns=r.end_ns, camera=r.camera)
             for r in tags.remaps

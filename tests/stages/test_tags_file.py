@@ -203,6 +203,7 @@ bodies:
         ("bodies: []", "no bodies"),
         ("just text", "not a TagSLAM tagslam.yaml"),
         ("bodies:\n - b:\n     is_static: true\n     default_tag_size: -1\n", "positive number"),
+        ("bodies:\n - b:\n     is_static: false\n     type: board\n     board: {tag_size: 0.1}\n", "tag_start_id"),
         (
             "bodies:\n - b:\n     is_static: true\n"
             "     pose: {position: {x: 0, y: 0, z: 0}, rotation: {x: 0, y: 0, z: 0}}\n"
@@ -214,6 +215,87 @@ bodies:
 def test_bad_tags_files_give_one_line(tmp_path: Path, text: str, message: str) -> None:
     with pytest.raises(InputError, match=message):
         load_tags_file(_write(tmp_path, text))
+
+
+MOVING_BODIES_YAML = """
+default_body: wall
+bodies:
+ - wall:
+     is_static: true
+     type: simple
+     default_tag_size: 0.2
+     tags:
+       - id: 1
+ - wand:
+     is_static: false
+     type: simple
+     default_tag_size: 0.05
+     tags:
+       - id: 40
+       - id: 41
+ - carried_board:
+     is_static: false
+     type: board
+     board: {tag_start_id: 100, tag_size: 0.04, tag_rows: 2, tag_columns: 3}
+ - still_board:
+     is_static: true
+     type: board
+     board: {tag_start_id: 200, tag_size: 0.08, tag_rows: 1, tag_columns: 2}
+ - rig:
+     is_static: false
+     type: simple
+"""
+
+
+def test_the_tags_of_a_moving_body_are_listed_as_moving(tmp_path: Path) -> None:
+    """A wand and a board carried about (is_static: false) hold tags that move: listed per body, a board's by its
+    grid of ids; the static wall and board are not, and the rig (no tags) is not listed."""
+    f = load_tags_file(_write(tmp_path, MOVING_BODIES_YAML))
+    assert f.moving_tags == {"wand": [40, 41], "carried_board": [100, 101, 102, 103, 104, 105]}
+    assert f.static == {"wall": True, "wand": False, "carried_board": False, "still_board": True, "rig": False}
+    assert f.tag_sizes_m[41] == 0.05 and f.tag_sizes_m[105] == 0.04 and f.tag_sizes_m[201] == 0.08
+    assert f.ignore_tags == []  # moving, not ignored: the graph says which and how many
+    info = _tags_info(f, False, [])
+    assert info.moving_tags == {"wand": [40, 41], "carried_board": [100, 101, 102, 103, 104, 105]}
+
+
+def test_a_static_camera_rig_is_named_as_what_focusmap_cannot_map(tmp_path: Path) -> None:
+    """TagSLAM's aviary: fixed cameras (their rig body is_static: true) watch a moving wand. focusmap maps from the
+    rig's motion: one line says so, naming the rig body and its cameras. A moving rig, or no rig named, passes."""
+    from stages.tags_file import camera_rig_problem
+
+    aviary = MOVING_BODIES_YAML.replace(" - rig:\n     is_static: false", " - rig:\n     is_static: true")
+    f = load_tags_file(_write(tmp_path, aviary))
+    line = camera_rig_problem(f, {"cam0": "rig", "cam1": "rig"})
+    assert line is not None and "\n" not in line
+    assert line.startswith("tagslam.yaml makes the camera rig 'rig' (carrying cam0, cam1) static (is_static: true)")
+    assert "moving camera" in line and "TagSLAM" in line
+    assert camera_rig_problem(f, {"cam0": "wand"}) is None  # the cameras ride the wand: it moves
+    assert camera_rig_problem(f, {}) is None  # no cameras.yaml rig_body and no type: camera_rig body
+    moving = load_tags_file(_write(tmp_path, MOVING_BODIES_YAML))
+    assert camera_rig_problem(moving, {"cam0": "rig"}) is None
+    # without a cameras.yaml rig_body, a body of the old type camera_rig is the rig
+    old_style = aviary.rsplit(" - rig:", 1)[0] + " - rig:\n     is_static: true\n     type: camera_rig\n"
+    old = load_tags_file(_write(tmp_path, old_style))
+    assert "camera rig 'rig' static" in (camera_rig_problem(old, {}) or "")
+
+
+def test_ingest_checks_the_tags_file_against_the_cameras_before_reading(tmp_path: Path) -> None:
+    """The check the CLI runs before it makes a run folder: the rig body of the cameras.yaml entries."""
+    from stages.ingest.config import IngestConfig
+    from stages.ingest.stage import check_input_files
+    from tests.fixtures.tag_detection_bags import cameras_yaml
+
+    aviary = _write(
+        tmp_path, MOVING_BODIES_YAML.replace(" - rig:\n     is_static: false", " - rig:\n     is_static: true")
+    )
+    cameras = cameras_yaml(tmp_path / "cameras.yaml", ["cam0"], rig_body="rig")
+    with pytest.raises(InputError, match=r"camera rig 'rig' \(carrying cam0\) static"):
+        check_input_files(IngestConfig(tags_file=str(aviary), camera_file=str(cameras)))
+    on_wand = cameras_yaml(tmp_path / "on_wand.yaml", ["cam0"], rig_body="wand")
+    tags = check_input_files(IngestConfig(tags_file=str(aviary), camera_file=str(on_wand)))
+    assert tags is not None and tags.moving_tags["wand"] == [40, 41]
+    assert check_input_files(IngestConfig(camera_file=str(cameras))) is None  # no tags file: nothing to check
 
 
 def test_T_body_odom_places_the_rig_cameras_in_the_odometry_frame(tmp_path: Path) -> None:
