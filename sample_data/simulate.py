@@ -167,6 +167,10 @@ class SimConfig:
     """The pose covariances the odometry messages report: this times the first-order propagation of the white
     noise above (it grows over the run, as real drivers report; it never contains the systematic errors).
     < 1: too small; 0: all zero, as drivers that fill in no covariance."""
+    odom_cov_model: str = "propagated"
+    """How the reported pose covariance grows: ``propagated`` (through the motion's Jacobian, with the
+    position-heading cross terms a heading error makes) or ``diagonal`` (each step's white noise added to a diagonal
+    in the odometry frame, no lever arm and no cross terms, as some drivers and other simulators report it)."""
 
     max_speed_mps: float = 0.45
     max_accel_mps2: float = 0.3
@@ -1021,7 +1025,8 @@ def _odometry(
             F = np.array([[1, 0, -so * dx_b - co * dy_b], [0, 1, co * dx_b - so * dy_b], [0, 0, 1]])
             G = np.array([[co, 0], [so, 0], [0, 1]])
             Q = np.diag([(sv * dt) ** 2, (sw * dt) ** 2])
-            P = F @ P @ F.T + G @ Q @ G.T
+            step = G @ Q @ G.T
+            P = P + np.diag(np.diag(step)) if cfg.odom_cov_model == "diagonal" else F @ P @ F.T + step
             ox += co * dx_b - so * dy_b
             oy += so * dx_b + co * dy_b
             oyaw += dyaw
@@ -1262,6 +1267,7 @@ _NEW_FIELDS: Final = {
     "odom_yaw_scale_error": 0.0,
     "odom_yaw_bias_rad_per_m": 0.0,
     "odom_cov_scale": 1.0,
+    "odom_cov_model": "propagated",
     "corridor_length_m": 10.0,
     "laser_sweep": False,
     "exposure_gain": 1.0,
@@ -1280,6 +1286,7 @@ def wheel_errors(cfg: SimConfig) -> dict[str, Any]:
         and cfg.odom_yaw_scale_error == 0.0
         and cfg.odom_yaw_bias_rad_per_m == 0.0
         and cfg.odom_cov_scale == 1.0
+        and cfg.odom_cov_model == "propagated"
     ):
         return {}
     return {
@@ -1287,10 +1294,12 @@ def wheel_errors(cfg: SimConfig) -> dict[str, Any]:
         "yaw_rate_scale": 1.0 + cfg.odom_yaw_scale_error,
         "yaw_bias_rad_per_m": cfg.odom_yaw_bias_rad_per_m,
         "covariance_scale": cfg.odom_cov_scale,
+        "covariance_model": cfg.odom_cov_model,
         "model": "per odometry sample, with the true body-frame increments (dx, dy, dyaw): reported forward and "
         "lateral increments = distance_scale * (dx, dy) + white noise on the forward one; reported yaw increment = "
         "yaw_rate_scale * dyaw + yaw_bias_rad_per_m * dx + white noise; the pose covariance is covariance_scale "
-        "times the propagated white noise (0: all zero), without the systematic part",
+        "times the white noise propagated through the motion (covariance_model propagated) or summed on a diagonal "
+        "(diagonal: no position-heading terms) (0: all zero), without the systematic part",
     }
 
 
@@ -1706,6 +1715,13 @@ def main(argv: list[str] | None = None) -> int:
         default=1.0,
         help="reported pose covariance = this x the propagated white noise (< 1: too small; 0: all zero)",
     )
+    wheel.add_argument(
+        "--odom-cov-model",
+        choices=("propagated", "diagonal"),
+        default="propagated",
+        help="how the reported pose covariance grows: through the motion (propagated) or summed on a diagonal "
+        "without position-heading terms (diagonal, as some drivers report it)",
+    )
     noise = parser.add_argument_group("sensor noise (default: the sample's)")
     noise.add_argument(
         "--pixel-noise",
@@ -1791,6 +1807,7 @@ def main(argv: list[str] | None = None) -> int:
         odom_yaw_scale_error=args.odom_yaw_scale_error,
         odom_yaw_bias_rad_per_m=args.odom_yaw_bias,
         odom_cov_scale=args.odom_cov_scale,
+        odom_cov_model=args.odom_cov_model,
         laser_sweep=args.laser_sweep,
         pixel_noise_sigma=args.pixel_noise,
         jpeg_quality=args.jpeg_quality,

@@ -62,6 +62,16 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
         out.append(("note", f"odometry calibration on (graph.odometry_calibration=auto): {decision.get('reason')}"))
     if isinstance(decision, dict) and decision.get("skipped"):
         out.append(("note", f"odometry calibration off (graph.odometry_calibration=auto): {decision.get('reason')}"))
+    growth = summary.get("odometry_covariance_growth")
+    if isinstance(growth, dict) and growth.get("model") == "added":
+        out.append(
+            (
+                "note",
+                "the odometry's pose covariances grow by plain addition, without the position-heading terms a "
+                "propagation through the motion has (propagated, they would be indefinite: median "
+                f"{growth.get('indefinite_median_propagated')}): each odometry factor's noise is their difference",
+            )
+        )
     block = calibration if isinstance(calibration, dict) else {}
     scale = block.get("odometry_covariance_scale_by_dimension")
     if summary.get("odometry_noise") == "settings" and isinstance(scale, list) and not block.get("estimated"):

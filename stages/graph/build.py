@@ -43,7 +43,7 @@ from stages.graph.config import GraphConfig
 from stages.graph.factors import SCALE_KEY, FactorRow
 from stages.graph.model_choice import choose_model
 from stages.graph.models import MIN_PLANAR_RANGE_M, GraphModel, graph_model
-from stages.graph.odometry import Odometry, keyframes, message_cov, settings_cov, unobserved_dims
+from stages.graph.odometry import Odometry, growth_model, keyframes, message_cov, settings_cov, unobserved_dims
 from stages.graph.problem import GraphProblem
 from stages.graph.rig import (
     GIVEN_PRIOR,
@@ -440,10 +440,12 @@ def _odometry_rows(
     has_cov = bool(np.any(odom.cov != 0))
     use_msgs = cfg.odometry_noise == "messages" or (cfg.odometry_noise == "auto" and has_cov)
     unobserved = unobserved_dims(odom.cov, model)
+    poses, covs, keys = path.odometry_poses, path.odometry_covs, path.pose_keys
+    propagated = True
     if use_msgs:
         info["odometry_unobserved_dims"] = [nm for nm, u in zip(model.motion_dims, unobserved, strict=True) if u]
+        propagated, info["odometry_covariance_growth"] = growth_model(model, poses, covs, unobserved)
     rows, fallbacks = [], 0
-    poses, covs, keys = path.odometry_poses, path.odometry_covs, path.pose_keys
     for i in range(len(keys) - 1):
         a, b = poses[i], poses[i + 1]
         rel = a.between(b)
@@ -451,7 +453,7 @@ def _odometry_rows(
         angle = float(np.linalg.norm(gtsam.Rot3.Logmap(rel.rotation())))
         cov = settings_cov(cfg, model, dist, angle)
         if use_msgs:
-            cov, fell_back = message_cov(model, a, b, covs[i], covs[i + 1], cov, unobserved)
+            cov, fell_back = message_cov(model, a, b, covs[i], covs[i + 1], cov, unobserved, propagated)
             fallbacks += int(fell_back)
         rows.append(
             model.between_row("odometry", (keys[i], keys[i + 1]), model.motion(a, b), cov, int(path.stamps_ns[i + 1]))
