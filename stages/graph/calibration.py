@@ -556,13 +556,14 @@ def calibrate(problem: GraphProblem, cfg: GraphConfig, initial: gtsam.Values | N
             new.lam_odo = _next_noise(s.lam_odo, stats)
             if cfg.noise_estimate == "odometry_and_tags":
                 new.lam_tag = _clip(s.lam_tag * stats["tag_ratio"])
-        settled = bool(np.all(np.abs(dc) <= cfg.calibration_tolerance * np.maximum(sig_c, 1e-12))) and (
-            not estimate_noise
-            or (
-                float(np.max(np.abs(np.log(new.lam_odo / s.lam_odo)))) < cfg.calibration_tolerance
-                and abs(math.log(new.lam_tag / s.lam_tag)) < cfg.calibration_tolerance
-            )
+        step_sigmas = float(np.max(np.abs(dc) / np.maximum(sig_c, 1e-12)))
+        noise_change = (
+            max(float(np.max(np.abs(np.log(new.lam_odo / s.lam_odo)))), abs(math.log(new.lam_tag / s.lam_tag)))
+            if estimate_noise
+            else 0.0
         )
+        history[-1].update(step_sigmas=step_sigmas, noise_scale_change=noise_change)
+        settled = step_sigmas <= cfg.calibration_tolerance and noise_change < cfg.calibration_tolerance
         if settled or iterations >= cfg.calibration_max_iterations:
             break
         s = new

@@ -119,7 +119,7 @@ def graph_health(
         ("chi2", _chi2_check(problem, chi2, redundancy_by_kind(problem, graph, values))),
         ("extrinsics", _mounting_check(problem)),
         ("rig", _rig_check(problem)),
-        ("tag_scale", _scale_check(problem, values, marginals, tag_size_m)),
+        ("tag_scale", scale_check(problem, values, marginals, tag_size_m)),
         ("tag_size", _size_check(problem, tag_size_m)),
         ("iterations", _iterations_check(iterations, max_iterations, section)),
         ("moved_tags", _moved_tags_check(problem, chi2)),
@@ -220,9 +220,10 @@ def _chi2_check(
     )
 
 
-def _scale_check(
+def scale_check(
     problem: GraphProblem, values: gtsam.Values, marginals: dict[int, np.ndarray], tag_size_m: float | None
 ) -> tuple[dict[str, Any], str | None]:
+    """The ``tag_scale`` check: its figures and its line (None when the shared tag scale is plausible)."""
     sk = problem.scale_key
     prior = next((r for r in problem.rows if r.kind == "scale_prior"), None)
     if sk is None or prior is None:
