@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 import time
 from typing import Any
 
@@ -33,7 +34,7 @@ from stages.evaluate.realisations import Study, report_section, run_realisations
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
 from stages.evaluate.risk_check import check_columns, direction
 from stages.graph.load import LoadedGraph, load_graph
-from stages.navigation.truth import load_truth
+from stages.navigation.truth import MISSING, load_truth
 from stages.optimize import OptimizeConfig, read_reduced, solve_settings
 from stages.optimize.artifacts import FULL_INDEX, KEPT
 from stages.risk import read_path_inputs
@@ -145,19 +146,22 @@ def _run(
     art.MAPS.write(out, map_rows(results))
     art.PATH_RISK.write(out, risk_rows(inputs, results))
     art.GREEDY.write(out, greedy_rows(results))
-    notes: list[str] = [f"- {n}" for n in inputs.truth.missing_notes()] if inputs.truth is not None else []
+    stage_notes = _notes(inputs)
+    notes: list[str] = [f"- {n}" for n in stage_notes]
     if not landmarks.geometry.has_laser:
         notes.append(
             "- the run has no laser scans: collision probabilities are not available and the focused set is picked "
             "by mutual information instead of Alg. 2"
         )
     notes += [f"- {line}" for line in inputs.skipped]
-    study = _realisations(inputs, todo, cfg, detections)
+    study = _realisations(inputs, todo, inputs.cfg, detections)  # inputs.cfg: no trials when there are no walls
     art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma, pool) if cfg.plots else []
-    health = ctx.input("graph").summary.get("health") or {}
+    graph_summary = ctx.input("graph").summary
+    health = graph_summary.get("health") or {}
     map_warnings = [str(w) for w in health.get("warnings") or []]
-    md = markdown_report(inputs, results, images, notes, map_warnings) + report_section(study, cfg, TABLE_I_LABELS)
+    md = markdown_report(inputs, results, images, notes, map_warnings)
+    md += report_section(study, cfg, TABLE_I_LABELS)
     out.write_text(art.REPORT_MD.file, md)
     out.write_text(art.REPORT_HTML.file, html_report(md, out.path))
     log_recording(ctx.rec, inputs, results, ctx.n_sigma)
@@ -170,20 +174,40 @@ def _run(
         "focused_tag_ids": inputs.focus,
         "reference": results[0].row[art.ERROR_REFERENCE],
         "walls": inputs.navigation.obstacles.kind if inputs.navigation is not None else None,
-        "trials": cfg.trials,
-        "headline": {str(k): head[k] for k in HEADLINE},
-        "table": {name: {str(k): row[k] for k in PER_CASE} for name, row in by_case.items()},
+        "trials": inputs.cfg.trials,
+        "navigation_skipped": skipped.reason if (skipped := inputs.navigation_skipped) is not None else None,
+        "headline": {str(k): computed(head[k]) for k in HEADLINE},
+        "table": {name: {str(k): computed(row[k]) for k in PER_CASE} for name, row in by_case.items()},
         "expectation": expectation_checks(results),
         "regime": cfg.regime,
-        "why": why_findings(inputs, results),
+        "why": computed(why_findings(inputs, results)),
         "report": str(ctx.run.stage_dir("evaluate") / art.REPORT_HTML.file),
         "map_health_warnings": len(map_warnings),
         "from_upstream": {r.case.name: r.reused for r in results if r.reused},
         "realisations": _realisations_summary(study),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
-        **({"notes": inputs.truth.missing_notes()} if inputs.truth is not None and inputs.truth.missing else {}),
+        **({"notes": stage_notes} if stage_notes else {}),
         **({"warnings": warnings} if (warnings := [*inputs.skipped, *risk_warnings(results)]) else {}),
     }
+
+
+def _notes(inputs: EvalInputs) -> list[str]:
+    """The stage's notes: what the ground truth lacks and, when no case was navigated for want of walls, why."""
+    note = inputs.navigation_skipped.note if inputs.navigation_skipped is not None else ""
+    truth_notes = inputs.truth.missing_notes() if inputs.truth is not None else []
+    # the truth's own line on missing walls says the laser grid stands in: not so when there is no laser either
+    out = [n for n in truth_notes if not (note and n == f"ground truth: {MISSING['walls']}")]
+    return [*out, note] if note else out
+
+
+def computed(value: Any) -> Any:
+    """``value`` with every float that was not computed (NaN) as None, through dicts and lists: the summary's JSON
+    says null, not NaN."""
+    if isinstance(value, dict):
+        return {k: computed(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [computed(v) for v in value]
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 WARN_COLLISION_RATE = 0.05
