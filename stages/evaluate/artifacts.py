@@ -90,6 +90,20 @@ NAVIGATION_NEES = _f64(
 RISK_MARGIN_SIGMAS = _f64(
     "risk_margin_sigmas", "the risk model's smallest margin in σ along the path (z, P = Φ(−z); does not underflow)"
 )
+# the map against its own covariance (stages/evaluate/analysis.py, overconfidence)
+FOCUSED_NEES_MAX = _f64(
+    "focused_nees_max",
+    "largest eᵀΣ⁻¹e of the observed focused landmarks against the reference (truth, else the `optimal` map), Σ the "
+    "case's own marginal (null for `optimal` without a truth)",
+)
+FOCUSED_NEES_LIMIT = _f64(
+    "focused_nees_limit", "the χ²₂ quantile at 1 − 0.001 / (landmarks tested) that it is held to (Bonferroni)"
+)
+OVERCONFIDENT = Column(
+    "overconfident",
+    pa.bool_(),
+    "focused_nees_max above focused_nees_limit: a landmark is further off than the map's covariance allows",
+)
 # the entropy split and the risk model against the simulation (stages/evaluate/risk_check.py)
 UNOBSERVED_FOCUSED = _i64(
     "unobserved_focused_landmarks", "collision-focused landmarks the case keeps no measurement of"
@@ -173,6 +187,9 @@ CASES: Final = TableSpec(
         *MARGIN_COLUMNS,
         NAVIGATION_NEES,
         RISK_MARGIN_SIGMAS,
+        FOCUSED_NEES_MAX,
+        FOCUSED_NEES_LIMIT,
+        OVERCONFIDENT,
         *CHECK_COLUMNS,
     ],
 )

@@ -33,10 +33,12 @@ from stages.evaluate import artifacts as art
 from stages.evaluate.analysis import (
     MeasurementConsistency,
     NavigationMargin,
+    Overconfidence,
     aligned_error,
     landmark_consistency,
     measurement_consistency,
     oracle_rows,
+    overconfidence,
     residuals_by_range,
 )
 from stages.evaluate.config import EvaluateConfig
@@ -442,6 +444,9 @@ class CaseResult:
     """What was taken from the upstream stages' artifacts instead of recomputed (landmarks, measurements, map)."""
     local_map: LandmarkMap | None = None
     """The case's map with each landmark's covariance as seen from the keyframes that see it (risk, navigation)."""
+    overconfidence: Overconfidence | None = None
+    """Its worst focused landmark against the reference by its own covariance (None: not tested, case 1 without a
+    ground truth)."""
     landmark_map: LandmarkMap = field(init=False)
     """The case's landmark map (positions and marginal covariances): what the tables, report and recording read."""
 
@@ -614,7 +619,18 @@ def run_case(inputs: EvalInputs, case: Case, optimal: LandmarkMap | None = None,
     row.update(_why_columns(inputs, reduced, selected, reference, focus))
     row[art.NAVIGATION_NEES] = nan
     row[art.RISK_MARGIN_SIGMAS] = risk.min_z
+    # the map against its own covariance; not case 1 without a truth, whose reference is itself
+    lm = reduced.landmark_map
+    check = (
+        overconfidence(lm.tag_ids, lm.positions, lm.covariances, reference, focus)
+        if optimal is not None or ref_name == "ground_truth"
+        else None
+    )
+    row[art.FOCUSED_NEES_MAX] = check.nees if check is not None else nan
+    row[art.FOCUSED_NEES_LIMIT] = check.limit if check is not None else nan
+    row[art.OVERCONFIDENT] = check.fails if check is not None else None
     result = CaseResult(case, tags, measurement, reduced, risk, None, row, reused=reused, local_map=lmap)
+    result.overconfidence = check
     if navigation:
         navigate(inputs, result)
     return result

@@ -208,9 +208,11 @@ def markdown_report(
     images: Sequence[str],
     notes: Sequence[str],
     map_warnings: Sequence[str] = (),
+    headline_warnings: Sequence[str] = (),
 ) -> str:
     """``report.md``. ``map_warnings``: the full graph's failed health checks, shown before any figure, since every
-    case is cut from that map."""
+    case is cut from that map; ``headline_warnings``: lines that make the headline doubtful (a reduced map far worse
+    than its own covariance), shown under it."""
     ref = results[0].row["error_reference"] if results else "?"
     nav = inputs.navigation
     lines = [
@@ -234,6 +236,7 @@ def markdown_report(
     if results:
         head = next((r.row for r in results if r.case.name == "focus_info"), results[0].row)
         lines += [f"**{headline_text(head, skipped.reason if skipped is not None else None)}**", ""]
+        lines += [*(f"- warning: {w}" for w in headline_warnings), *([""] if headline_warnings else [])]
     if nav is None:
         reason = skipped.reason if skipped is not None else "no trials"
         why = (
