@@ -6,11 +6,13 @@ Public API:
     EvalInputs; run_case(inputs, case, optimal) -> CaseResult; run_all(inputs, cases).
     cases_table(results) -> pyarrow.Table (``cases.parquet``).
     ``stages.evaluate.cases.cases(cfg) -> list[Case]`` (not re-exported here: its name is its module's).
-    report_lines(summary): the report path and headline ``focusmap run`` prints at its end.
+    report_lines(summary): the report path and headline ``focusmap run`` prints at its end; headline_text(head).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Final
 
 from pipeline.lazy import lazy_exports
@@ -46,6 +48,39 @@ def remarks(summary: Summary) -> list[tuple[str, str]]:
     return summary_notes(summary) + ([("warning", str(w)) for w in warnings] if isinstance(warnings, list) else [])
 
 
+def _number(head: Mapping[str, object], key: str) -> float | None:
+    value = head.get(key)
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) else None
+
+
+def headline_text(head: Mapping[str, object], navigation_skipped: str | None = None) -> str:
+    """The headline row (focus, info) in one line, each figure that was not computed said in words instead (no
+    ``nan``): ``navigation_skipped`` is why the collision rate is missing (``no walls``, ``evaluate.trials=0``)."""
+    entropy, observed, prior = (_number(head, k) for k in ("focused_entropy", "focused_entropy_observed",
+                                                            "focused_entropy_prior"))  # fmt: skip
+    unobserved = head.get("unobserved_focused_landmarks")
+    split = (
+        f" ({observed:.1f} observed + {prior:.1f} prior of {unobserved} unobserved)"
+        if isinstance(unobserved, int) and unobserved > 0 and observed is not None and prior is not None
+        else ""
+    )
+    parts = [
+        f"focused entropy {entropy:.1f} nats{split}" if entropy is not None else "focused entropy not computed",
+        f"focused error {100 * err:.1f} cm"
+        if (err := _number(head, "focused_error_m")) is not None
+        else "focused error not computed (no focused landmark observed)",
+        f"max P(collision) {p:.2g}"
+        if (p := _number(head, "max_collision_probability")) is not None
+        else "max P(collision) not computed (no laser clearances)",
+    ]
+    rate, low, high = (_number(head, k) for k in ("collision_rate", "collision_ci_low", "collision_ci_high"))
+    if rate is not None and low is not None and high is not None:
+        parts.append(f"collision rate {rate:.3f} [{low:.3f}, {high:.3f}]")
+    else:
+        parts.append(f"navigation not simulated ({navigation_skipped or 'no trials'})")
+    return f"headline ({head.get('case')}): " + ", ".join(parts)
+
+
 def report_lines(summary: Summary) -> list[str]:
     """The evaluation report's path, its headline row (focus, info), and a line when the full map failed health
     checks, from evaluate's summary."""
@@ -54,25 +89,8 @@ def report_lines(summary: Summary) -> list[str]:
         lines.append(f"report: {summary['report']}")
     head = summary.get("headline")
     if isinstance(head, dict) and head:
-
-        def num(key: str) -> float:
-            value = head.get(key)
-            return float(value) if isinstance(value, int | float) else float("nan")
-
-        unobserved = head.get("unobserved_focused_landmarks")
-        split = (
-            f" ({num('focused_entropy_observed'):.1f} observed + {num('focused_entropy_prior'):.1f} prior of "
-            f"{unobserved} unobserved)"
-            if isinstance(unobserved, int) and unobserved > 0
-            else ""
-        )
-        lines.append(
-            f"headline ({head.get('case')}): focused entropy {num('focused_entropy'):.1f} nats{split}, "
-            f"focused error {100 * num('focused_error_m'):.1f} cm, "
-            f"max P(collision) {num('max_collision_probability'):.2g}, "
-            f"collision rate {num('collision_rate'):.3f} "
-            f"[{num('collision_ci_low'):.3f}, {num('collision_ci_high'):.3f}]"
-        )
+        skipped = summary.get("navigation_skipped")
+        lines.append(headline_text(head, skipped if isinstance(skipped, str) else None))
     failed = summary.get("map_health_warnings")
     if isinstance(failed, int) and failed > 0:
         lines.append(
@@ -105,6 +123,7 @@ __all__ = [
     "EvaluateConfig",
     "blueprint",
     "cases_table",
+    "headline_text",
     "report_lines",
     "run_all",
     "run_case",

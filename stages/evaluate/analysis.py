@@ -262,6 +262,80 @@ def landmark_consistency(
     )
 
 
+OVERCONFIDENCE_FALSE_ALARM = 1e-3
+"""Size of :func:`overconfidence`'s test: the chance that a map whose stated covariances are right is flagged, over all
+its tested landmarks together."""
+
+
+@dataclass(frozen=True)
+class Overconfidence:
+    """A map's focused landmarks against the reference, each by its own stated covariance: the worst one.
+
+    Each landmark's ``eᵀ Σ⁻¹ e`` (Σ its marginal, e its planar error) is χ² with 2 degrees of freedom when the map's
+    covariance is right, whatever the correlations between landmarks, so testing the largest against the χ²₂ quantile
+    at ``1 − p / n`` (Bonferroni) flags a right map with probability at most ``p``. Against the full map instead of the
+    truth, the error's covariance is ``Σ − Σ_full`` (the full map knows a superset of the measurements), smaller than
+    Σ: testing with Σ is conservative."""
+
+    count: int
+    """Focused landmarks tested (observed by the map and in the reference)."""
+    tag_id: int | None
+    """The landmark with the largest NEES (None when none was tested)."""
+    nees: float
+    """Its ``eᵀ Σ⁻¹ e``."""
+    error_m: float
+    """Its planar error, m."""
+    sigma_m: float
+    """The map's stated σ along that error, m (``error_m / sqrt(nees)``)."""
+    limit: float
+    """The χ²₂ quantile at ``1 − p / count``: ``−2 ln(p / count)``."""
+
+    @property
+    def fails(self) -> bool | None:
+        """The worst landmark lies outside what the map's covariance allows (None: nothing tested)."""
+        return None if self.count == 0 else bool(self.nees > self.limit)
+
+    @property
+    def sigmas(self) -> float:
+        """The worst error in σ along it."""
+        return float(np.sqrt(self.nees))
+
+
+def overconfidence(
+    tag_ids: npt.ArrayLike,
+    positions: FloatArray,
+    covariances: FloatArray,
+    reference: Mapping[int, FloatArray],
+    only: Iterable[int],
+    false_alarm: float = OVERCONFIDENCE_FALSE_ALARM,
+) -> Overconfidence:
+    """The worst of the map's landmarks in ``only`` against ``reference`` by its own covariance
+    (:class:`Overconfidence`)."""
+    want = {int(t) for t in only}
+    worst: tuple[float, int, float] | None = None
+    count = 0
+    for t, p, C in zip(np.asarray(tag_ids).tolist(), positions, covariances, strict=True):
+        if int(t) not in want or int(t) not in reference:
+            continue
+        e = np.asarray(p, dtype=float)[:2] - np.asarray(reference[int(t)], dtype=float)[:2]
+        C2 = np.asarray(C, dtype=float)[:2, :2]
+        try:
+            nees = float(e @ np.linalg.solve(C2, e))
+        except np.linalg.LinAlgError:
+            continue
+        if not np.isfinite(nees) or nees < 0:  # a covariance that is not positive definite says nothing
+            continue
+        count += 1
+        if worst is None or nees > worst[0]:
+            worst = (nees, int(t), float(np.linalg.norm(e)))
+    if worst is None:
+        nan = float("nan")
+        return Overconfidence(0, None, nan, nan, nan, nan)
+    nees, tag, err = worst
+    sigma = err / np.sqrt(nees) if nees > 0 else float("nan")
+    return Overconfidence(count, tag, nees, err, float(sigma), float(-2.0 * np.log(false_alarm / count)))
+
+
 @dataclass(frozen=True)
 class NavigationMargin:
     """Room to the walls along the nominal path, in metres and in σ of the simulated robots."""

@@ -47,7 +47,7 @@ ERROR_REFERENCE = Column(
 )
 MAX_COLLISION_PROBABILITY = _f64("max_collision_probability", "maximum collision probability along the path")
 MEAN_COLLISION_PROBABILITY = _f64("mean_collision_probability", "mean collision probability along the path")
-COLLISION_RATE = _f64("collision_rate", "share of the Monte Carlo navigation trials that collided (NaN: none run)")
+COLLISION_RATE = _f64("collision_rate", "share of the Monte Carlo navigation trials that collided (null: none run)")
 COLLISION_CI_LOW = _f64("collision_ci_low", "95 % Wilson interval of the collision rate, low end")
 COLLISION_CI_HIGH = _f64("collision_ci_high", "95 % Wilson interval of the collision rate, high end")
 COLLISIONS = _i64("collisions", "trials that collided")
@@ -61,7 +61,7 @@ OPTIMISE_S = _f64("optimise_s", "time to build, solve and marginalise the reduce
 MAP_BYTES = _i64("map_bytes", "bytes of the landmarks and measurements the robot carries (float64)")
 BYTES_FRACTION = _f64("bytes_fraction", "those bytes over the full graph's")
 STATUS = Column("status", _STR, "the measurement selection's message (empty for `all`)")
-# the consistency analysis (NaN without a ground truth or for a 3-D graph; docs/evaluate.md, "Why")
+# the consistency analysis (null without a ground truth or for a 3-D graph; docs/evaluate.md, "Why")
 FOCUSED_ERROR_ALIGNED_M = _f64(
     "focused_error_aligned_m", "focused error after the best rigid planar motion onto the reference, m"
 )
@@ -89,6 +89,20 @@ NAVIGATION_NEES = _f64(
 )
 RISK_MARGIN_SIGMAS = _f64(
     "risk_margin_sigmas", "the risk model's smallest margin in σ along the path (z, P = Φ(−z); does not underflow)"
+)
+# the map against its own covariance (stages/evaluate/analysis.py, overconfidence)
+FOCUSED_NEES_MAX = _f64(
+    "focused_nees_max",
+    "largest eᵀΣ⁻¹e of the observed focused landmarks against the reference (truth, else the `optimal` map), Σ the "
+    "case's own marginal (null for `optimal` without a truth)",
+)
+FOCUSED_NEES_LIMIT = _f64(
+    "focused_nees_limit", "the χ²₂ quantile at 1 − 0.001 / (landmarks tested) that it is held to (Bonferroni)"
+)
+OVERCONFIDENT = Column(
+    "overconfident",
+    pa.bool_(),
+    "focused_nees_max above focused_nees_limit: a landmark is further off than the map's covariance allows",
 )
 # the entropy split and the risk model against the simulation (stages/evaluate/risk_check.py)
 UNOBSERVED_FOCUSED = _i64(
@@ -132,9 +146,9 @@ WHY_COLUMNS: Final = (
     ORACLE_FOCUSED_NEES,
     ORACLE_ERROR_ALL_M,
 )
-"""Columns of the consistency analysis (NaN without a ground truth)."""
+"""Columns of the consistency analysis (null in cases.parquet without a ground truth)."""
 MARGIN_COLUMNS: Final = (TIGHT_MARGIN_M, TIGHT_DEVIATION_M, TIGHT_EKF_SIGMA_M, MARGIN_SIGMAS, MIN_MARGIN_M)
-"""Columns of the margin against the trials' deviation (NaN without navigation)."""
+"""Columns of the margin against the trials' deviation (null in cases.parquet without navigation)."""
 CASES: Final = TableSpec(
     "cases.parquet",
     "one row per case (the six of Table I, then `evaluate.extra_pairs`)",
@@ -173,6 +187,9 @@ CASES: Final = TableSpec(
         *MARGIN_COLUMNS,
         NAVIGATION_NEES,
         RISK_MARGIN_SIGMAS,
+        FOCUSED_NEES_MAX,
+        FOCUSED_NEES_LIMIT,
+        OVERCONFIDENT,
         *CHECK_COLUMNS,
     ],
 )

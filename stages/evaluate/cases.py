@@ -33,10 +33,12 @@ from stages.evaluate import artifacts as art
 from stages.evaluate.analysis import (
     MeasurementConsistency,
     NavigationMargin,
+    Overconfidence,
     aligned_error,
     landmark_consistency,
     measurement_consistency,
     oracle_rows,
+    overconfidence,
     residuals_by_range,
 )
 from stages.evaluate.config import EvaluateConfig
@@ -175,6 +177,34 @@ class UpstreamReduced:
     read: Callable[[], ReducedMap]
 
 
+HOW_TO_GIVE_WALLS = (
+    "give walls with --truth FILE (a truth YAML with a walls part, docs/evaluate.md) or record a laser to simulate it"
+)
+
+
+@dataclass(frozen=True)
+class NavigationSkipped:
+    """Why no case was navigated: ``reason`` in a few words (the headline's: ``no walls``, ``evaluate.trials=0``),
+    ``why`` what the run lacks (empty when the user switched the trials off)."""
+
+    reason: str
+    why: str = ""
+
+    @property
+    def note(self) -> str:
+        """The stage's note line (empty when the user switched the trials off: nothing to tell them)."""
+        if not self.why:
+            return ""
+        return (
+            f"navigation not simulated: the run has no walls for the robot to collide with ({self.why}), so the "
+            f"collision rates and the other navigation columns are not computed; {HOW_TO_GIVE_WALLS}"
+        )
+
+
+class NoWallsError(StageError):
+    """The run has nothing the simulated robot could collide with (no ground-truth walls, no laser returns)."""
+
+
 @dataclass
 class EvalInputs:
     """A run loaded once for every case."""
@@ -209,6 +239,8 @@ class EvalInputs:
     analysis: bool = True
     """Compute the measurement-consistency analysis (the report's "Why"); map realisations, which do not report it,
     switch it off."""
+    navigation_skipped: NavigationSkipped | None = None
+    """Why the navigation trials did not run (None: they ran); set by :func:`run_all`."""
 
     @property
     def risk_params(self) -> RiskParams:
@@ -279,23 +311,39 @@ class EvalInputs:
         return dict(zip(lmap.tag_ids.tolist(), lmap.positions, strict=True)), "optimal"
 
 
+def missing_walls(inputs: EvalInputs) -> str | None:
+    """Why the navigation has no walls (``evaluate.walls=auto`` and neither the ground truth's walls nor laser scans),
+    else None. Only the automatic choice is judged here: an explicit ``evaluate.walls`` that cannot be met stops the
+    stage in :func:`navigation_setup`."""
+    truth = inputs.truth
+    if inputs.cfg.walls != "auto" or (truth is not None and truth.has_walls):
+        return None
+    if inputs.scans is not None and inputs.scans.num_rows > 0:
+        return None
+    return "no laser scans and no ground truth" if truth is None else "no laser scans and no walls in the ground truth"
+
+
+def skip_navigation(inputs: EvalInputs, why: str) -> None:
+    """Run every case without navigation trials, saying why (a run without walls: the trials need obstacles)."""
+    inputs.navigation_skipped = NavigationSkipped("no walls", why)
+    inputs.navigation = None
+    inputs.cfg = inputs.cfg.model_copy(update={"trials": 0})
+
+
 def _scan_pose_grid(inputs: EvalInputs) -> OccupancyGrid:
     """Occupancy grid of the laser beams, each placed at the optimised path interpolated to its own time
     (deskewed, :func:`stages.laser.scan_beams`), free space carved along every beam
     (:func:`stages.navigation.ray_cast_grid`)."""
     scans = inputs.scans
     if scans is None or scans.num_rows == 0:
-        raise StageError(
-            "navigation needs walls: the run has no ground truth beside its bag and no laser scans; "
-            "set evaluate.trials=0 to skip navigation"
-        )
+        raise NoWallsError("the run has no laser scans")
     geo = inputs.landmarks.geometry
     stamps = np.asarray(scans.column(STAMP_NS).to_numpy(), dtype=np.int64)
     rows = np.arange(0, scans.num_rows, inputs.cfg.scan_stride)
     rows = rows[(stamps[rows] >= geo.stamps_ns[0]) & (stamps[rows] <= geo.stamps_ns[-1])]
     beams = scan_beams(scans, geo.stamps_ns, geo.poses, inputs.T_base_laser, rows)
     if not beams.hit.any():
-        raise StageError("navigation needs walls: no laser scan within the path has a return")
+        raise NoWallsError("no laser scan within the path has a return")
     _check_grid_size((beams.origins, beams.ends), inputs.cfg.grid_resolution_m)
     return ray_cast_grid(beams.origins, beams.ends, beams.hit, inputs.cfg.grid_resolution_m, inputs.cfg.grid_min_hits)
 
@@ -396,6 +444,9 @@ class CaseResult:
     """What was taken from the upstream stages' artifacts instead of recomputed (landmarks, measurements, map)."""
     local_map: LandmarkMap | None = None
     """The case's map with each landmark's covariance as seen from the keyframes that see it (risk, navigation)."""
+    overconfidence: Overconfidence | None = None
+    """Its worst focused landmark against the reference by its own covariance (None: not tested, case 1 without a
+    ground truth)."""
     landmark_map: LandmarkMap = field(init=False)
     """The case's landmark map (positions and marginal covariances): what the tables, report and recording read."""
 
@@ -568,7 +619,18 @@ def run_case(inputs: EvalInputs, case: Case, optimal: LandmarkMap | None = None,
     row.update(_why_columns(inputs, reduced, selected, reference, focus))
     row[art.NAVIGATION_NEES] = nan
     row[art.RISK_MARGIN_SIGMAS] = risk.min_z
+    # the map against its own covariance; not case 1 without a truth, whose reference is itself
+    lm = reduced.landmark_map
+    check = (
+        overconfidence(lm.tag_ids, lm.positions, lm.covariances, reference, focus)
+        if optimal is not None or ref_name == "ground_truth"
+        else None
+    )
+    row[art.FOCUSED_NEES_MAX] = check.nees if check is not None else nan
+    row[art.FOCUSED_NEES_LIMIT] = check.limit if check is not None else nan
+    row[art.OVERCONFIDENT] = check.fails if check is not None else None
     result = CaseResult(case, tags, measurement, reduced, risk, None, row, reused=reused, local_map=lmap)
+    result.overconfidence = check
     if navigation:
         navigate(inputs, result)
     return result
@@ -691,6 +753,10 @@ def run_all(
     With ``pool`` (a worker process) each case's navigation trials run there while this process selects and solves
     the next case (on the sample, the trials are about a third of evaluate); the numbers are the same.
     """
+    if inputs.cfg.trials <= 0:
+        inputs.navigation_skipped = NavigationSkipped("evaluate.trials=0")
+    elif (why := missing_walls(inputs)) is not None:
+        skip_navigation(inputs, why)
     prepare(inputs)
     todo = [c for c in todo if not c.focus_poses or inputs.risky_keyframes]  # no laser: no risky poses to focus
     pending: list[tuple[CaseResult, Future[NavigationResult]]] = []
@@ -716,7 +782,15 @@ def run_all(
             raise StageError(f"case {todo[0].name}: {err}") from err
         optimal = first.landmark_map
         if inputs.cfg.trials > 0:
-            inputs.navigation = navigation_setup(inputs, optimal)
+            try:
+                inputs.navigation = navigation_setup(inputs, optimal)
+            except NoWallsError as err:
+                if inputs.cfg.walls != "auto":  # the user asked for these walls: say they are not there
+                    raise StageError(
+                        f"evaluate.walls={inputs.cfg.walls} but {err}; {HOW_TO_GIVE_WALLS}, or set "
+                        "evaluate.walls=auto (navigation is then skipped on a run without walls)"
+                    ) from err
+                skip_navigation(inputs, str(err))
             navigate_case(first)
         if inputs.cfg.realisations <= 0:
             inputs.scans = None  # read only by the laser grid above and the realisations: not held through the cases
@@ -741,8 +815,16 @@ def run_all(
 
 
 def cases_table(results: Sequence[CaseResult]) -> pa.Table:
-    """:data:`~stages.evaluate.artifacts.CASES`: one row per case."""
-    return art.CASES.table([r.row for r in results])
+    """:data:`~stages.evaluate.artifacts.CASES`: one row per case; what was not computed (no navigation trials, no
+    laser for the path risk, no ground truth for the consistency analysis: NaN in the rows) is null."""
+    return art.CASES.table([_computed_only(r.row) for r in results])
+
+
+def _computed_only(row: dict[str, Any]) -> dict[str, Any]:
+    out = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in row.items()}
+    if not row.get(art.TRIALS):
+        out[art.COLLISIONS] = None  # not 0 collisions: none counted
+    return out
 
 
 def map_rows(results: Sequence[CaseResult]) -> pa.Table:

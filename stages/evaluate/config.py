@@ -58,7 +58,8 @@ class EvaluateConfig(SettingsModel):
     walls: Literal["auto", "ground_truth", "laser"] = Field(
         "auto",
         description="Obstacles of the navigation: the ground truth's walls (when the run has one), a laser occupancy "
-        "grid built at the optimised poses, or auto (ground truth when present, else laser).",
+        "grid built at the optimised poses, or auto (ground truth when present, else laser; with neither, the "
+        "navigation is skipped with a note). A source named here that the run lacks is an error.",
     )
     robot_radius_m: float | None = Field(
         None,

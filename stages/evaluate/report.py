@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from stages.evaluate import headline_text
 from stages.evaluate.analysis import CHI2_2_95
 from stages.evaluate.artifacts import LABEL, ORACLE_ERROR_ALL_M, WHY_COLUMNS
-from stages.evaluate.cases import CaseResult, EvalInputs
+from stages.evaluate.cases import HOW_TO_GIVE_WALLS, CaseResult, EvalInputs
 from stages.evaluate.figures import (
     MapPanel,
     MapsFigure,
@@ -207,9 +208,11 @@ def markdown_report(
     images: Sequence[str],
     notes: Sequence[str],
     map_warnings: Sequence[str] = (),
+    headline_warnings: Sequence[str] = (),
 ) -> str:
     """``report.md``. ``map_warnings``: the full graph's failed health checks, shown before any figure, since every
-    case is cut from that map."""
+    case is cut from that map; ``headline_warnings``: lines that make the headline doubtful (a reduced map far worse
+    than its own covariance), shown under it."""
     ref = results[0].row["error_reference"] if results else "?"
     nav = inputs.navigation
     lines = [
@@ -229,7 +232,25 @@ def markdown_report(
         markdown_table(results),
         "",
     ]
-    if nav is not None:
+    skipped = inputs.navigation_skipped
+    if results:
+        head = next((r.row for r in results if r.case.name == "focus_info"), results[0].row)
+        lines += [f"**{headline_text(head, skipped.reason if skipped is not None else None)}**", ""]
+        lines += [*(f"- warning: {w}" for w in headline_warnings), *([""] if headline_warnings else [])]
+    if nav is None:
+        reason = skipped.reason if skipped is not None else "no trials"
+        why = (
+            f"the run has no walls for the robot to collide with ({skipped.why}); {HOW_TO_GIVE_WALLS}"
+            if skipped is not None and skipped.why
+            else "the trials were switched off"
+        )
+        lines += [
+            f"Navigation not simulated ({reason}): {why}. Not computed, so shown as – or 'not run' here and null "
+            "in cases.parquet: the collision rate and its interval, the collisions, the RMS tracking and estimation "
+            "errors, the filter NEES and the navigation margin columns.",
+            "",
+        ]
+    else:
         p = nav.params.robot
         world = (
             "the ground truth"

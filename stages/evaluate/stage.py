@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import functools
+import math
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -15,6 +17,7 @@ from pipeline.recording import colormap, ellipsoids
 from pipeline.workers import WorkerPool
 from stages.estimation.blas import blas_single
 from stages.evaluate import artifacts as art
+from stages.evaluate.analysis import OVERCONFIDENCE_FALSE_ALARM
 from stages.evaluate.cases import (
     TABLE_I_LABELS,
     EvalInputs,
@@ -33,7 +36,7 @@ from stages.evaluate.realisations import Study, report_section, run_realisations
 from stages.evaluate.report import expectation_checks, figures, html_report, markdown_report, why_findings
 from stages.evaluate.risk_check import check_columns, direction
 from stages.graph.load import LoadedGraph, load_graph
-from stages.navigation.truth import load_truth
+from stages.navigation.truth import MISSING, load_truth
 from stages.optimize import OptimizeConfig, read_reduced, solve_settings
 from stages.optimize.artifacts import FULL_INDEX, KEPT
 from stages.risk import read_path_inputs
@@ -145,19 +148,23 @@ def _run(
     art.MAPS.write(out, map_rows(results))
     art.PATH_RISK.write(out, risk_rows(inputs, results))
     art.GREEDY.write(out, greedy_rows(results))
-    notes: list[str] = [f"- {n}" for n in inputs.truth.missing_notes()] if inputs.truth is not None else []
+    stage_notes = _notes(inputs)
+    notes: list[str] = [f"- {n}" for n in stage_notes]
     if not landmarks.geometry.has_laser:
         notes.append(
             "- the run has no laser scans: collision probabilities are not available and the focused set is picked "
             "by mutual information instead of Alg. 2"
         )
     notes += [f"- {line}" for line in inputs.skipped]
-    study = _realisations(inputs, todo, cfg, detections)
+    study = _realisations(inputs, todo, inputs.cfg, detections)  # inputs.cfg: no trials when there are no walls
     art.REALISATIONS.write(out, study_table(study))
     images = figures(inputs, results, out.path, ctx.n_sigma, pool) if cfg.plots else []
-    health = ctx.input("graph").summary.get("health") or {}
+    graph_summary = ctx.input("graph").summary
+    health = graph_summary.get("health") or {}
     map_warnings = [str(w) for w in health.get("warnings") or []]
-    md = markdown_report(inputs, results, images, notes, map_warnings) + report_section(study, cfg, TABLE_I_LABELS)
+    overconfident = overconfidence_warnings(inputs, results, tag_variance_factor(graph_summary))
+    md = markdown_report(inputs, results, images, notes, map_warnings, overconfident)
+    md += report_section(study, cfg, TABLE_I_LABELS)
     out.write_text(art.REPORT_MD.file, md)
     out.write_text(art.REPORT_HTML.file, html_report(md, out.path))
     log_recording(ctx.rec, inputs, results, ctx.n_sigma)
@@ -170,20 +177,118 @@ def _run(
         "focused_tag_ids": inputs.focus,
         "reference": results[0].row[art.ERROR_REFERENCE],
         "walls": inputs.navigation.obstacles.kind if inputs.navigation is not None else None,
-        "trials": cfg.trials,
-        "headline": {str(k): head[k] for k in HEADLINE},
-        "table": {name: {str(k): row[k] for k in PER_CASE} for name, row in by_case.items()},
+        "trials": inputs.cfg.trials,
+        "navigation_skipped": skipped.reason if (skipped := inputs.navigation_skipped) is not None else None,
+        "headline": {str(k): computed(head[k]) for k in HEADLINE},
+        "table": {name: {str(k): computed(row[k]) for k in PER_CASE} for name, row in by_case.items()},
         "expectation": expectation_checks(results),
         "regime": cfg.regime,
-        "why": why_findings(inputs, results),
+        "why": computed(why_findings(inputs, results)),
         "report": str(ctx.run.stage_dir("evaluate") / art.REPORT_HTML.file),
         "map_health_warnings": len(map_warnings),
         "from_upstream": {r.case.name: r.reused for r in results if r.reused},
         "realisations": _realisations_summary(study),
         "timing_s": {"total": round(time.perf_counter() - t0, 3)},
-        **({"notes": inputs.truth.missing_notes()} if inputs.truth is not None and inputs.truth.missing else {}),
-        **({"warnings": warnings} if (warnings := [*inputs.skipped, *risk_warnings(results)]) else {}),
+        **({"notes": stage_notes} if stage_notes else {}),
+        **({"warnings": warnings} if (warnings := [*inputs.skipped, *overconfident, *risk_warnings(results)]) else {}),
     }
+
+
+def _notes(inputs: EvalInputs) -> list[str]:
+    """The stage's notes: what the ground truth lacks and, when no case was navigated for want of walls, why."""
+    note = inputs.navigation_skipped.note if inputs.navigation_skipped is not None else ""
+    truth_notes = inputs.truth.missing_notes() if inputs.truth is not None else []
+    # the truth's own line on missing walls says the laser grid stands in: not so when there is no laser either
+    out = [n for n in truth_notes if not (note and n == f"ground truth: {MISSING['walls']}")]
+    return [*out, note] if note else out
+
+
+def computed(value: Any) -> Any:
+    """``value`` with every float that was not computed (NaN) as None, through dicts and lists: the summary's JSON
+    says null, not NaN."""
+    if isinstance(value, dict):
+        return {k: computed(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [computed(v) for v in value]
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+def tag_variance_factor(graph_summary: Mapping[str, Any]) -> float | None:
+    """The full graph's whitened χ² per degree of freedom of its tag measurements (its health check's): how many
+    times too small their stated variance is (about 1 when it is right; None when not known)."""
+    health = graph_summary.get("health") or {}
+    tag = ((health.get("checks") or {}).get("chi2") or {}).get("by_kind", {}).get("tag") or {}
+    value = tag.get("chi2_per_dof")
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) and value > 0 else None
+
+
+def overconfidence_warnings(inputs: EvalInputs, results: list[Any], tag_variance: float | None = None) -> list[str]:
+    """One line when the headline case's reduced map is further off than its own covariance allows
+    (:func:`stages.evaluate.analysis.overconfidence`): its focused error would otherwise read as a fact, with nothing
+    to say the map believes itself far better than it is.
+
+    The line names the likely cause. ``tag_variance`` (:func:`tag_variance_factor`) above 1 says the tag measurements'
+    stated variance is that many times too small; the reduced map's covariance scales with it, so when the worst NEES
+    divided by it passes the test, the stated noise explains the failure (the full map averages thousands of such
+    measurements, K of them do not). Otherwise the budget cannot hold the trajectory (a camera-only run leaves the
+    keyframes between its kept measurements to the weak zero-motion prior), and the line gives the fewest
+    measurements of a case evaluated here whose map is within its covariance (no extra solve)."""
+    by_case = {r.case.name: r for r in results}
+    head = by_case.get("focus_info")
+    check = head.overconfidence if head is not None else None
+    if head is None or check is None or not check.fails:
+        return []
+    reference = head.row[art.ERROR_REFERENCE]
+    against = "the ground truth" if reference == "ground_truth" else "the full map (case optimal)"
+    line = (
+        f"the reduced map ({head.row[art.LABEL]}, the headline's: {head.row[art.MEASUREMENTS]} measurements, focused "
+        f"error {100 * float(head.row[art.FOCUSED_ERROR_M]):.1f} cm) is far worse than its own covariance says: "
+        f"landmark {check.tag_id} lies {100 * check.error_m:.1f} cm from {against}, {check.sigmas:.1f} sigma of its "
+        f"stated {100 * check.sigma_m:.2g} cm along that error (NEES {check.nees:.3g} above {check.limit:.3g}, the "
+        f"bound a right covariance passes at {100 * (1 - OVERCONFIDENCE_FALSE_ALARM):g} % over its {check.count} "
+        "focused landmarks)"
+    )
+    optimal = by_case.get("optimal")
+    full_check = optimal.overconfidence if optimal is not None else None
+    if full_check is not None and full_check.fails:  # against the truth: the full map fails too
+        return [
+            f"{line}; the full map fails the same test against the ground truth, so the measurements' stated noise "
+            "is too small or biased (see the graph stage's health checks), not the budget"
+        ]
+    if tag_variance is not None and tag_variance > 1 and check.nees / tag_variance <= check.limit:
+        return [
+            f"{line}; likely cause: the tag measurements' stated noise, {math.sqrt(tag_variance):.3g}x too small in "
+            f"sigma (the full graph's tag chi2 per dof {tag_variance:.3g}, expected about 1): the full map averages "
+            f"all of them, its K = {inputs.K} do not, and its covariance scaled by that factor holds the worst "
+            f"landmark (NEES {check.nees / tag_variance:.3g}); fix the measurement model (camera calibration, "
+            "extrinsics, tag size) or state the noise (graph.tag_covariance_scale) rather than raise the budget"
+        ]
+    odometry = any(r.kind in ("odometry", "loop") for r in inputs.loaded.rows)
+    cause = (
+        f"the budget K = {inputs.K} cannot hold the trajectory: between the kept measurements the map rests on the "
+        "odometry, which drifts more than its stated noise allows"
+        if odometry
+        else f"a camera-only run (no odometry): between its K = {inputs.K} kept measurements the keyframes are held "
+        "only by the weak zero-motion prior, so that budget cannot hold the trajectory"
+    )
+    n = int(head.row[art.MEASUREMENTS])
+    holding = sorted(
+        (int(r.row[art.MEASUREMENTS]), str(r.row[art.LABEL]))
+        for r in results
+        if r.overconfidence is not None and r.overconfidence.fails is False and int(r.row[art.MEASUREMENTS]) > n
+    )
+    if holding:
+        m, label = holding[0]
+        fix = (
+            f"the map with {m} measurements ({label}) is within its covariance: raise select_measurements.budget "
+            f"(evaluate.measurement_budget) from {inputs.K} towards {m}"
+        )
+    else:
+        fix = (
+            "no case evaluated here is within its covariance with more measurements either: raise "
+            f"select_measurements.budget well above {inputs.K}, and check the tag measurements' stated noise"
+        )
+    return [f"{line}; likely cause: {cause}; {fix}"]
 
 
 WARN_COLLISION_RATE = 0.05
