@@ -131,7 +131,10 @@ def build_problem(
     placed = _with_mounts(extrinsics, estimates, "initial")
     spatial = cfg.model_copy(update={"model": "3d", "odometry_calibration": False})
     problem3, row_cameras = _assemble(det, usable, odom, placed, spatial, tags, copy.deepcopy(info))
-    figures = refine_mounts(problem3.rows, row_cameras, problem3.initial, estimates)
+    try:
+        figures = refine_mounts(problem3.rows, row_cameras, problem3.initial, estimates)
+    except RuntimeError as err:  # GTSAM: the graph with the mounts free is singular (too few sightings)
+        figures = {"not_refined": " ".join(str(err).split()).split(". ")[0]}
     problem = _assemble(
         det, usable, odom, _with_mounts(extrinsics, estimates, "estimated"), cfg, tags, info, estimates
     )[0]

@@ -181,6 +181,8 @@ def initial_mounts(
         if n < MIN_PAIRS:
             linked = _through_tag_pairs(stamps, tags, cams, T_camera_tag, placed, todo)
             if linked is None:
+                linked = hand_eye(stamps, tags, cams, T_camera_tag, placed, todo)
+            if linked is None:
                 break
             out[linked.camera] = linked
             placed[linked.camera] = np.asarray(linked.pose.matrix())
@@ -243,6 +245,113 @@ def _through_tag_pairs(
     pose = _mean_pose(Ts)
     spread = float(np.degrees(np.median(_angles(Ts[:, :3, :3], np.asarray(pose.rotation().matrix())))))
     return MountEstimate(c, pose, n, f"{a} (through tags seen together)", spread, initial=pose)
+
+
+HAND_EYE_MIN_TURN_DEG = 10.0
+"""Motions turning less than this between two moments are too short a lever for the hand-eye rotation."""
+HAND_EYE_MAX_MOMENTS = 80
+"""At most this many moments (evenly spread over the run) are paired for one hand-eye fit: pairs grow as their
+square."""
+HAND_EYE_MAX_PAIRS = 400
+"""At most this many pairs of moments enter one hand-eye fit (drawn evenly from those that qualify)."""
+HAND_EYE_MIN_CONDITION = 0.05
+"""The hand-eye fit is refused when the smallest singular value of its rotation or translation system is below
+this fraction of the largest: the motions did not turn about enough different axes to fix the mount."""
+
+
+def hand_eye(
+    stamps: npt.ArrayLike,
+    tags: npt.ArrayLike,
+    cams: npt.NDArray[np.object_],
+    T_camera_tag: FloatArray,
+    placed: Mapping[str, FloatArray],
+    todo: set[str],
+) -> MountEstimate | None:
+    """The mount of a camera that never sees a tag a placed camera sees, from the rig's motion (hand-eye
+    calibration, ``A X = X B``): between two moments at which a placed camera ``a`` sees one tag ``t`` both times
+    and the camera ``c`` sees one tag ``u`` both times, the base moves by ``A = T_base_a Z_a1 Z_a2⁻¹ T_base_a⁻¹``
+    and ``c`` by ``B = Z_c1 Z_c2⁻¹``, and ``A X = X B`` for ``X = T_base_c``. The rotation is Kabsch's fit of the
+    motions' rotation axes (``log R_A = R_X log R_B``), the translation the least-squares solution of
+    ``(R_A − I) t_X = R_X t_B − t_A``; pairs beyond three median deviations are dropped once. None when no camera
+    has motions about enough different axes (a robot on a floor turns about one: its mount's height is not fixed
+    by motion)."""
+    stamps_a, tags_a = np.asarray(stamps, dtype=np.int64), np.asarray(tags, dtype=np.int64)
+    views: dict[int, dict[str, dict[int, int]]] = defaultdict(lambda: defaultdict(dict))
+    for i, (st, g, c) in enumerate(zip(stamps_a, tags_a, cams, strict=True)):
+        views[int(st)][str(c)].setdefault(int(g), i)
+    best: MountEstimate | None = None
+    for c in sorted(todo):
+        for a in sorted(placed):
+            est = _hand_eye_pair(views, a, c, T_camera_tag, placed[a])
+            if est is not None and (best is None or est.pairs > best.pairs):
+                best = est
+    return best
+
+
+def _hand_eye_pair(
+    views: Mapping[int, Mapping[str, Mapping[int, int]]],
+    a: str,
+    c: str,
+    T_camera_tag: FloatArray,
+    T_base_a: FloatArray,
+) -> MountEstimate | None:
+    both = sorted(s for s, v in views.items() if a in v and c in v)
+    if len(both) > HAND_EYE_MAX_MOMENTS:
+        both = [both[i] for i in np.linspace(0, len(both) - 1, HAND_EYE_MAX_MOMENTS).round().astype(int)]
+    pairs: list[tuple[FloatArray, FloatArray]] = []
+    inv_a = np.linalg.inv(T_base_a)
+    for k, s1 in enumerate(both):
+        for s2 in both[k + 1 :]:
+            ta = set(views[s1][a]) & set(views[s2][a])
+            tc = set(views[s1][c]) & set(views[s2][c])
+            if not ta or not tc:
+                continue
+            t, u = min(ta), min(tc)
+            A = T_base_a @ T_camera_tag[views[s1][a][t]] @ np.linalg.inv(T_camera_tag[views[s2][a][t]]) @ inv_a
+            B = T_camera_tag[views[s1][c][u]] @ np.linalg.inv(T_camera_tag[views[s2][c][u]])
+            turn = np.degrees(_angles(A[None, :3, :3], np.eye(3))[0])
+            if turn >= HAND_EYE_MIN_TURN_DEG:
+                pairs.append((A, B))
+    if len(pairs) < MIN_PAIRS:
+        return None
+    if len(pairs) > HAND_EYE_MAX_PAIRS:
+        pick = np.linspace(0, len(pairs) - 1, HAND_EYE_MAX_PAIRS).round().astype(int)
+        pairs = [pairs[i] for i in pick]
+    keep = np.ones(len(pairs), dtype=bool)
+    X = None
+    for _ in range(2):
+        X = _solve_hand_eye([p for p, k in zip(pairs, keep, strict=True) if k])
+        if X is None:
+            return None
+        res = np.array([np.linalg.norm(A @ X - X @ B) for A, B in pairs])
+        cut = 3.0 * float(np.median(res[keep])) + 1e-9
+        if np.array_equal(res <= cut, keep) or (res <= cut).sum() < MIN_PAIRS:
+            break
+        keep = res <= cut
+    assert X is not None
+    spread = float(np.degrees(np.median([_angles((A @ X)[None, :3, :3], (X @ B)[:3, :3])[0] for A, B in pairs])))
+    pose = pose3_from_matrix(X)
+    return MountEstimate(c, pose, int(keep.sum()), f"{a} (hand-eye, from the rig's motion)", spread, initial=pose)
+
+
+def _solve_hand_eye(pairs: list[tuple[FloatArray, FloatArray]]) -> FloatArray | None:
+    """``X`` with ``A X = X B`` over the pairs (least squares), None when the motions do not fix it."""
+    alpha = np.array([np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(A[:3, :3]))) for A, _ in pairs])
+    beta = np.array([np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(B[:3, :3]))) for _, B in pairs])
+    if np.linalg.svd(alpha, compute_uv=False)[-1] < HAND_EYE_MIN_CONDITION * np.linalg.svd(alpha, compute_uv=False)[0]:
+        return None  # one turning axis: the rotation about it is free
+    U, _, Vt = np.linalg.svd(beta.T @ alpha)
+    R = (U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt).T
+    M = np.vstack([A[:3, :3] - np.eye(3) for A, _ in pairs])
+    rhs = np.concatenate([R @ B[:3, 3] - A[:3, 3] for A, B in pairs])
+    sv = np.linalg.svd(M, compute_uv=False)
+    if sv[-1] < HAND_EYE_MIN_CONDITION * sv[0]:
+        return None
+    t = np.linalg.lstsq(M, rhs, rcond=None)[0]
+    X = np.eye(4)
+    X[:3, :3] = R
+    X[:3, 3] = t
+    return X
 
 
 def _mean_pose(Ts: FloatArray) -> gtsam.Pose3:
@@ -332,6 +441,10 @@ def refine_mounts(
             graph.add(gtsam.PriorFactorPose3(key, given, noise))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
+    # every mount touches every pose its camera saw from, as every landmark does: eliminated last (the usual SLAM
+    # order), they leave one small dense block instead of fill-in across the whole path
+    last = [k for k in sorted(used) if gtsam.Symbol(k).chr() == ord("l")] + list(keys.values())
+    params.setOrdering(gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, gtsam.KeyVector(last)))
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = optimizer.optimize()
     figures: dict[str, Any] = {
@@ -400,12 +513,27 @@ def rig_remarks(block: Any) -> list[tuple[str, str]]:
                 )
             )
             continue
+        via = str(c.get("placed_from"))
+        start = (
+            f"{c.get('shared_sightings')} pairs of moments of its motion against {via.split(' (hand-eye')[0]}'s "
+            "(hand-eye)"
+            if "hand-eye" in via
+            else f"{c.get('shared_sightings')} sightings shared with {via}"
+        )
         out.append(
             (
                 "note",
-                f"camera {c.get('frame_id', cam)} ({cam}) had no mount: estimated from {c.get('shared_sightings')} "
-                f"sightings shared with {c.get('placed_from')} and all its own ({sigma}); graph/camera_poses.yaml "
-                "holds it for --extrinsics",
+                f"camera {c.get('frame_id', cam)} ({cam}) had no mount: estimated from {start} and all its own "
+                f"sightings ({sigma}); graph/camera_poses.yaml holds it for --extrinsics",
+            )
+        )
+    not_refined = (block.get("solve") or {}).get("not_refined")
+    if not_refined:
+        out.append(
+            (
+                "warning",
+                f"the rig's mounts could not be estimated in the graph ({not_refined}): each camera's initial mount "
+                "from its shared sightings is used, without a covariance; give the mounts with --extrinsics",
             )
         )
     for cam, n in (block.get("unplaced") or {}).items():

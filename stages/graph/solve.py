@@ -198,9 +198,28 @@ def indeterminant_message(problem: GraphProblem, err: Exception, during: str) ->
         key = int(gtsam.symbol(m.group(1), int(m.group(2)))) if m.group(1) else int(m.group(3))
     who = problem.describe(key) if key is not None else "an unknown variable"
     return (
-        f"the graph is singular near {who} ({during}: GTSAM found an indeterminant linear system); "
-        f"{fix_for(problem, key)}"
+        f"the graph is singular near {who}{_held_by(problem, key)} ({during}: GTSAM found an indeterminant linear "
+        f"system); {fix_for(problem, key)}"
     )
+
+
+def _held_by(problem: GraphProblem, key: int | None) -> str:
+    """What holds the variable: a pose's tag sightings (which tags, how many), a tag's sightings (from how many
+    poses); empty for others."""
+    if key is None:
+        return ""
+    rows = [r for r in problem.rows if key in r.keys]
+    tag_rows = [r for r in rows if r.kind == "tag"]
+    if key in set(problem.pose_keys):
+        seen = sorted({int(r.tag_id) for r in tag_rows if r.tag_id is not None})
+        if not seen:
+            return ", which sees no tag"
+        shown = ", ".join(str(t) for t in seen[:5]) + (", ..." if len(seen) > 5 else "")
+        return f", which sees tag{'s' if len(seen) > 1 else ''} {shown} ({len(tag_rows)} sighting(s))"
+    if key in set(problem.landmark_keys.values()):
+        poses = {r.keys[0] for r in tag_rows}
+        return f", seen {len(tag_rows)} time(s) from {len(poses)} pose(s)"
+    return ""
 
 
 def _is_indeterminant(err: Exception) -> bool:

@@ -20,7 +20,7 @@ from pipeline.artifacts import StageInput
 from pipeline.contracts import ArtifactSet, Column, FileSpec, TableSpec
 from stages.columns import STAMP_NS, TAG_ID, YAW, X, Y
 from stages.graph.artifacts import ARTIFACTS as GRAPH_ARTIFACTS
-from stages.graph.artifacts import CALIBRATION
+from stages.graph.artifacts import CALIBRATION, CAMERA_POSES
 from stages.select_landmarks.artifacts import CLEARANCE_M, LOCALISED, SIGMA_STAR
 
 if TYPE_CHECKING:
@@ -87,6 +87,7 @@ GRAPH_FILES: Final = tuple(
     FileSpec(spec.file, f"the reduced graph, as `graph/{spec.file}` (see graph's declarations)")
     for spec in GRAPH_ARTIFACTS.specs
     if spec is not CALIBRATION  # the full graph's, read through kept.parquet's `full_index`
+    and spec is not CAMERA_POSES  # the rig's mounts are the full graph's: the reduced graph holds them fixed
 )
 
 ARTIFACTS: Final = ArtifactSet(

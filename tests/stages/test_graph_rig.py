@@ -187,3 +187,35 @@ def test_given_mount_check_names_a_wrong_given_mount() -> None:
         figures = given_mount_figures(stamps, ids, cams, Ts, {**given, "c": wrong})
         line = given_mount_warning("c", figures["c"])
         assert line is not None and "'c'" in line
+
+
+def test_hand_eye_places_a_camera_that_never_sees_the_placed_cameras_tags() -> None:
+    """TagSLAM's test_14 rig: the top cameras see the ceiling's tags, the bottom ones the floor's. No tag is shared,
+    at one moment or through one frame, so only the rig's motion can place a top camera (``A X = X B``): from
+    noiseless sightings the mount comes back exactly; with motion about a single axis it is refused, not guessed."""
+    from stages.graph.rig import hand_eye
+
+    rng = np.random.default_rng(RNG_SEED + 7)
+    mounts, rig_poses, tags = _rig(rng)
+    ceiling = {t + 10: _pose(rng, 3.0, 1.0) for t in range(3)}
+    stamps, ids, cams, Ts = _sightings(mounts, rig_poses, tags, {"a": set(range(12))})
+    s2, i2, c2, T2 = _sightings(mounts, rig_poses, ceiling, {"c": set(range(12))})
+    args = (stamps + s2, ids + i2, np.asarray(cams + c2, dtype=object), np.concatenate([Ts, T2]))
+    est, unplaced = initial_mounts(args[0], args[1], args[2], args[3], {"a": mounts["a"]}, {"c"})
+    assert unplaced == [] and "hand-eye" in est["c"].via
+    assert np.allclose(est["c"].pose.matrix(), mounts["c"].matrix(), atol=1e-6)
+    # a rig that only turns about its z axis (a robot on a floor): the mount's height is not fixed by motion
+    flat = [gtsam.Pose3(gtsam.Rot3.Yaw(rng.uniform(-3, 3)), np.array([*rng.normal(0, 1, 2), 0.0])) for _ in range(12)]
+    stamps, ids, cams, Ts = _sightings(mounts, flat, tags, {"a": set(range(12))})
+    s2, i2, c2, T2 = _sightings(mounts, flat, ceiling, {"c": set(range(12))})
+    assert (
+        hand_eye(
+            stamps + s2,
+            ids + i2,
+            np.asarray(cams + c2, dtype=object),
+            np.concatenate([Ts, T2]),
+            {"a": np.asarray(mounts["a"].matrix())},
+            {"c"},
+        )
+        is None
+    )
