@@ -127,7 +127,7 @@ def build_problem(
     if checked := _given_mounts_against_data(det, usable, extrinsics, set(estimates)):
         info["rig_check"] = checked
     if not estimates:
-        return _assemble(det, usable, odom, extrinsics, cfg, tags, info)[0]
+        return _with_cameras(*_assemble(det, usable, odom, extrinsics, cfg, tags, info))
     placed = _with_mounts(extrinsics, estimates, "initial")
     spatial = cfg.model_copy(update={"model": "3d", "odometry_calibration": False})
     problem3, row_cameras = _assemble(det, usable, odom, placed, spatial, tags, copy.deepcopy(info))
@@ -135,9 +135,9 @@ def build_problem(
         figures = refine_mounts(problem3.rows, row_cameras, problem3.initial, estimates)
     except RuntimeError as err:  # GTSAM: the graph with the mounts free is singular (too few sightings)
         figures = {"not_refined": " ".join(str(err).split()).split(". ")[0]}
-    problem = _assemble(
-        det, usable, odom, _with_mounts(extrinsics, estimates, "estimated"), cfg, tags, info, estimates
-    )[0]
+    problem = _with_cameras(
+        *_assemble(det, usable, odom, _with_mounts(extrinsics, estimates, "estimated"), cfg, tags, info, estimates)
+    )
     base = extrinsics.base_frame if extrinsics is not None else "base"
     given = {}
     for cam in sorted({str(det[CAMERA][r]) for r in usable} - set(estimates)):
@@ -158,6 +158,11 @@ def build_problem(
         "solve": figures,
         **problem.info.get("rig_calibration", {}),
     }
+    return problem
+
+
+def _with_cameras(problem: GraphProblem, row_cameras: list[str | None]) -> GraphProblem:
+    problem.row_cameras = row_cameras
     return problem
 
 

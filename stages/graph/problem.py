@@ -49,6 +49,7 @@ class GraphProblem:
         landmark_keys: landmark key by tag (or landmark vertex) id.
         landmark_heights: planar model only: tag id to (mean height in m, height variance m²) of its sightings.
         info: counts and notes for the summary.
+        row_cameras: the camera of each row, for messages (may be empty).
     """
 
     model: Model
@@ -60,6 +61,9 @@ class GraphProblem:
     landmark_keys: dict[int, int]
     landmark_heights: dict[int, tuple[float, float]] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+    row_cameras: list[str | None] = field(default_factory=list)
+    """The camera of each row (None for rows that are not a sighting); empty when unknown (graphs read from a file,
+    restricted problems). Only error messages read it."""
 
     def describe(self, key: int) -> str:
         """A person's name for a variable: ``pose 12 (t=3.210 s)`` or ``tag 17``."""

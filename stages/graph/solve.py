@@ -210,16 +210,27 @@ def _held_by(problem: GraphProblem, key: int | None) -> str:
         return ""
     rows = [r for r in problem.rows if key in r.keys]
     tag_rows = [r for r in rows if r.kind == "tag"]
+    cameras = _cameras_of(problem, key)
     if key in set(problem.pose_keys):
         seen = sorted({int(r.tag_id) for r in tag_rows if r.tag_id is not None})
         if not seen:
             return ", which sees no tag"
         shown = ", ".join(str(t) for t in seen[:5]) + (", ..." if len(seen) > 5 else "")
-        return f", which sees tag{'s' if len(seen) > 1 else ''} {shown} ({len(tag_rows)} sighting(s))"
+        return f", which sees tag{'s' if len(seen) > 1 else ''} {shown} ({len(tag_rows)} sighting(s){cameras})"
     if key in set(problem.landmark_keys.values()):
         poses = {r.keys[0] for r in tag_rows}
-        return f", seen {len(tag_rows)} time(s) from {len(poses)} pose(s)"
+        return f", seen {len(tag_rows)} time(s) from {len(poses)} pose(s){cameras}"
     return ""
+
+
+def _cameras_of(problem: GraphProblem, key: int) -> str:
+    """`` by camera X`` / `` by cameras X, Y`` for the sightings that touch ``key`` (empty when unknown)."""
+    if len(problem.row_cameras) != len(problem.rows):
+        return ""
+    cams = sorted({c for r, c in zip(problem.rows, problem.row_cameras, strict=True) if c and key in r.keys})
+    if not cams:
+        return ""
+    return f" by camera{'s' if len(cams) > 1 else ''} {', '.join(cams)}"
 
 
 def _is_indeterminant(err: Exception) -> bool:

@@ -229,11 +229,16 @@ def test_indeterminant_system_names_the_variable() -> None:
         {x0: gtsam.Pose2(), x1: gtsam.Pose2(1, 0, 0), l3: np.array([2.0, 0.0])},
         {x0: "Pose2", x1: "Pose2", l3: "Point2"},
     )
+    p.row_cameras = [None, "/left/tags", "/right/tags", "/right/tags"]
     check_problem(p)
     with pytest.raises(StageError, match=r"singular near (pose 1 \(t=1\.000 s|tag 3)") as err:
         _solve(p)
-    # what holds it is named: the pose's one tag and its two sightings, or the tag's three from two poses
-    assert ", which sees tag 3 (2 sighting(s))" in str(err.value) or ", seen 3 time(s) from 2 pose(s)" in str(err.value)
+    # what holds it is named: the pose's one tag, its two sightings and the camera, or the tag's from two poses
+    line = str(err.value)
+    assert (
+        ", which sees tag 3 (2 sighting(s) by camera /right/tags)" in line
+        or ", seen 3 time(s) from 2 pose(s) by cameras /left/tags, /right/tags" in line
+    ), line
 
 
 def test_no_usable_detections(sim) -> None:
