@@ -130,11 +130,14 @@ def build_problem(
         return _with_cameras(*_assemble(det, usable, odom, extrinsics, cfg, tags, info))
     placed = _with_mounts(extrinsics, estimates, "initial")
     spatial = cfg.model_copy(update={"model": "3d", "odometry_calibration": False})
-    problem3, row_cameras = _assemble(det, usable, odom, placed, spatial, tags, copy.deepcopy(info))
+    subset = _rig_subset(det, usable)
+    problem3, row_cameras = _assemble(det, subset, odom, placed, spatial, tags, copy.deepcopy(info))
     try:
         figures = refine_mounts(problem3.rows, row_cameras, problem3.initial, estimates)
     except RuntimeError as err:  # GTSAM: the graph with the mounts free is singular (too few sightings)
         figures = {"not_refined": " ".join(str(err).split()).split(". ")[0]}
+    if len(subset) < len(usable):
+        _scale_to_all_sightings(det, usable, subset, estimates, figures)
     problem = _with_cameras(
         *_assemble(det, usable, odom, _with_mounts(extrinsics, estimates, "estimated"), cfg, tags, info, estimates)
     )
@@ -221,6 +224,42 @@ def _assemble(
     )
     camera_of = {id(r): c for r, c in zip(sightings.rows, sightings.cameras, strict=True)}
     return problem, [camera_of.get(id(r)) for r in rows]
+
+
+RIG_MAX_MOMENTS = 400
+"""The rig solve uses the sightings of at most this many moments, evenly spread over the run (its Python factors
+cost about a millisecond each per iteration; a mount's six numbers need far fewer sightings than an hour holds)."""
+
+
+def _rig_subset(det: dict[str, list[Any]], usable: np.ndarray) -> np.ndarray:
+    """The usable rows at :data:`RIG_MAX_MOMENTS` moments evenly spread over the run (all of them when fewer)."""
+    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)[usable]
+    moments = np.unique(stamps)
+    if len(moments) <= RIG_MAX_MOMENTS:
+        return usable
+    kept = moments[np.linspace(0, len(moments) - 1, RIG_MAX_MOMENTS).round().astype(int)]
+    return usable[np.isin(stamps, kept)]
+
+
+def _scale_to_all_sightings(
+    det: dict[str, list[Any]],
+    usable: np.ndarray,
+    subset: np.ndarray,
+    estimates: dict[str, MountEstimate],
+    figures: dict[str, Any],
+) -> None:
+    """A mount solved from a subset of the moments has the covariance of that subset: scale it by the share of the
+    camera's sightings the subset holds (information grows with the number of sightings), in place."""
+    cams = np.asarray([str(c) for c in det[CAMERA]], dtype=object)
+    shares = {}
+    for cam, est in estimates.items():
+        n_all = int((cams[usable] == cam).sum())
+        n_sub = int((cams[subset] == cam).sum())
+        if est.covariance is not None and n_all > 0 and n_sub > 0:
+            est.covariance = est.covariance * (n_sub / n_all)
+            shares[cam] = round(n_sub / n_all, 4)
+    figures["moments_used"] = RIG_MAX_MOMENTS
+    figures["sighting_share"] = shares
 
 
 def _initial_rig(
