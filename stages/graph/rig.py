@@ -452,16 +452,18 @@ def refine_mounts(
         "error_before": float(graph.error(values)),
         "error_after": float(graph.error(result)),
     }
+    from stages.graph.marginals import key_dims, tree_marginals  # the project's elimination and its fallback
+
+    covariances: dict[int, FloatArray] = {}
     try:
-        marginals = gtsam.Marginals(graph, result)
+        covariances = tree_marginals(graph.linearize(result), key_dims(result), list(keys.values()), last=last)
     except RuntimeError as err:
-        marginals = None
-        figures["marginals"] = f"not computed: {str(err).splitlines()[0]}"
+        figures["marginals"] = "not computed: " + " ".join(str(err).split()).split(". ")[0]
     for cam, key in keys.items():
         est = estimates[cam]
         est.pose = result.atPose3(key)
-        if marginals is not None:
-            est.covariance = np.asarray(marginals.marginalCovariance(key), dtype=float)
+        if key in covariances:
+            est.covariance = np.asarray(covariances[key], dtype=float)
     return figures
 
 
