@@ -18,17 +18,29 @@ with ``g_c = A_c V`` and ``w = W V``::
     R_c ← R_c + p E⁻¹ (wᵀ R_c − g_cᵀ)                  (R_c = P U_c, so U_cᵀ Σ_F⁻¹ U_c = U_cᵀ R_c)
 
 The implementation (:func:`select_information`) evaluates the same gain in the equivalent
-mutual-information form (``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ``) with one tracked covariance:
-``Σ`` only at the rows the gains read (the exact Schur complement of ``Λ₀`` onto the candidates' and
-focused columns plus the picks), one sparse solve per step from the last factorisation plus a
-Woodbury window over the picks since (a second one when more than 128 columns are focused), and
-``O(N_candidates · m² · d)`` small dense work. When the candidates' columns cover most of the state, the
-capacitance form instead (two solves per step with the factor of the whole compact graph, whose size
-does not depend on the candidates). No dense ``n × n`` matrix is ever formed.
+mutual-information form, ``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ`` with ``Σ_{·|F} = Λ_UU⁻¹`` on the
+unfocused variables ``U`` (the covariance of the others given the focused ones)::
+
+    gain_c = ½ log det(I + M_c) − ½ log det(I + K_c),   M_c = A_c Λ_S⁻¹ A_cᵀ,   K_c = A_c Λ_S,UU⁻¹ A_cᵀ
+
+Both are the same kind of quantity of two information matrices, ``Λ_S`` and its unfocused block ``Λ_S,UU``,
+and both are kept the same way (:class:`_Side`): computed once from ``Λ₀``'s clique covariances, then
+downdated per pick (``M_c −= g_c T⁻¹ g_cᵀ``, ``g_c = A_c Λ_S⁻¹ A_jᵀ``, ``T = I + A_j Λ_S⁻¹ A_jᵀ``; ``K_c`` the
+same with ``Λ_S,UU``), each side with its own tracker: one sparse solve per step from the last factorisation
+plus a correction over the picks since, refined against the picks' information when that correction cancels,
+and ``O(N_candidates · m² · d)`` small dense work. The tracked ``Σ`` is kept only at the rows the gains read
+(the Schur complement of ``Λ₀`` onto the candidates' columns, a Woodbury window) or, the default, not at all
+(the capacitance form: two solves per step with the factor of the whole compact graph). No dense ``n × n``
+matrix is ever formed, and nothing of the size of the focus is tracked.
+
+``K_c`` used to be ``M_c − U_cᵀ Σ_F⁻¹ U_c`` from the one tracked ``Σ``; when the focused variables are known
+only through the weak prior that difference cancels ~9 digits (a camera-only rig hung on a surveyed tag:
+negative ``K_c``, the running entropy 70 nats off, "Matrix is not positive definite"). Solving with
+``Λ_S,UU`` itself, nothing cancels.
 
 When every candidate touches only focused variables (a pose graph's loop closures with the poses
-focused), ``Σ_{·|F} A_cᵀ = 0`` so ``K_c = 0`` and the gain is ``½ log det(I + A_c Σ A_cᵀ)``: nothing of
-``Σ_F`` is needed, and the focused entropy comes from two sparse log-determinants,
+focused), ``Σ_{·|F} A_cᵀ = 0`` so ``K_c = 0`` and the gain is ``½ log det(I + A_c Σ A_cᵀ)``: only ``Λ_S`` is
+tracked, and the focused entropy comes from two sparse log-determinants,
 ``log det Σ_F = log det Λ_UU − log det Λ`` (``U`` the other variables). That is the path for focusing
 thousands of pose columns, where a dense ``Σ_F`` would not fit.
 
@@ -102,8 +114,6 @@ class _Problem:
     prior: sp.csc_matrix
     info0: sp.csc_matrix
     landmark_vars: list[int]
-    full_focus: bool = False
-    """Every candidate touches only focused variables: ``K_c = 0``, no ``Σ_F`` tracked (``focused`` is then empty)."""
 
 
 def _compact_problem(
@@ -202,14 +212,22 @@ def focused_entropy(
     factors: Sequence[int],
     focused: Sequence[int],
     landmark_prior_sigma: float = 100.0,
+    base: Sequence[int] | None = None,
 ) -> float:
-    """Entropy (nats) of the focused variables given the factors (plus the weak landmark prior)."""
-    prob = _compact_problem(system, factors, [], focused, landmark_prior_sigma)
+    """Entropy (nats) of the focused variables given the factors, plus the weak prior of ``base`` (:func:`weak_prior`:
+    every landmark, and the first pose of a group that ``base`` leaves without an anchor; default: of ``factors``).
+
+    A selection's entropy after its picks takes ``base`` = the factors always kept, as its gains do: with the default,
+    a pick that ties a rig hung on a surveyed tag to a landmark drops the first pose's weak prior, and on TagSLAM's
+    example_1 the greedy's running entropy differed from this one by 0.54 nats with every gain exact."""
+    base = list(factors) if base is None else list(base)
+    kept = set(base)
+    prob = _compact_problem(system, base, [f for f in factors if f not in kept], focused, landmark_prior_sigma)
+    info = sp.csc_matrix(prob.info0 + prob.system.information(prob.candidates)) if prob.candidates else prob.info0
     fcols = prob.system.columns(prob.focused)
     if len(fcols) > DENSE_FOCUS_MAX:
-        return _sparse_focused_entropy(prob.info0, fcols)
-    solver = SPDSolver(prob.info0)
-    _, SF = _focused_cov(solver, prob.system.dim, fcols, keep=False)
+        return _sparse_focused_entropy(info, fcols)
+    _, SF = _focused_cov(SPDSolver(info), prob.system.dim, fcols, keep=False)
     return entropy_from_logdet(logdet_spd(SF), len(fcols))
 
 
@@ -289,7 +307,7 @@ class TrackerOptions:
     """``window``: a sequential Woodbury window stored at the tracked rows, on the Schur-reduced system (cost grows
     with the candidates' rows); ``capacitance``: nothing stored at the tracked rows, two solves per step with the
     last factor of the whole compact graph (cost fixed by the graph; see :class:`_CapacitanceTracker`); ``auto``:
-    ``capacitance`` once the candidates' and focused columns exceed ``capacitance_above`` of the state, else
+    ``capacitance`` once the candidates' columns exceed ``capacitance_above`` of the state, else
     ``window``.
 
     Default ``capacitance``: its time per step is flat in the number of candidates (issue 6's target: 1.20-1.29x
@@ -300,11 +318,8 @@ class TrackerOptions:
     """``auto``: the fraction of the state above which the capacitance tracker is used. Measured on the benchmark
     graph (all landmarks focused, 100 steps): window 0.64 ms/step at 9% of the state and 2.5–2.7 at 77%, 3.0–3.5
     on the whole graph; capacitance 2.3 and 2.7–3.0 ms/step (flat): they tie near 75%."""
-    track_focused_max: int = 128
-    """``window``: up to this many focused columns, ``Σ Wᵀ`` is kept at the tracked rows instead of solved for
-    per step."""
     reduce_below: float = 1.0
-    """``window``: track the Schur complement of ``Λ₀`` onto the candidates' and focused columns when they are
+    """``window``: track the Schur complement of ``Λ₀`` onto the candidates' columns when they are
     fewer than this fraction of the state (measured: worth it even at 77% of the state, 4.9 vs 7.2 ms/step)."""
     refactor_on_first_observation: bool = False
     """``capacitance``: also refactorise right after a pick that observes a landmark that ``Λ_last`` holds only
@@ -348,8 +363,18 @@ class _Refactorising:
     def _factorise(self) -> None:
         tf = time.perf_counter()
         self.solver = SPDSolver(self.info)
+        self.diag = self.info.diagonal().copy()  # of Λ_S: the capacitance tracker adds its window's picks
+        self._scaled_norm: float | None = None
         self.t_factor = time.perf_counter() - tf
         self.factor_s += self.t_factor
+
+    @property
+    def scaled_norm(self) -> float:
+        """``‖D |Λ_last| D‖∞`` with ``D = diag(Λ_last)^-½``, for backward errors (:func:`_backward_error`)."""
+        if self._scaled_norm is None:
+            d = 1.0 / np.sqrt(self.info.diagonal())
+            self._scaled_norm = float(np.max(d * (abs(self.info) @ d))) if len(d) else 0.0
+        return self._scaled_norm
 
     def _window_full(self) -> bool:
         return len(self.window) == self.cap or (self.fixed is None and self.t_window > self.t_factor)
@@ -369,7 +394,7 @@ class _Tracker(_Refactorising):
     ``Σ_S = Λ_S⁻¹`` with ``Λ_S = Λ_last + Σ_{i in window} A_iᵀ A_i``: a sparse factorisation of
     ``Λ_last`` (the information at the last refactorisation) plus the sequential Woodbury correction
     ``Σ_S = Σ_last − Σ_i V_i T_i⁻¹ V_iᵀ`` over the picks since, ``V_i = Σ_{i-1} A_iᵀ``. Only the rows
-    that the gains read (the candidates' and the focused columns) of each ``V_i`` are stored, and the
+    that the gains read (the candidates' columns) of each ``V_i`` are stored, and the
     correction of ``Σ_S b`` needs ``V_iᵀ b``, i.e. the stored rows at the nonzeros of ``b``. For a
     window cost growing linearly with its length, the adaptive refactorisation schedule has the least
     total cost.
@@ -425,11 +450,10 @@ class _Tracker(_Refactorising):
 class _CapacitanceTracker(_Refactorising):
     """Solves with ``Λ_S = Λ_last + A_Wᵀ A_W`` (the picks ``W`` since the last factorisation).
 
-    Capacitance form: ``Σ_S b = Σ_last (b − A_Wᵀ C⁻¹ A_W Σ_last b)``, ``C = I + A_W Σ_last A_Wᵀ``
-    (``k m × k m``). ``C`` is kept as its Cholesky factor, bordered by each pick: with
-    ``u = A_W Σ_last A_jᵀ`` and ``l = L⁻¹ u`` the new row is ``[lᵀ, chol(T_j)]``, where
-    ``T_j = I + A_j Σ_last A_jᵀ − lᵀ l = I + A_j Σ_S A_jᵀ`` is the pick's own ``T``. Stored per pick: its
-    columns, its Jacobian and ``W Σ_last A_jᵀ``; nothing of the size of the state or of the candidates.
+    Capacitance form: ``Σ_S b = Σ_last (b − A_Wᵀ C⁻¹ A_W Σ_last b)``, ``C = I + A_W Σ_last A_Wᵀ`` (``k m × k m``).
+    ``C`` is kept as its Cholesky factor, bordered by each pick: with ``u = A_W Σ_last A_jᵀ`` and ``l = L⁻¹ u`` the
+    new row is ``[lᵀ, chol(T_j)]``, where ``T_j = I + A_j Σ_last A_jᵀ − lᵀ l = I + A_j Σ_S A_jᵀ`` is the pick's own
+    ``T``. Stored per pick: its columns and its Jacobian; nothing of the size of the state or of the candidates.
     """
 
     def __init__(
@@ -437,7 +461,6 @@ class _CapacitanceTracker(_Refactorising):
         info: sp.csc_matrix,
         m: int,
         d: int,
-        fcols: IntArray,
         add_info: Callable[[list[int]], SparseMatrix],
         refactor_every: int | None,
         weak: npt.NDArray[np.bool_] | None,
@@ -448,7 +471,6 @@ class _CapacitanceTracker(_Refactorising):
         self.refactor_on_first_observation = refactor_on_first_observation
         self.cols = np.zeros((self.cap, d), dtype=np.int64)
         self.A = np.zeros((self.cap, m, d))
-        self.WX = np.zeros((len(fcols), self.cap * m))  # W Σ_last A_iᵀ
         self.L = np.zeros((self.cap * m, self.cap * m))  # Cholesky factor of C
         self.weak = weak  # per compact column: only the weak prior in Λ_last
         self.first_observation_refactorisations = 0
@@ -475,14 +497,15 @@ class _CapacitanceTracker(_Refactorising):
         vals = np.matmul(np.swapaxes(self.A[:k], 1, 2), y.reshape(k, self.m, y.shape[1]))
         np.add.at(rhs, self.cols[:k].ravel(), vals.reshape(-1, y.shape[1]))
 
-    def add(self, j: int, cols: IntArray, A: FloatArray, wx: FloatArray, lt: FloatArray, T: FloatArray) -> bool:
+    def add(self, j: int, cols: IntArray, A: FloatArray, lt: FloatArray, T: FloatArray) -> bool:
+        """Add pick ``j`` (``lt = (L⁻¹ A_W Σ_last A_jᵀ)ᵀ``, ``T ⪰ I`` its own ``T``); True if refactorised."""
         k = len(self.window)
         km, m = k * self.m, self.m
         self.L[km : km + m, :km] = lt
-        self.L[km : km + m, km : km + m] = np.linalg.cholesky(0.5 * (T + T.T))
+        self.L[km : km + m, km : km + m] = np.linalg.cholesky(T)  # T ⪰ I (clipped, :func:`_at_least_identity`)
         self.cols[k] = cols
         self.A[k] = A
-        self.WX[:, km : km + m] = wx
+        np.add.at(self.diag, cols, (A**2).sum(axis=0))
         self.window.append(j)
         first = False
         if self.weak is not None:
@@ -544,24 +567,19 @@ def _slogdet_eye_plus_sym(U: FloatArray, m: int) -> tuple[FloatArray, FloatArray
     return np.linalg.slogdet(full)
 
 
-def _inv_at_least_identity(A: FloatArray) -> FloatArray:
-    """Inverse of ``T = I + A Σ Aᵀ`` or ``E = I + A Σ_{·|F} Aᵀ``, both ``⪰ I`` exactly.
+def _at_least_identity(A: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """``(S, S⁻¹, L, cond S)`` for ``S = I + A Λ⁻¹ Aᵀ`` (``T`` or ``E``), ``⪰ I`` exactly, with ``L Lᵀ = S⁻¹``.
 
-    ``E = T − wᵀ Σ_F⁻¹ w`` is a difference of large, nearly equal matrices when the pick observes a landmark known
-    only through the weak prior (3D tags, σ 100 m: ``T`` ~ 1e8); the rounding can leave an eigenvalue below 1 or even
-    negative. Then the eigenvalues are clipped to 1 (the constraint the exact matrix meets) before inverting;
-    otherwise the plain inverse, as before."""
-    S = 0.5 * (A + A.T)
-    if np.linalg.eigvalsh(S)[0] >= 1.0 - 1e-9:
-        return _sym_inv(S)
-    lam, V = np.linalg.eigh(S)
-    inv = (V / np.maximum(lam, 1.0)) @ V.T
-    return 0.5 * (inv + inv.T)
-
-
-def _sym_inv(A: FloatArray) -> FloatArray:
-    inv = np.linalg.inv(0.5 * (A + A.T))
-    return 0.5 * (inv + inv.T)
+    From one eigen-decomposition whose eigenvalues are clipped at 1 (the bound the exact matrix meets): the rounding
+    of a matrix with eigenvalues from 1 to ~1e10 (a pick that pins a pose or a landmark known only through a weak
+    prior) can leave one below 1; and ``S⁻¹``'s smallest eigenvalues (``1/λ_max``) can be below its rounding, so no
+    Cholesky factor of the inverse is taken (it stopped the stage: "Matrix is not positive definite")."""
+    lam, Q = np.linalg.eigh(0.5 * (A + A.T))
+    lam = np.maximum(lam, 1.0)
+    S = (Q * lam) @ Q.T
+    L = Q / np.sqrt(lam)
+    inv = L @ L.T
+    return 0.5 * (S + S.T), 0.5 * (inv + inv.T), L, float(lam[-1] / lam[0])
 
 
 @dataclass
@@ -577,36 +595,31 @@ class _Candidates:
     width: IntArray
     """(N,) columns actually used."""
     rows: IntArray
-    """The rows the gains read: every candidate's columns and the focused ones."""
+    """The rows the gains read: every candidate's columns."""
     pos: IntArray
     """(N, d) positions of ``cols`` in ``rows`` (padding: 0, where the Jacobian is zero)."""
-    fpos: IntArray
-    """Positions of the focused columns in ``rows``."""
 
 
-def _candidates(sub: LinearSystem, cidx: list[int], fcols: IntArray) -> _Candidates:
+def _candidates(sub: LinearSystem, cidx: list[int]) -> _Candidates:
     Ac, cols = _padded_candidates(sub, cidx)
     d = Ac.shape[2]
     width = np.array([len(sub.factor_columns(c)) for c in cidx], dtype=np.int64)
-    rows = np.unique(np.concatenate([cols.ravel(), fcols]))
+    rows = np.unique(cols.ravel())
     pos_of = np.full(sub.dim, -1, dtype=np.int64)
     pos_of[rows] = np.arange(len(rows))
     pos = np.where(np.arange(d)[None, :] < width[:, None], pos_of[cols], 0)
-    return _Candidates(cidx, Ac, cols, width, rows, pos, pos_of[fcols])
+    return _Candidates(cidx, Ac, cols, width, rows, pos)
 
 
 @dataclass
 class _Gains:
-    """What the gains read, kept current as picks join: ``M_c`` and ``K_c`` (upper triangles), ``Σ_F`` and
-    ``P = Σ_F⁻¹``, and the operator ``B`` that applies every ``A_c`` at once."""
+    """What the gains read, kept current as picks join: the upper triangles of ``M_c = A_c Σ_S A_cᵀ`` and of
+    ``K_c = A_c Σ_{·|F} A_cᵀ`` (``Σ_{·|F} = Λ_UU⁻¹`` on the unfocused columns ``U``, zero elsewhere)."""
 
     Mu: FloatArray
-    """(m(m+1)/2, N) upper triangles of ``M_c = A_c Σ A_cᵀ``."""
+    """(m(m+1)/2, N) upper triangles of ``M_c``."""
     Ku: FloatArray
-    """The same of ``K_c = A_c Σ_{·|F} A_cᵀ``."""
-    SF: FloatArray
-    P: FloatArray
-    B: sp.csr_matrix
+    """The same of ``K_c`` (zero when every candidate is inside the focus)."""
     pairs: list[tuple[int, int]]
     m: int
     picked: npt.NDArray[np.bool_]
@@ -615,7 +628,7 @@ class _Gains:
 def _solve_accuracy(info: sp.csc_matrix, solver: SPDSolver) -> float:
     """The relative forward error of a solve with ``info`` (max-norm), estimated from one probe: ``x = Λ⁻¹ b``, then
     ``Λ⁻¹ (b − Λ x)``, over ``|x|``. Covariances computed from ``info`` carry absolute errors of this times their
-    size; the tracked ``M_c``, ``K_c``, ``Σ_F`` keep those absolute errors while picks shrink them."""
+    size; the tracked ``M_c``, ``K_c`` keep those absolute errors while picks shrink them."""
     n = int(info.shape[0])
     if n == 0:
         return float(np.finfo(float).eps)
@@ -625,35 +638,35 @@ def _solve_accuracy(info: sp.csc_matrix, solver: SPDSolver) -> float:
     return max(float(np.max(np.abs(e)) / max(float(np.max(np.abs(x))), 1e-300)), float(np.finfo(float).eps))
 
 
-RESET_FRACTION = 0.01
+RESET_FRACTION = 0.001
 """A recomputation also refreshes the candidates whose bound is above this fraction of the tolerance, so that they
-do not cause the next one soon after."""
+do not cause the next one soon after. Its cost hardly depends on how many (a Schur complement along the whole
+recording, then a little per candidate): on the benchmark graph (K=1000) 0.001 needed 23 recomputations where 0.01
+needed 30."""
 
 
 @dataclass
 class _Precision:
-    """When the tracked ``M_c``, ``K_c`` and ``Σ_F`` have lost too many digits to the downdates.
+    """When the tracked ``M_c`` and ``K_c`` have lost too many digits to the downdates.
 
-    Each is a covariance computed from an information matrix (``Λ₀``, or ``Λ_S`` at a recomputation) with a relative
-    error ``delta`` (:func:`_solve_accuracy`, about ``cond · ε``), then only downdated (``M_c −= g T⁻¹ gᵀ``, ...): its
-    absolute error stays ``delta × its size then`` while the picks shrink its value. A gain reads
-    ``log det(I + M_c)``, so its error is at most about ``½ m delta · peak / (1 + now)`` over the diagonal (for
-    ``M_c`` and ``K_c``); ``Σ_F`` is inverted (``P``), so its error is relative, ``delta · peak / now``.
+    Each is a covariance computed from an information matrix (``Λ₀``, or ``Λ_S`` at a recomputation; ``Λ_UU`` for
+    ``K_c``) with a relative error ``delta`` (:func:`_solve_accuracy`, about ``cond · ε``), then only downdated
+    (``M_c −= g T⁻¹ gᵀ``): its absolute error is ``delta × its size then`` plus what each downdate adds
+    (:meth:`downdated`), while the picks shrink its value. A gain reads ``log det(I + M_c)``, so its error is at most
+    about ``½ m err / (1 + now)`` over the diagonal, for ``M_c`` and ``K_c``.
 
-    The greedy recomputes, from the information of the picks so far (:func:`_exact_gains`), the candidates whose bound
+    The greedy recomputes, from the information of the picks so far (:func:`_exact_gram`), the candidates whose bound
     exceeds ``tol`` whenever the pick is in doubt (its own bound above ``tol``, or another candidate within the
-    bounds), and ``Σ_F`` before ``P`` is re-inverted from it. On camera-only 3D rigs (6-dof tags to millimetres,
-    poses tied only by a weak motion prior, a weak landmark prior) ``delta`` is ~1e-9 and ``M_c`` falls from ~1e10 to
-    ~10 when a tag is first measured: the downdated gains were then wrong by more than they were worth (3.5 nats of
-    drift after 60 picks on a 300-pose rig, picks other than Alg. 1's from the 13th). On well-conditioned graphs
-    (the planar sample: ``delta`` ~1e-13) the bounds stay far below ``tol`` and nothing is recomputed."""
+    bounds). On camera-only 3D rigs (6-dof tags to millimetres, poses tied only by a weak motion prior, a weak
+    landmark prior) ``delta`` is ~1e-9 and ``M_c`` falls from ~1e10 to ~10 when a tag is first measured: the
+    downdated gains were then wrong by more than they were worth (3.5 nats of drift after 60 picks on a 300-pose
+    rig, picks other than Alg. 1's from the 13th). On the planar sample (``delta`` ~1e-13) three recomputations at
+    K=90 (the running entropy within 8e-5 nats of the exact one; 1.1e-3 before the downdates' rounding was counted)."""
 
-    delta: FloatArray
-    """Per candidate, the accuracy of the information its ``M_c``, ``K_c`` were last computed from."""
-    peak_m: FloatArray
-    peak_k: FloatArray
-    delta_f: float
-    peak_f: FloatArray
+    err: list[FloatArray]
+    """Per side (``M_c``, then ``K_c``), ``(m, N)``: a bound on the absolute error of each candidate's diagonal."""
+    delta: list[float]
+    """Per side, the accuracy of the information last factorised (``Λ₀``, or ``Λ_S`` at the last recomputation)."""
     diag: list[int]
     tol: float = 1e-4
     recomputations: int = 0
@@ -661,42 +674,38 @@ class _Precision:
     """Candidates recomputed, summed over the recomputations."""
 
     @classmethod
-    def of(cls, g: _Gains, delta: float, tol: float = 1e-4) -> _Precision:
-        diag = [k for k, (a, b) in enumerate(g.pairs) if a == b]
-        n = g.Mu.shape[1]
-        return cls(np.full(n, delta), g.Mu[diag].copy(), g.Ku[diag].copy(), delta, np.diag(g.SF).copy(), diag, tol)
+    def of(cls, grams: list[FloatArray], deltas: list[float], pairs: list[tuple[int, int]], tol: float) -> _Precision:
+        diag = [k for k, (a, b) in enumerate(pairs) if a == b]
+        return cls([d * np.abs(G[diag]) for G, d in zip(grams, deltas, strict=True)], list(deltas), diag, tol)
 
-    def bounds(self, g: _Gains) -> FloatArray:
-        """Per candidate, a bound (nats) on its gain's error (``|Δ log det(I + M)| ≤ tr((I + M)⁻¹ ΔM)``)."""
-        d = self.diag
-        em = np.max(self.peak_m / (1.0 + np.abs(g.Mu[d])), axis=0)
-        ek = np.max(self.peak_k / (1.0 + np.abs(g.Ku[d])), axis=0)
-        return 0.5 * g.m * self.delta * (em + ek)
+    def bounds(self, grams: list[FloatArray], m: int) -> list[FloatArray]:
+        """Per side, per candidate, a bound (nats) on its share of the gain's error (``|Δ log det(I + M)| ≤
+        tr((I + M)⁻¹ ΔM)``); the gain's error is at most their sum."""
+        return [
+            0.5 * m * np.max(err / (1.0 + np.abs(G[self.diag])), axis=0) for G, err in zip(grams, self.err, strict=True)
+        ]
 
-    def in_doubt(self, gain: FloatArray, j: int, g: _Gains) -> npt.NDArray[np.bool_] | None:
-        """The candidates to recompute when the pick ``j`` could be wrong or its gain off by more than ``tol`` (its
-        bound above ``tol``, or another candidate's gain could exceed it within the bounds), else None."""
-        e = self.bounds(g)
-        e[g.picked] = 0.0
+    def downdated(self, side: int, dm: FloatArray, cond: float) -> None:
+        """A pick's downdate of one side (``dm``: the diagonals of ``g_c T⁻¹ g_cᵀ``, ``(m, N)``) added its rounding:
+        the pick's solve carries a relative error ``delta`` and the downdate reads it through ``T⁻¹``, which amplifies
+        an error along ``T``'s small eigenvalues by up to ``sqrt(cond T)`` (Cauchy–Schwarz on ``[[M_c, g_c],
+        [g_cᵀ, T − I]] ⪰ 0``). Without this term, a pick that pinned a pose known to 100 m left errors of ~1e-7 of
+        its neighbours' former ``M_c`` (``cond T`` ~1e7) that the bound put 2,000x lower."""
+        self.err[side] += (2.0 * self.delta[side] * np.sqrt(cond)) * np.abs(dm)
+
+    def in_doubt(self, gain: FloatArray, j: int, e: FloatArray, picked: npt.NDArray[np.bool_]) -> bool:
+        """The pick ``j`` could be wrong or its gain off by more than ``tol`` given the bounds ``e``: its own bound is
+        above ``tol``, or another candidate's gain could exceed it within the bounds."""
+        e = e.copy()
+        e[picked] = 0.0
         upper = gain + e
         upper[j] = -np.inf
-        if e[j] <= self.tol and not upper.max() > gain[j] - e[j] + self.tol:
-            return None
-        return e > self.tol * RESET_FRACTION
+        return bool(e[j] > self.tol or upper.max() > gain[j] - e[j] + self.tol)
 
-    def focused_lost(self, g: _Gains) -> bool:
-        """``Σ_F`` has lost more than ``tol`` relatively (it is about to be inverted for ``P``)."""
-        sf = np.diag(g.SF)
-        return bool(sf.size and float(np.max(self.delta_f * self.peak_f / np.maximum(sf, 1e-300))) > self.tol)
-
-    def reset(self, g: _Gains, which: IntArray, delta: float) -> None:
-        """``which`` candidates and ``Σ_F`` were just recomputed from an information of accuracy ``delta``."""
-        self.delta[which] = delta
-        self.peak_m[:, which] = g.Mu[self.diag][:, which]
-        self.peak_k[:, which] = g.Ku[self.diag][:, which]
-        self.delta_f, self.peak_f = delta, np.diag(g.SF).copy()
-        self.recomputations += 1
-        self.recomputed += len(which)
+    def reset(self, side: int, gram: FloatArray, which: IntArray, delta: float) -> None:
+        """``which`` candidates of one side were just recomputed from an information of accuracy ``delta``."""
+        self.err[side][:, which] = delta * np.abs(gram[self.diag][:, which])
+        self.delta[side] = delta
 
 
 SCHUR_MAX_COLUMNS = 4096
@@ -728,17 +737,15 @@ def _chain_separator(info: sp.csc_matrix, sub: LinearSystem, focused: Sequence[i
 
 
 def _schur_clique_gains(
-    info: sp.csc_matrix, sub: LinearSystem, separator: list[int], fcols: IntArray, c: _Candidates, which: IntArray
-) -> tuple[FloatArray, FloatArray, Iterator[tuple[IntArray, FloatArray, FloatArray]]]:
-    """``Σ[:, F]``, ``Σ_F`` and, for the ``which`` candidates, ``M_c = A_c Σ A_cᵀ`` and ``U_c = W Σ A_cᵀ``, all from
-    one Schur complement of ``info`` onto the ``separator`` (which holds the focused variables).
+    info: sp.csc_matrix, sub: LinearSystem, separator: list[int], c: _Candidates, which: IntArray
+) -> Iterator[tuple[IntArray, FloatArray]]:
+    """``M_c = A_c Σ A_cᵀ`` (``Σ = info⁻¹``) of the ``which`` candidates, chunk by chunk, from one Schur complement of
+    ``info`` onto the ``separator``.
 
     With ``info = [[Λ_rr, Λ_rs], [Λ_sr, Λ_ss]]``, ``X = Λ_rr⁻¹ Λ_rs`` (one solve per separator column) and
     ``C = (Λ_ss − Λ_sr X)⁻¹``: ``Σ_ss = C``, ``Σ_rs = −X C``, ``Σ_rr = Λ_rr⁻¹ + X C Xᵀ``, and the blocks of ``Λ_rr⁻¹``
     come from a block-tridiagonal recursion along the paths of the rest. Linear in the length of the recording where
-    ``m`` solves per candidate are quadratic; ``M_c``, ``U_c`` and ``Σ_F`` read the same ``C``, so the differences
-    the gains take (``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c``) cancel as they do exactly (a candidate observing a landmark known
-    only through the weak prior: ``M_c`` ~1e10, ``K_c`` ~10)."""
+    ``m`` solves per candidate are quadratic."""
     n = sub.dim
     is_s = np.zeros(len(sub.variables), dtype=bool)
     is_s[separator] = True
@@ -759,16 +766,9 @@ def _schur_clique_gains(
         Xj = solver_r.solve(B)
         Xj += solver_r.solve(B - L_rr @ Xj)  # one step of iterative refinement
         X[:, j : j + SCHUR_SOLVE_COLUMNS] = Xj
-    C = np.linalg.inv(L_ss - np.asarray(L_rs.T @ X))
+    C = _scaled_spd_inverse(L_ss - np.asarray(L_rs.T @ X))
     del L_rs
-    C = 0.5 * (C + C.T)
     XC = _RowProduct(X, C)  # −Σ_rs, by row blocks: only the rows a chunk reads are held
-    fs = s_pos[fcols]
-    XF = np.empty((n, len(fcols)))
-    XF[s_cols] = C[:, fs]
-    for i in range(len(XC.bounds) - 1):
-        XF[r_cols[XC.bounds[i] : XC.bounds[i + 1]]] = -XC.block(i)[:, fs]
-    SF = C[np.ix_(fs, fs)]
     # Λ_rr⁻¹ at the rest-rest pairs of the candidates, by variable blocks, read chunk by chunk
     r_var = np.full(len(sub.variables), -1, dtype=np.int64)
     r_var[rest] = np.arange(len(rest))
@@ -784,14 +784,22 @@ def _schur_clique_gains(
     variables = {int(r_var[v]) for i in which for v in sub.factors[c.index[i]].variables if r_var[v] >= 0}
     pairs = ((u, v) for i in which for u, v, _, _ in own(int(i)))
     blocks = CovarianceBlocks(L_rr, r_off, variables, pairs, solver=solver_r) if variables else None
+    for start in range(0, len(which), SCHUR_CHUNK):
+        k = which[start : start + SCHUR_CHUNK]
+        per_cand = [own(int(i)) for i in k]
+        yield k, _schur_chunk(c, k, per_cand, blocks, s_pos, r_pos, C, X, XC)
 
-    def chunks() -> Iterator[tuple[IntArray, FloatArray, FloatArray]]:
-        for start in range(0, len(which), SCHUR_CHUNK):
-            k = which[start : start + SCHUR_CHUNK]
-            per_cand = [own(int(i)) for i in k]
-            yield k, *_schur_chunk(c, k, per_cand, blocks, s_pos, r_pos, C, X, XC, XF)
 
-    return XF, SF, chunks()
+def _scaled_spd_inverse(A: FloatArray) -> FloatArray:
+    """Inverse of a small dense SPD matrix through its Jacobi scaling ``D A D`` (``D = diag(A)^-½``): the same
+    inverse in exact arithmetic, and an accurate one when the variables' scales differ by many orders (a tag surveyed
+    to 1e-6 m beside tags known to 100 m: ``A``'s diagonal spans 1e16, its scaled condition ~10)."""
+    d = np.sqrt(np.diag(A))
+    if A.size == 0 or not np.all(d > 0):
+        inv = np.linalg.inv(A) if A.size else A.copy()
+    else:
+        inv = np.linalg.inv(A / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
+    return 0.5 * (inv + inv.T)
 
 
 class _RowProduct:
@@ -846,10 +854,9 @@ def _schur_chunk(
     C: FloatArray,
     X: FloatArray,
     XC: _RowProduct,
-    XF: FloatArray,
-) -> tuple[FloatArray, FloatArray]:
-    """``M_c`` and ``U_c`` of the candidates ``k`` from the Schur pieces of :func:`_schur_clique_gains`: ``Σ`` at
-    their columns, separator-separator ``C``, rest-separator ``−X C``, rest-rest ``Λ_rr⁻¹`` blocks plus ``X C Xᵀ``."""
+) -> FloatArray:
+    """``M_c`` of the candidates ``k`` from the Schur pieces of :func:`_schur_clique_gains`: ``Σ`` at their columns,
+    separator-separator ``C``, rest-separator ``−X C``, rest-rest ``Λ_rr⁻¹`` blocks plus ``X C Xᵀ``."""
     cols, width, Ac = c.cols[k], c.width[k], c.Ac[k]
     nk, d = cols.shape
     valid = np.arange(d)[None, :] < width[:, None]
@@ -874,34 +881,32 @@ def _schur_chunk(
             assert blocks is not None
             blk = blocks[(u, v)]
             Sig[q, ou : ou + blk.shape[0], ov : ov + blk.shape[1]] += blk
-    M = Ac @ Sig @ np.swapaxes(Ac, 1, 2)
-    U = np.einsum("ndf,nad->nfa", XF[cols], Ac)
-    return M, U
+    return np.asarray(Ac @ Sig @ np.swapaxes(Ac, 1, 2))
 
 
-def _exact_gains(
-    prob: _Problem, c: _Candidates, g: _Gains, info: sp.csc_matrix, solver: SPDSolver, which: IntArray
-) -> tuple[FloatArray, float]:
-    """Recompute ``Σ_F``, ``P`` and the ``which`` candidates' ``M_c``, ``K_c`` in ``g`` from ``info`` (``Λ₀`` plus
-    the picks, factorised by ``solver``); returns ``Σ[:, F]`` and the solve's accuracy.
+def _exact_gram(
+    prob: _Problem, c: _Candidates, gram: FloatArray, info: sp.csc_matrix, solver: SPDSolver, which: IntArray
+) -> float:
+    """Recompute the ``which`` candidates' ``A_c info⁻¹ A_cᵀ`` into ``gram`` from ``info`` (``Λ₀`` plus the picks, of
+    ``prob``'s system, factorised by ``solver``); returns the solve's accuracy.
 
-    Through the Schur complement onto the landmarks, the focused variables and the hubs
-    (:func:`_schur_clique_gains`, linear in the recording's length) when that separator is small; else ``m`` solves
-    per candidate."""
+    Through the Schur complement onto the landmarks and the hubs (:func:`_schur_clique_gains`, linear in the
+    recording's length) when that separator is small; through the blocks of ``info⁻¹`` (:class:`CovarianceBlocks`)
+    when there is none (the rest is a chain); else ``m`` solves per candidate."""
     n = prob.system.dim
-    fcols = prob.system.columns(prob.focused)
-    separator = [] if prob.full_focus else _chain_separator(info, prob.system, prob.focused)
+    separator = _chain_separator(info, prob.system, [])
     if separator and len(prob.system.columns(separator)) <= SCHUR_MAX_COLUMNS:
-        XF, SF, chunks = _schur_clique_gains(info, prob.system, separator, fcols, c, which)
-        g.SF, g.P = SF, _sym_inv(SF)
-        for k, M, U in chunks:
-            _store_gains(g, k, M, U, prob.full_focus)
-        return XF, _solve_accuracy(info, solver)
-    if prob.full_focus:
-        XF, SF = np.zeros((n, 0)), np.zeros((0, 0))
-    else:
-        XF, SF = _focused_cov(solver, n, fcols)
-    g.SF, g.P = SF, _sym_inv(SF)
+        for k, M in _schur_clique_gains(info, prob.system, separator, c, which):
+            _store_gram(gram, k, M)
+        return _solve_accuracy(info, solver)
+    if not separator:
+        idx = [c.index[int(i)] for i in which]
+        blocks = _clique_blocks(info, prob.system, idx, solver)
+        for s in range(0, len(which), GAIN_CHUNK):
+            k = which[s : s + GAIN_CHUNK]
+            Sig_c = _fill_cliques(blocks, prob.system, [c.index[int(i)] for i in k], c.Ac.shape[2])
+            _store_gram(gram, k, c.Ac[k] @ Sig_c @ np.swapaxes(c.Ac[k], 1, 2))
+        return _solve_accuracy(info, solver)
     for s in range(0, len(which), 256):  # Σ A_cᵀ by solves, m right-hand sides per candidate
         k = which[s : s + 256]
         Ac, cols = c.Ac[k], c.cols[k]
@@ -909,64 +914,76 @@ def _exact_gains(
         rhs = np.zeros((n, nk, m))
         np.add.at(rhs, (cols, np.arange(nk)[:, None]), np.swapaxes(Ac, 1, 2))
         X = solver.solve(rhs.reshape(n, nk * m)).reshape(n, nk, m)
-        M = Ac @ X[cols, np.arange(nk)[:, None]]  # (nk, m, m)
-        U = np.einsum("ndf,nad->nfa", XF[cols], Ac)
-        _store_gains(g, k, M, U, prob.full_focus)
-    return XF, _solve_accuracy(info, solver)
+        _store_gram(gram, k, Ac @ X[cols, np.arange(nk)[:, None]])
+    return _solve_accuracy(info, solver)
 
 
-def _store_gains(g: _Gains, k: IntArray, M: FloatArray, U: FloatArray, full_focus: bool) -> None:
-    """``M_c`` and ``K_c = M_c − U_cᵀ P U_c`` of the candidates ``k`` into ``g``'s upper triangles."""
-    K = M - np.einsum("nfa,fg,ngb->nab", U, g.P, U, optimize=True)
-    for q, (a, b) in enumerate(g.pairs):
-        g.Mu[q, k] = 0.5 * (M[:, a, b] + M[:, b, a])
-        g.Ku[q, k] = 0.0 if full_focus else 0.5 * (K[:, a, b] + K[:, b, a])
+def _store_gram(gram: FloatArray, k: IntArray, M: FloatArray) -> None:
+    """``M`` (``(len(k), m, m)``) of the candidates ``k`` into ``gram``'s upper triangles (symmetrised)."""
+    for q, (a, b) in enumerate(_sym_pairs(M.shape[1])):
+        gram[q, k] = 0.5 * (M[:, a, b] + M[:, b, a])
 
 
 GAIN_CHUNK = 2048
-"""Candidates whose ``Σ`` at their columns, ``M_c`` and ``U_c`` :func:`_gain_blocks` holds at once (all of an hour's
-61,000 tag measurements at once, with a small array per variable pair, held a few hundred MB)."""
+"""Candidates whose ``Σ`` at their columns and ``M_c`` :func:`_initial_gram` holds at once (all of an hour's 61,000
+tag measurements at once, with a small array per variable pair, held a few hundred MB)."""
 
 
-def _gain_blocks(
-    prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Upper triangles of ``M_c = A_c Σ A_cᵀ`` and ``K_c = M_c − U_cᵀ Σ_F⁻¹ U_c`` (``U_c = W Σ A_cᵀ``, from the focused
-    columns ``XF``) for ``Σ = prob.info0⁻¹``, and ``P = Σ_F⁻¹``; :data:`GAIN_CHUNK` candidates at a time."""
-    Ac, cols = c.Ac, c.cols
+def _initial_gram(prob: _Problem, c: _Candidates, solver: SPDSolver) -> FloatArray:
+    """Upper triangles ``(m(m+1)/2, N)`` of ``A_c Λ₀⁻¹ A_cᵀ`` for ``prob``'s ``Λ₀`` (factorised by ``solver``), from
+    the clique covariances; :data:`GAIN_CHUNK` candidates at a time."""
+    Ac = c.Ac
     N, m, d = Ac.shape
     blocks = _clique_blocks(prob.info0, prob.system, c.index, solver)
-    P = _sym_inv(SF)
     pairs = _sym_pairs(m)
-    Mu = np.empty((len(pairs), N))
-    Ku = np.empty((len(pairs), N))
+    Gu = np.empty((len(pairs), N))
     for s in range(0, N, GAIN_CHUNK):
         k = slice(s, s + GAIN_CHUNK)
         Sig_c = _fill_cliques(blocks, prob.system, c.index[k], d)
         M0 = Ac[k] @ Sig_c @ np.swapaxes(Ac[k], 1, 2)
-        U = np.einsum("ndf,nad->nfa", XF[cols[k]], Ac[k])  # (n_c, f, m)
-        K0 = M0 - np.einsum("nfa,fg,ngb->nab", U, P, U, optimize=True)
         for q, (a, b) in enumerate(pairs):
-            Mu[q, k] = M0[:, a, b]
-            Ku[q, k] = K0[:, a, b]
-    if prob.full_focus:
-        Ku[:] = 0.0  # K_c = A_c Σ_{·|F} A_cᵀ = 0: the candidates touch only focused columns
-    return Mu, Ku, P
+            Gu[q, k] = M0[:, a, b]
+    return Gu
 
 
-def _initial_gains(prob: _Problem, solver: SPDSolver, XF: FloatArray, SF: FloatArray, c: _Candidates) -> _Gains:
-    """``M_c``, ``K_c`` (:func:`_gain_blocks`) under ``Λ₀``, and the operator ``B``."""
-    Mu, Ku, P = _gain_blocks(prob, solver, XF, SF, c)
-    B = _candidate_operator(c.Ac, c.pos, len(c.rows))
-    m = c.Ac.shape[1]
-    return _Gains(Mu, Ku, SF, P, B, _sym_pairs(m), m, np.zeros(len(c.index), dtype=bool))
+def _conditional_problem(prob: _Problem) -> _Problem:
+    """The unfocused block of ``prob``: the same factors with their Jacobians at the unfocused variables ``U`` only,
+    so that its information is ``Λ_UU`` and ``A_c Λ_UU⁻¹ A_cᵀ`` is ``K_c = A_c Σ_{·|F} A_cᵀ``, the covariance of the
+    candidate's prediction given the focused variables.
 
-
-def _best_gain(g: _Gains) -> tuple[int, float]:
-    """The unpicked candidate of largest ``½ log det(I + M_c) − ½ log det(I + K_c)`` (first on ties)."""
-    gain = _all_gains(g)
-    j = int(np.argmax(gain))
-    return j, float(gain[j])
+    ``K_c`` was ``M_c − U_cᵀ Σ_F⁻¹ U_c`` and its downdates read ``Σ_{·|F} A_jᵀ = Σ A_jᵀ − Σ Wᵀ Σ_F⁻¹ W Σ A_jᵀ``:
+    differences of terms ~1e9 times larger than the result when the focused variables are known only through the
+    weak prior, and the result lost every digit (``K_c`` with negative diagonals on a camera-only rig hung on a
+    surveyed tag; gains off by nats, the entropy drifting 70 nats in 90 picks). Solved with ``Λ_UU`` itself, nothing
+    cancels."""
+    sub = prob.system
+    focused = set(prob.focused)
+    keep = [v for v in range(len(sub.variables)) if v not in focused]
+    remap = {v: k for k, v in enumerate(keep)}
+    factors = []
+    for f in sub.factors:
+        vs: list[int] = []
+        cols: list[int] = []
+        off = 0
+        for v in f.variables:
+            d = sub.variables[v].dim
+            if v not in focused:
+                vs.append(remap[v])
+                cols.extend(range(off, off + d))
+            off += d
+        J = f.jacobian[:, np.asarray(cols, dtype=np.int64)]  # (rows, 0) on focused variables only
+        factors.append(Factor(tuple(vs), J, f.kind))
+    usub = LinearSystem([sub.variables[v] for v in keep], factors)
+    ucols = sub.columns(keep)
+    return _Problem(
+        usub,
+        prob.base,
+        prob.candidates,
+        [],
+        sp.csc_matrix(prob.prior[ucols][:, ucols]),
+        sp.csc_matrix(prob.info0[ucols][:, ucols]),
+        [remap[v] for v in prob.landmark_vars if v not in focused],
+    )
 
 
 def _all_gains(g: _Gains) -> FloatArray:
@@ -989,91 +1006,157 @@ def _all_gains(g: _Gains) -> FloatArray:
 
 @dataclass
 class _Step:
-    """One pick ``j``: ``Vt = (Σ A_jᵀ)ᵀ`` and ``Xt = (Σ Wᵀ p)ᵀ`` at the tracked rows, ``w = W Σ A_jᵀ``,
-    ``T = I + A_j Σ A_jᵀ``, ``p = Σ_F⁻¹ w`` and ``E = T − wᵀ p`` (inverted); for the capacitance tracker also
-    ``wx = W Σ_last A_jᵀ`` and ``lt = L⁻¹ A_W Σ_last A_jᵀ``."""
+    """One pick ``j`` on one side: ``Vt = (Σ A_jᵀ)ᵀ`` at the tracked rows, ``T = I + A_j Σ A_jᵀ`` with its inverse, a
+    factor ``T⁻¹ = L_T L_Tᵀ`` and its condition number; for the capacitance tracker also ``lt = L⁻¹ A_W Σ_last A_jᵀ``.
+    ``refined``: the refinement steps its solve took (:func:`_refined`)."""
 
     Vt: FloatArray
-    Xt: FloatArray
-    w: FloatArray
     T: FloatArray
     Tinv: FloatArray
-    p: FloatArray
-    Einv: FloatArray
-    wx: FloatArray | None = None
+    LT: FloatArray
+    cond: float
     lt: FloatArray | None = None
+    refined: int = 0
 
 
-def _capacitance_step(ct: _CapacitanceTracker, c: _Candidates, j: int, fcols: IntArray, P: FloatArray) -> _Step:
-    """The pick's quantities from two solves with the last factor (see :class:`_CapacitanceTracker`)."""
+REFINE_BACKWARD_ERROR = 1e-13
+"""A pick's solve through the window is refined while its componentwise backward error (:func:`_backward_error`) is
+above this: a sparse Cholesky solve leaves ~1e-16; a window correction that cancels (the window holds a pick that
+pinned a variable known only through a weak prior: ``C`` ~1e9) left ~1e-9 and errors of 4e-7 in ``Σ A_jᵀ``."""
+
+REFINE_MAX_STEPS = 3
+"""At most this many steps of iterative refinement per solve (each gains the digits the window's correction lost)."""
+
+
+@dataclass
+class _Operators:
+    """``Σ_S`` and ``Λ_S`` on a tracker's space (the compact state, or the tracked rows of the reduced window): the
+    exact information of the picks so far, against which a solve is refined; ``diag Λ_S`` and ``‖D |Λ| D‖∞``
+    (``D = diag^-½``) for its backward error."""
+
+    sigma: Callable[[FloatArray], FloatArray]
+    lam: Callable[[FloatArray], FloatArray]
+    diag: FloatArray
+    norm: float
+
+
+def _backward_error(ops: _Operators, B: FloatArray, X: FloatArray) -> tuple[float, FloatArray]:
+    """The normwise backward error of the Jacobi-scaled system ``(D Λ D)(D⁻¹ X) = D B`` (``D = diag(Λ)^-½``),
+    ``‖D r‖ / (‖D Λ D‖ ‖D⁻¹ X‖ + ‖D B‖)`` in the max-norm over all of ``X``'s columns at once, and the residual
+    ``r = B − Λ X``. Unchanged by a rescaling of the variables (a tag surveyed to 1e-6 m and one known to 100 m count
+    alike); a direct sparse solve leaves ~1e-16. (Componentwise, it was set by rows where ``X`` is ~1e-20 and did not
+    matter: 0.8 where the solve agreed with a fresh factorisation to 1e-14.)"""
+    r = B - ops.lam(X)
+    if not r.size:
+        return 0.0, r
+    d = (1.0 / np.sqrt(ops.diag))[:, None]
+    num = float(np.abs(d * r).max())  # over the whole array: a column-wise max of an n × m array is 30x slower
+    den = ops.norm * float(np.abs(X / d).max()) + float(np.abs(d * B).max())
+    return (num / den if den > 0 else (np.inf if num > 0 else 0.0)), r
+
+
+def _refined(ops: _Operators, B: FloatArray, V: FloatArray) -> tuple[FloatArray, int]:
+    """``V ≈ Σ_S B`` refined against ``Λ_S``: ``V += Σ_S (B − Λ_S V)`` while the backward error is above
+    :data:`REFINE_BACKWARD_ERROR` (at most :data:`REFINE_MAX_STEPS` times); returns ``V`` and the steps taken.
+
+    The window's correction ``Σ_last A_Wᵀ C⁻¹ A_W Σ_last B`` nearly cancels ``Σ_last B`` after a pick that pinned a
+    variable known only through a weak prior, and ``V`` loses as many digits as ``C``'s condition (~1e9); the
+    downdates of every candidate then carried the error. The residual is computed with the picks' information
+    itself (nothing inverted), so each step restores those digits."""
+    steps = 0
+    for _ in range(REFINE_MAX_STEPS):
+        beta, r = _backward_error(ops, B, V)
+        if beta <= REFINE_BACKWARD_ERROR:
+            break
+        V = V + ops.sigma(r)
+        steps += 1
+    return V, steps
+
+
+def _capacitance_operators(ct: _CapacitanceTracker) -> _Operators:
+    def sigma(B: FloatArray) -> FloatArray:
+        x = ct.solve_last(B)
+        if ct.window:
+            rhs = np.zeros_like(B)
+            ct.scatter(ct.ltsolve(ct.lsolve(ct.gather(x))), rhs)
+            x = x - ct.solve_last(rhs)
+        return x
+
+    def lam(Y: FloatArray) -> FloatArray:
+        out = np.asarray(ct.info @ Y)
+        if ct.window:
+            ct.scatter(ct.gather(Y), out)
+        return out
+
+    return _Operators(sigma, lam, ct.diag, ct.scaled_norm)
+
+
+def _capacitance_step(ct: _CapacitanceTracker, c: _Candidates, j: int) -> _Step:
+    """The pick's quantities from two solves with the last factor (see :class:`_CapacitanceTracker`), refined
+    (:func:`_refined`) when the window's correction cancelled."""
     n, m, wj = ct.n, ct.m, c.width[j]
     cj, Aj = c.cols[j, :wj], c.Ac[j, :, :wj]
+    B = np.zeros((n, m))
+    B[cj] = Aj.T
+    x1 = ct.solve_last(B)  # Σ_last A_jᵀ
+    if not ct.window:
+        return _pick_step(x1[c.rows], Aj, x1[cj], np.zeros((0, m)))
+    lt = ct.lsolve(ct.gather(x1))  # L⁻¹ A_W Σ_last A_jᵀ
     rhs = np.zeros((n, m))
-    rhs[cj] = Aj.T
-    x1 = ct.solve_last(rhs)  # Σ_last A_jᵀ
-    T = np.eye(m) + Aj @ x1[cj]
-    wx = x1[fcols]  # W Σ_last A_jᵀ
-    w = wx
-    k = len(ct.window)
-    if k:
-        lt = ct.lsolve(ct.gather(x1))  # L⁻¹ A_W Σ_last A_jᵀ
-        T = T - lt.T @ lt
-        y = ct.ltsolve(lt)  # C⁻¹ A_W Σ_last A_jᵀ
-        w = wx - ct.WX[:, : k * m] @ y
-    else:
-        lt = np.zeros((0, m))
-    Tinv = _inv_at_least_identity(T)
-    p = P @ w
-    Einv = _inv_at_least_identity(T - w.T @ p)
-    rhs = np.zeros((n, 2 * m))
-    rhs[fcols, m:] = p
-    if k:
-        y2 = ct.ltsolve(ct.lsolve(ct.WX[:, : k * m].T @ p))
-        ct.scatter(np.hstack([y, -y2]), rhs)
-    Z = ct.solve_last(rhs)
-    V = x1 - Z[:, :m] if k else x1  # Σ_S A_jᵀ
-    Vt = np.ascontiguousarray(V[c.rows].T)
-    Xt = np.ascontiguousarray(Z[c.rows, m:].T)  # (Σ_S Wᵀ p)ᵀ at rows
-    return _Step(Vt, Xt, w, T, Tinv, p, Einv, wx, lt)
+    ct.scatter(ct.ltsolve(lt), rhs)  # A_Wᵀ C⁻¹ A_W Σ_last A_jᵀ
+    V, steps = _refined(_capacitance_operators(ct), B, x1 - ct.solve_last(rhs))  # Σ_S A_jᵀ
+    return _pick_step(V[c.rows], Aj, V[cj], lt, steps)
 
 
-def _window_step(
-    tracker: _Tracker, c: _Candidates, j: int, fcols: IntArray, P: FloatArray, Yt: FloatArray | None
-) -> _Step:
-    """The pick's quantities from the window tracker; ``Σ Wᵀ p`` from ``Yt = (W Σ)ᵀ`` at the tracked rows when it is
-    kept (then updated in place), else from a second solve."""
-    wj = c.width[j]
-    Vt = tracker.solve(c.cols[j, :wj], c.Ac[j, :, :wj].T, c.pos[j, :wj])  # (Σ A_jᵀ)ᵀ at rows
-    T = np.eye(tracker.m) + c.Ac[j] @ Vt[:, c.pos[j]].T
-    Tinv = _inv_at_least_identity(T)
-    w = np.ascontiguousarray(Vt[:, c.fpos].T)  # W Σ A_jᵀ, (f, m)
-    p = P @ w
-    Einv = _inv_at_least_identity(T - w.T @ p)
-    if Yt is None:
-        Xt = tracker.solve(fcols, p, c.fpos)  # (Σ Wᵀ p)ᵀ at rows
-    else:
-        Xt = p.T @ Yt
-        Yt -= (Tinv @ w.T).T @ Vt
-    return _Step(Vt, Xt, w, T, Tinv, p, Einv)
+def _pick_step(V: FloatArray, Aj: FloatArray, Vj: FloatArray, lt: FloatArray | None = None, refined: int = 0) -> _Step:
+    """The :class:`_Step` of ``V = Σ A_jᵀ`` at the tracked rows (``Vj``: at the pick's own columns)."""
+    T, Tinv, LT, cond = _at_least_identity(np.eye(Aj.shape[0]) + Aj @ Vj)
+    return _Step(np.ascontiguousarray(V.T), T, Tinv, LT, cond, lt, refined)
 
 
-def _apply_pick(g: _Gains, st: _Step) -> None:
-    """``M_c −= g_c T⁻¹ g_cᵀ``, ``K_c −= k_c E⁻¹ k_cᵀ`` for every candidate, ``Σ_F −= w T⁻¹ wᵀ``, ``P += p E⁻¹ pᵀ``.
+def _window_operators(tracker: _Tracker) -> _Operators | None:
+    """On the Schur-reduced window (``rows`` None: the tracked information is exact on the tracked rows), else None
+    (the unreduced window keeps ``Σ_S`` at the tracked rows only: nothing to take a residual with)."""
+    if tracker.rows is not None:
+        return None
+    every = np.arange(tracker.n)
+    info = sp.csc_matrix(tracker.info + tracker.add_info(tracker.window))
+    d = 1.0 / np.sqrt(info.diagonal())
+    norm = float(np.max(d * (abs(info) @ d))) if len(d) else 0.0
 
-    ``H = A_c [V L_T, (V − X) L_E]`` at the candidates' columns (``T⁻¹ = L_T L_Tᵀ``, ``E⁻¹ = L_E L_Eᵀ``) is one
-    sparse product; the updates run on the upper triangles.
-    """
-    m, N = g.m, g.Mu.shape[1]
-    LT = np.linalg.cholesky(0.5 * (st.Tinv + st.Tinv.T))
-    LE = np.linalg.cholesky(0.5 * (st.Einv + st.Einv.T))
-    H = g.B @ np.hstack([st.Vt.T @ LT, (st.Vt - st.Xt).T @ LE])  # (m N, 2m)
-    Ht = np.ascontiguousarray(H.reshape(m, N, 2 * m).transpose(0, 2, 1))  # (m, 2m, N)
-    for q, (a, b) in enumerate(g.pairs):
-        prod = Ht[a] * Ht[b]
-        g.Mu[q] -= prod[:m].sum(axis=0)
-        g.Ku[q] -= prod[m:].sum(axis=0)
-    g.SF -= st.w @ st.Tinv @ st.w.T
-    g.P += st.p @ st.Einv @ st.p.T
+    def sigma(B: FloatArray) -> FloatArray:
+        return np.ascontiguousarray(tracker.solve(every, B, every).T)
+
+    return _Operators(sigma, lambda Y: np.asarray(info @ Y), info.diagonal(), norm)
+
+
+def _window_step(tracker: _Tracker, c: _Candidates, j: int) -> _Step:
+    """The pick's quantities from the window tracker, refined (:func:`_refined`) on the reduced window."""
+    wj, m = c.width[j], tracker.m
+    Aj, jpos = c.Ac[j, :, :wj], c.pos[j, :wj]
+    V = tracker.solve(c.cols[j, :wj], Aj.T, jpos).T  # Σ A_jᵀ at rows
+    steps = 0
+    ops = _window_operators(tracker) if tracker.window else None
+    if ops is not None:
+        B = np.zeros((tracker.n, m))
+        B[jpos] = Aj.T
+        V, steps = _refined(ops, B, V)
+    return _pick_step(V, Aj, V[jpos], refined=steps)
+
+
+def _apply_pick(gram: FloatArray, B: sp.csr_matrix, m: int, st: _Step) -> FloatArray:
+    """``G_c −= g_c T⁻¹ g_cᵀ`` for every candidate (``g_c = A_c V``): ``H = A_c V L_T`` at the candidates' columns is
+    one sparse product, the update runs on the upper triangles. Returns the downdates' diagonals ``(m, N)``."""
+    N = gram.shape[1]
+    H = B @ (st.Vt.T @ st.LT)  # (m N, m)
+    Ht = np.ascontiguousarray(H.reshape(m, N, m).transpose(0, 2, 1))  # (m, m, N)
+    dm = np.empty((m, N))
+    for q, (a, b) in enumerate(_sym_pairs(m)):
+        d = (Ht[a] * Ht[b]).sum(axis=0)
+        gram[q] -= d
+        if a == b:
+            dm[a] = d
+    return dm
 
 
 def _tracked_information(
@@ -1092,102 +1175,143 @@ def _tracked_information(
     return capacitance, prob.info0, rows
 
 
-def _capacitance_tracker(
-    prob: _Problem,
-    add_info: Callable[[list[int]], SparseMatrix],
-    m: int,
-    d: int,
-    fcols: IntArray,
-    refactor_every: int | None,
-    options: TrackerOptions,
-) -> _CapacitanceTracker:
-    """The capacitance tracker on ``Λ₀``, told which columns only the weak landmark prior holds."""
-    sub = prob.system
-    weak = np.zeros(sub.dim, dtype=bool)
-    weak[sub.columns(prob.landmark_vars)] = True
-    for bf in prob.base:
-        weak[sub.factor_columns(bf)] = False
-    return _CapacitanceTracker(
-        prob.info0, m, d, fcols, add_info, refactor_every, weak, options.refactor_on_first_observation
-    )
+@dataclass
+class _Side:
+    """One information matrix whose ``A_c Λ_S⁻¹ A_cᵀ`` the greedy keeps for every candidate: the whole compact graph
+    (``M_c``), or its unfocused block (``K_c``, :func:`_conditional_problem`); each with its own tracker."""
 
+    prob: _Problem
+    c: _Candidates
+    gram: FloatArray
+    """``(m(m+1)/2, N)`` upper triangles, kept current (``_Gains.Mu`` or ``_Gains.Ku``, the same array)."""
+    delta: float
+    """The accuracy of ``Λ₀``'s solves (:func:`_solve_accuracy`)."""
+    tracker: _Tracker | _CapacitanceTracker | None = None
+    B: sp.csr_matrix | None = None
+    update_s: float = 0.0
+    """Time in the per-candidate updates (:func:`_apply_pick`)."""
+    reduced: bool = False
+    info_s: sp.csc_matrix | None = None
+    n_folded: int = 0
 
-def _tracker_stats(tracker: _Tracker | _CapacitanceTracker) -> dict[str, float]:
-    stats = {"factor_s": tracker.factor_s, "refactorisations": float(tracker.refactorisations)}
-    if isinstance(tracker, _CapacitanceTracker):
-        stats["first_observation_refactorisations"] = float(tracker.first_observation_refactorisations)
-    return stats
+    @classmethod
+    def of(cls, prob: _Problem, solver: SPDSolver) -> _Side:
+        """The side's candidates and their ``A_c Λ₀⁻¹ A_cᵀ``."""
+        c = _candidates(prob.system, prob.candidates)
+        return cls(prob, c, _initial_gram(prob, c, solver), _solve_accuracy(prob.info0, solver))
+
+    def start(self, refactor_every: int | None, options: TrackerOptions) -> None:
+        """The tracker (on ``Λ₀`` or its Schur complement onto the candidates' rows) and the candidate operator."""
+        prob, c = self.prob, self.c
+        capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
+        self.reduced = rows_t is None
+        m = c.Ac.shape[1]
+
+        def add_info(js: list[int]) -> SparseMatrix:
+            info = prob.system.information([c.index[i] for i in js])
+            return info if rows_t is not None else info[c.rows][:, c.rows]
+
+        if capacitance:
+            weak = np.zeros(prob.system.dim, dtype=bool)
+            weak[prob.system.columns(prob.landmark_vars)] = True
+            for bf in prob.base:
+                weak[prob.system.factor_columns(bf)] = False
+            self.tracker = _CapacitanceTracker(
+                prob.info0, m, c.Ac.shape[2], add_info, refactor_every, weak, options.refactor_on_first_observation
+            )
+        else:
+            self.tracker = _Tracker(info_t, rows_t, m, add_info, refactor_every)
+        self.B = _candidate_operator(c.Ac, c.pos, len(c.rows))
+        self.info_s = prob.info0
+
+    def pick(self, j: int) -> tuple[_Step, FloatArray, bool]:
+        """Add candidate ``j``: its step, the downdates' diagonals, and whether the tracker refactorised."""
+        assert self.tracker is not None and self.B is not None
+        m = self.c.Ac.shape[1]
+        if isinstance(self.tracker, _CapacitanceTracker):
+            st = _capacitance_step(self.tracker, self.c, j)
+        else:
+            st = _window_step(self.tracker, self.c, j)
+        tu = time.perf_counter()
+        dm = _apply_pick(self.gram, self.B, m, st)
+        self.update_s += time.perf_counter() - tu
+        if isinstance(self.tracker, _CapacitanceTracker):
+            assert st.lt is not None
+            refactorised = self.tracker.add(j, self.c.cols[j], self.c.Ac[j], st.lt.T, st.T)
+        else:
+            refactorised = self.tracker.add(j, st.Vt, st.Tinv)
+        return st, dm, refactorised
+
+    def recompute(self, which: IntArray, picks: list[int]) -> float:
+        """The ``which`` candidates' ``A_c Λ_S⁻¹ A_cᵀ`` again from the information of the ``picks`` so far; returns
+        its accuracy."""
+        assert self.tracker is not None and self.info_s is not None
+        if self.tracker.window:
+            self.tracker._refactorise()
+        if isinstance(self.tracker, _CapacitanceTracker):  # its factor is of Λ₀ plus every pick now
+            self.info_s, solver = self.tracker.info, self.tracker.solver
+        else:
+            fold = self.prob.system.information([self.c.index[i] for i in picks[self.n_folded :]])
+            self.info_s = sp.csc_matrix(self.info_s + fold)
+            solver = SPDSolver(self.info_s)
+        self.n_folded = len(picks)
+        return _exact_gram(self.prob, self.c, self.gram, self.info_s, solver, which)
+
+    def stats(self) -> dict[str, float]:
+        t = self.tracker
+        assert t is not None
+        out = {"factor_s": t.factor_s, "refactorisations": float(t.refactorisations)}
+        if isinstance(t, _CapacitanceTracker):
+            out["first_observation_refactorisations"] = float(t.first_observation_refactorisations)
+        return out
 
 
 def _greedy(
-    prob: _Problem,
-    c: _Candidates,
-    g: _Gains,
-    held: list[FloatArray],
-    budget: int,
-    refactor_every: int | None,
-    options: TrackerOptions,
-    delta0: float,
+    sides: list[_Side], g: _Gains, budget: int, refactor_every: int | None, options: TrackerOptions
 ) -> tuple[list[int], list[float], dict[str, float]]:
-    """``budget`` greedy steps: the best gain, the pick's quantities from the tracker, the update of every gain.
+    """``budget`` greedy steps: the best gain, each side's step from its tracker, the update of every gain.
 
-    ``held`` holds ``XF``, ``Σ`` at the focused columns (``n × f``), taken out of it so that the caller keeps no
-    reference and it is freed once read (an hour's graph: 80 MB, and a recomputation makes a second one). The window
-    tracker with a small focus keeps ``W Σ`` at the tracked rows (``f × rows``) current, ``W Σ −= w T⁻¹ Vᵀ``
-    (4·f·m·rows flops per step), instead of a second solve per step; the capacitance tracker gets ``Σ Wᵀ p`` from its
-    second solve and keeps nothing (on an hour's graph the copy is tens of MB, held through the greedy)."""
-    fcols = prob.system.columns(prob.focused)
+    ``sides[0]`` keeps ``M_c`` (``g.Mu``), ``sides[1]`` (absent when every candidate is inside the focus) ``K_c``
+    (``g.Ku``); the gains are ``½ log det(I + M_c) − ½ log det(I + K_c)``."""
     t_red = time.perf_counter()
-    capacitance, info_t, rows_t = _tracked_information(prob, c.rows, options)
+    for side in sides:
+        side.start(refactor_every, options)
     stats = {"reduce_s": time.perf_counter() - t_red}
-    XF = held.pop()
-    Yt = np.ascontiguousarray(XF[c.rows].T) if not capacitance and len(fcols) <= options.track_focused_max else None
-    del XF
-
-    def add_info(js: list[int]) -> SparseMatrix:
-        info = prob.system.information([c.index[i] for i in js])
-        return info if rows_t is not None else info[c.rows][:, c.rows]
-
     picks: list[int] = []
     gains: list[float] = []
-    t_update = t_gain = t_exact = 0.0
+    t_gain = t_exact = 0.0
+    refined = 0
     t_loop = time.perf_counter()
-    precision = _Precision.of(g, delta0, options.recompute_tol)
+    grams = [s.gram for s in sides]
+    precision = _Precision.of(grams, [s.delta for s in sides], g.pairs, options.recompute_tol)
     with single_threaded_blas():
-        tracker: _Tracker | _CapacitanceTracker
-        if capacitance:
-            tracker = _capacitance_tracker(prob, add_info, g.m, c.Ac.shape[2], fcols, refactor_every, options)
-        else:
-            tracker = _Tracker(info_t, rows_t, g.m, add_info, refactor_every)
 
-        info_s, n_folded = prob.info0, 0
-
-        def recompute(which: npt.NDArray[np.bool_]) -> None:
-            """``Σ_F`` and the ``which`` candidates again from the information of the picks so far
-            (see :class:`_Precision`)."""
-            nonlocal Yt, t_exact, info_s, n_folded
+        def recompute(redo: list[int], bounds: list[FloatArray]) -> None:
+            """The sides ``redo``, at their candidates whose bound is above a share of ``RESET_FRACTION · tol``, again
+            from the information of the picks so far (see :class:`_Precision`)."""
+            nonlocal t_exact
             tr = time.perf_counter()
-            if tracker.window:
-                tracker._refactorise()
-            if isinstance(tracker, _CapacitanceTracker):  # its factor is of Λ₀ plus every pick now
-                info_s, solver = tracker.info, tracker.solver
-            else:
-                info_s = sp.csc_matrix(info_s + prob.system.information([c.index[i] for i in picks[n_folded:]]))
-                solver = SPDSolver(info_s)
-            n_folded = len(picks)
-            XF, delta = _exact_gains(prob, c, g, info_s, solver, np.flatnonzero(which & ~g.picked))
-            if Yt is not None:
-                Yt = np.ascontiguousarray(XF[c.rows].T)
-            precision.reset(g, np.flatnonzero(which & ~g.picked), delta)
+            for k in redo:
+                idx = np.flatnonzero((bounds[k] > options.recompute_tol * RESET_FRACTION / len(sides)) & ~g.picked)
+                precision.reset(k, sides[k].gram, idx, sides[k].recompute(idx, picks))
+                precision.recomputed += len(idx)
+            precision.recomputations += 1
             t_exact += time.perf_counter() - tr
 
         for _ in range(budget):
             tg = time.perf_counter()
             gain_all = _all_gains(g)
             j = int(np.argmax(gain_all))
-            doubt = precision.in_doubt(gain_all, j, g)
-            if doubt is not None:
-                recompute(doubt)
+            done: set[int] = set()
+            while len(done) < len(sides):  # a side whose bounds alone leave the pick in doubt first, then the others
+                bounds = precision.bounds(grams, g.m)
+                if not precision.in_doubt(gain_all, j, np.sum(bounds, axis=0), g.picked):
+                    break
+                todo = [k for k in range(len(sides)) if k not in done]
+                alone = [k for k in todo if precision.in_doubt(gain_all, j, bounds[k], g.picked)]
+                redo = alone or [max(todo, key=lambda k: float(bounds[k].max()))]
+                recompute(redo, bounds)
+                done |= set(redo)
                 gain_all = _all_gains(g)
                 j = int(np.argmax(gain_all))
             gain = float(gain_all[j])
@@ -1195,35 +1319,29 @@ def _greedy(
             picks.append(j)
             gains.append(gain)
             g.picked[j] = True
-            if isinstance(tracker, _CapacitanceTracker):
-                st = _capacitance_step(tracker, c, j, fcols, g.P)
-            else:
-                st = _window_step(tracker, c, j, fcols, g.P, Yt)
-            if prob.full_focus:
-                st.Xt = st.Vt  # Σ_{·|F} A_jᵀ = 0: K_c stays 0
-            tu = time.perf_counter()
-            _apply_pick(g, st)
-            t_update += time.perf_counter() - tu
-            if isinstance(tracker, _CapacitanceTracker):
-                assert st.wx is not None and st.lt is not None
-                refactorised = tracker.add(j, c.cols[j], c.Ac[j], st.wx, st.lt.T, st.T)
-            else:
-                refactorised = tracker.add(j, st.Vt, st.Tinv)
-            if refactorised:
-                if precision.focused_lost(g):
-                    recompute(np.zeros(len(g.picked), dtype=bool))
-                else:
-                    g.P = _sym_inv(g.SF)
+            for k, side in enumerate(sides):
+                st, dm, _ = side.pick(j)
+                precision.downdated(k, dm, st.cond)
+                refined += st.refined
+    t_update = sum(side.update_s for side in sides)
     stats |= {"loop_s": time.perf_counter() - t_loop, "update_s": t_update, "gain_s": t_gain}
     stats |= {
         "recomputations": float(precision.recomputations),
         "recomputed_candidates": float(precision.recomputed),
         "recompute_s": t_exact,
-        "solve_delta": delta0,
+        "refinement_steps": float(refined),
     }
-    stats |= _tracker_stats(tracker)
+    for side in sides:
+        for key, v in side.stats().items():
+            stats[key] = stats.get(key, 0.0) + v
     stats["solve_s"] = stats["loop_s"] - t_update
-    stats |= {"tracked_rows": float(len(c.rows)), "reduced": float(rows_t is None), "capacitance": float(capacitance)}
+    s0 = sides[0]
+    stats |= {
+        "tracked_rows": float(len(s0.c.rows)),
+        "conditional_rows": float(len(sides[1].c.rows)) if len(sides) > 1 else 0.0,
+        "reduced": float(s0.reduced),
+        "capacitance": float(isinstance(s0.tracker, _CapacitanceTracker)),
+    }
     return picks, gains, stats
 
 
@@ -1240,24 +1358,23 @@ def select_information(
     """Greedy focused-entropy measurement selection (Mu et al. Alg. 1), exact and fast.
 
     The gain of Theorem 1 is evaluated in its mutual-information form: with ``W`` selecting the
-    focused blocks, ``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ`` where
-    ``Σ_{·|F} = Σ − Σ Wᵀ Σ_F⁻¹ W Σ`` is the covariance of the other variables given the focused ones.
-    So ``gain_c = ½ log det(I + M_c) − ½ log det(I + K_c)`` with ``M_c = A_c Σ A_cᵀ`` and
-    ``K_c = A_c Σ_{·|F} A_cᵀ``, both ``m × m`` per candidate. After picking ``j`` with ``V = Σ A_jᵀ``,
-    ``T = I + A_j V``, ``w = W V``, ``p = Σ_F⁻¹ w`` and ``E = T − wᵀ p`` (``= I + A_j Σ_{·|F} A_jᵀ``)::
+    focused blocks, ``S_c − U_cᵀ Σ_F⁻¹ U_c = I + A_c Σ_{·|F} A_cᵀ`` where ``Σ_{·|F} = Λ_UU⁻¹`` (on the
+    unfocused columns ``U``) is the covariance of the other variables given the focused ones. So
+    ``gain_c = ½ log det(I + M_c) − ½ log det(I + K_c)`` with ``M_c = A_c Σ A_cᵀ`` and
+    ``K_c = A_c Σ_{·|F} A_cᵀ``, both ``m × m`` per candidate, each kept for its own information matrix
+    (``Λ_S`` and ``Λ_S,UU``). After picking ``j`` with ``V = Σ A_jᵀ``, ``T = I + A_j V`` (and ``Y = Σ_{·|F} A_jᵀ``,
+    ``E = I + A_j Y``)::
 
         M_c −= g_c T⁻¹ g_cᵀ,            g_c = A_c V
-        K_c −= k_c E⁻¹ k_cᵀ,            k_c = A_c Σ_{·|F} A_jᵀ = g_c − A_c (Σ Wᵀ p)
-        Σ_F −= w T⁻¹ wᵀ,   Σ_F⁻¹ += p E⁻¹ pᵀ
+        K_c −= k_c E⁻¹ k_cᵀ,            k_c = A_c Y
 
-    ``Σ`` is tracked only at the rows the gains read (candidates' and focused columns; the tracked
-    sparse information is the exact Schur complement of ``Λ₀`` onto them, plus the picks). ``V`` is one
-    solve (the last sparse factor plus a Woodbury window over the picks since); ``Σ Wᵀ p`` is read from
-    ``W Σ`` kept at the tracked rows when at most 128 columns are focused, else a second solve. Plus
-    ``O(N_candidates · m² · d)`` batched dense work. When the candidates' and focused columns exceed 75%
-    of the state, the capacitance tracker (:class:`_CapacitanceTracker`) is used instead: two solves
-    per step with the last factor of the whole compact graph, per-step cost independent of the
-    candidates apart from the ``O(N)`` update.
+    ``V`` and ``Y`` are one solve each (the last sparse factor plus a correction over the picks since,
+    refined against the picks' information when it cancels). The capacitance tracker
+    (:class:`_CapacitanceTracker`, default) keeps nothing at the candidates' rows: two solves per step
+    with the last factor, per-step cost independent of the candidates apart from the ``O(N)`` update;
+    the window tracker keeps the corrections at the candidates' rows of the Schur-reduced system. When
+    a pick could be wrong by more than ``options.recompute_tol`` nats (:class:`_Precision`), the
+    candidates in doubt are recomputed from the information of the picks.
 
     Args:
         system: the linearised full graph (whitened Jacobians at the full-graph solution).
@@ -1288,12 +1405,10 @@ def select_information(
         raise ValueError("no focused variables: run landmark selection first")
     solver = SPDSolver(prob.info0)
     full = _within_focus(prob.system, prob.candidates, fcols)
-    if full:  # no Σ_F: the gains do not need it, the entropy comes from sparse log-determinants
+    if full or len(fcols) > DENSE_FOCUS_MAX:  # no dense Σ_F: the entropy from sparse log-determinants
         h0 = _sparse_focused_entropy(prob.info0, fcols)
-        prob.full_focus, prob.focused, fcols = True, [], np.zeros(0, dtype=np.int64)
-        XF, SF = np.zeros((prob.system.dim, 0)), np.zeros((0, 0))
     else:
-        XF, SF = _focused_cov(solver, prob.system.dim, fcols)
+        _, SF = _focused_cov(solver, prob.system.dim, fcols, keep=False)
         h0 = entropy_from_logdet(logdet_spd(SF), len(fcols))
     N = len(cand)
     status = _budget_status(budget, N)
@@ -1301,23 +1416,26 @@ def select_information(
     if status in ("no_candidates", "budget_zero"):
         return MeasurementSelection([], [], status or "ok", N, budget, h0, h0, stats)
     if budget >= N:
-        after = focused_entropy(system, base + cand, focused, landmark_prior_sigma)
+        after = focused_entropy(system, base + cand, focused, landmark_prior_sigma, base)
         return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget, h0, after, stats)
-    c = _candidates(prob.system, prob.candidates, fcols)
-    g = _initial_gains(prob, solver, XF, SF, c)
-    stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
-    accuracy = _solve_accuracy(prob.info0, solver)
+    sides = [_Side.of(prob, solver)]
     del solver
-    held = [XF]
-    del XF, SF
-    js, gains, loop_stats = _greedy(prob, c, g, held, budget, refactor_every, options, accuracy)
-    del prob, c, g  # before the last factorisation
+    if not full:  # K_c from the unfocused block; K_c = 0 when every candidate is inside the focus
+        cprob = _conditional_problem(prob)
+        sides.append(_Side.of(cprob, SPDSolver(cprob.info0)))
+    m = sides[0].c.Ac.shape[1]
+    Ku = sides[1].gram if not full else np.zeros_like(sides[0].gram)
+    g = _Gains(sides[0].gram, Ku, _sym_pairs(m), m, np.zeros(N, dtype=bool))
+    stats["clique_cov_s"] = time.perf_counter() - t0 - stats["setup_s"]
+    stats["solve_delta"] = sides[0].delta
+    js, gains, loop_stats = _greedy(sides, g, budget, refactor_every, options)
+    del prob, sides, g  # before the last factorisation
     stats |= loop_stats
     picks = [cand[j] for j in js]
     # the running entropy is h0 - Σ gains; the exact one takes one more factorisation. They differ when rounding in the
-    # tracked covariance has built up (ill-conditioned graphs: precise 6-dof tag measurements): the drift is reported
-    # and the exact value returned.
-    h1 = focused_entropy(system, base + picks, focused, landmark_prior_sigma)
+    # tracked covariances has built up beyond the recomputations' tolerance: the drift is reported and the exact value
+    # returned.
+    h1 = focused_entropy(system, base + picks, focused, landmark_prior_sigma, base)
     stats["entropy_drift_nats"] = h0 - float(np.sum(gains)) - h1
     return MeasurementSelection(picks, gains, "ok", N, budget, h0, h1, stats)
 
@@ -1383,7 +1501,7 @@ def select_leverage(
     if status in ("no_candidates", "budget_zero"):
         return MeasurementSelection([], [], status or "ok", N, budget, h0, h0)
     if budget >= N:
-        h1 = focused_entropy(system, base + cand, focused, landmark_prior_sigma)
+        h1 = focused_entropy(system, base + cand, focused, landmark_prior_sigma, base)
         return MeasurementSelection(cand, [float("nan")] * N, status or "ok", N, budget, h0, h1)
     pi = leverage_probabilities(system, cand, base, focused, landmark_prior_sigma)
     t_prob = time.perf_counter() - t0
@@ -1406,7 +1524,7 @@ def select_leverage(
             best = (value, order)
     assert best is not None
     picks = [cand[i] for i in best[1]]
-    h1 = focused_entropy(system, base + picks, focused, landmark_prior_sigma)
+    h1 = focused_entropy(system, base + picks, focused, landmark_prior_sigma, base)
     stats = {"probabilities_s": t_prob, "total_s": time.perf_counter() - t0}
     return MeasurementSelection(picks, [float(pi[i]) for i in best[1]], "ok", N, budget, h0, h1, stats)
 

@@ -87,9 +87,14 @@ class SPDSolver:
                 )
             except RuntimeError as err:  # "Factor is exactly singular"
                 raise SingularInformationError(f"information matrix is singular: {err}") from err
+            # each pivot against its own column's diagonal (the pivot of an LDLᵀ is that diagonal less what the
+            # columns before it explain): a direction is unobserved when nearly all of it is explained. Not against
+            # the largest diagonal, which made a tag surveyed to 1e-4 m (information 1e8) turn the weak landmark
+            # prior's pivots (1e-4) into "not positive definite".
             d = self._lu.U.diagonal()
-            scale = max(float(np.max(np.abs(self._A.diagonal()))), 1e-300)
-            if np.any(d <= 1e-13 * scale):
+            own = np.empty(self.n)
+            own[self._lu.perm_c] = self._A.diagonal()
+            if np.any(d <= 1e-13 * own):
                 raise SingularInformationError(
                     "information matrix is not positive definite (a variable or direction is unobserved: "
                     "add a prior or a weak landmark prior)"

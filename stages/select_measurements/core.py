@@ -214,7 +214,7 @@ def choose(
     if not np.isfinite(h0):
         h0 = focused_entropy(system, base, focused, sigma)
     if not np.isfinite(h1):
-        h1 = focused_entropy(system, base + list(sel.picks), focused, sigma) if sel.picks else h0
+        h1 = focused_entropy(system, base + list(sel.picks), focused, sigma, base) if sel.picks else h0
     budget = len(cands) if cfg.strategy == "all" else cfg.budget
     return MeasurementChoice(
         strategy=cfg.strategy,

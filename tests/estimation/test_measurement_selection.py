@@ -22,8 +22,8 @@ from stages.estimation.measurement_selection import (
     _candidates,
     _chain_separator,
     _compact_problem,
-    _focused_cov,
-    _gain_blocks,
+    _conditional_problem,
+    _initial_gram,
     _RowProduct,
     _schur_clique_gains,
     default_base,
@@ -286,8 +286,8 @@ def test_the_entropy_returned_is_exact_and_the_running_drift_is_reported() -> No
     exact = focused_entropy(system, base + fast.picks, focused)
     np.testing.assert_allclose(fast.entropy_after, exact)
     running = fast.entropy_before - float(np.sum(fast.gains))
-    np.testing.assert_allclose(fast.stats["entropy_drift_nats"], running - exact)
-    assert abs(fast.stats["entropy_drift_nats"]) < 1e-3
+    np.testing.assert_allclose(fast.stats["entropy_drift_nats"], running - exact, rtol=0, atol=1e-7)
+    assert abs(fast.stats["entropy_drift_nats"]) < 1e-4
     assert fast.stats["recomputations"] > 0
 
 
@@ -328,11 +328,16 @@ def test_a_rig_anchored_only_by_a_surveyed_tag_gets_the_weak_prior_on_its_first_
     free = LinearSystem(system.variables, [Factor((x0,), np.zeros((0, 6)), "prior"), *system.factors[1:], surveyed])
     held = LinearSystem(system.variables, [weak, *system.factors[1:], surveyed])
     focused = lms[:3]
-    a = select_information(free, cand, focused, 8, base=default_base(free, cand))
+    base = default_base(free, cand)
+    a = select_information(free, cand, focused, 8, base=base)
     b = select_information(held, cand, focused, 8, base=default_base(held, cand))
     assert a.picks == b.picks
     np.testing.assert_allclose(a.gains, b.gains, rtol=0, atol=1e-4)
     np.testing.assert_allclose(a.entropy_after, b.entropy_after, rtol=1e-5)
+    # the exact entropy after keeps the first pose's weak prior once the picks anchor the rig, as the gains do (without
+    # it 1.1e-4 nats here, 0.54 on example_1, of "drift" with every gain exact)
+    assert a.entropy_after == pytest.approx(focused_entropy(free, base + a.picks, focused, base=base), abs=1e-9)
+    assert abs(a.stats["entropy_drift_nats"]) < 1e-6
 
 
 def test_the_weak_prior_caps_a_pose3_landmarks_rotation() -> None:
@@ -388,14 +393,10 @@ def test_uniform_is_even_in_time() -> None:
 
 
 @pytest.mark.parametrize("reduce", [True, False])
-@pytest.mark.parametrize("track_focused", [True, False])
-def test_fast_equals_reference_through_refactorisations(track_focused: bool, reduce: bool) -> None:
-    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, the window tracker
-    both ways of getting ``Σ Wᵀ p`` (kept at the tracked rows, or a second solve per step), with and without the
-    Schur reduction onto the tracked rows."""
-    options = TrackerOptions(
-        tracker="window", track_focused_max=128 if track_focused else 0, reduce_below=1.0 if reduce else 0.0
-    )
+def test_fast_equals_reference_through_refactorisations(reduce: bool) -> None:
+    """A larger graph (150 poses, 12 landmarks), enough picks for several refactorisations, the window tracker with
+    and without the Schur reduction onto the tracked rows."""
+    options = TrackerOptions(tracker="window", reduce_below=1.0 if reduce else 0.0)
     fast = _check_against_reference("refactorisations", 4, options)
     assert fast.stats["refactorisations"] >= 3
     assert fast.stats["reduced"] == float(reduce)
@@ -459,9 +460,9 @@ def _chain_with_hub(loop: bool) -> tuple[LinearSystem, list[int]]:
 def test_recomputation_through_the_chain_separator_equals_the_inverse(
     loop: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The recomputation's linear path (Schur complement onto the landmarks, the focused variables and the hubs; a
-    block-tridiagonal recursion along the pose chain) gives the dense inverse's ``Σ_F``, ``Σ[:, F]``, ``M_c`` and
-    ``U_c``; with a loop closure the rest is not a path and its blocks are solved for."""
+    """The recomputation's linear path (Schur complement onto the landmarks and the hubs, and here the focused
+    variables; a block-tridiagonal recursion along the pose chain) gives the dense inverse's ``M_c``; with a loop
+    closure the rest is not a path and its blocks are solved for."""
     system, meas = _chain_with_hub(loop)
     hub = len(system.variables) - 1
     landmarks = system.variables_of_kind("landmark")
@@ -472,50 +473,47 @@ def test_recomputation_through_the_chain_separator_equals_the_inverse(
     assert set(landmarks) | {hub, 7} <= set(sep)
     if not loop:
         assert sorted(sep) == sorted({*landmarks, hub, 7})
-    fcols = system.columns(focused)
-    c = _candidates(system, meas, fcols)
+    c = _candidates(system, meas)
     monkeypatch.setattr(measurement_selection, "SCHUR_CHUNK", 7)  # the candidates in chunks of 7
     monkeypatch.setattr(measurement_selection, "SCHUR_SOLVE_COLUMNS", 3)  # the separator's solves 3 columns at a time
     monkeypatch.setattr(measurement_selection, "ROW_BLOCK", 16)  # X C by row blocks of 16 (the last one longer)
     which = np.arange(len(meas))
-    XF, SF, chunks = _schur_clique_gains(info, system, sep, fcols, c, which)
-    parts = list(chunks)
+    parts = list(_schur_clique_gains(info, system, sep, c, which))
     assert len(parts) == (len(which) + 6) // 7
-    M = np.concatenate([m for _, m, _ in parts])
-    U = np.concatenate([u for _, _, u in parts])
+    M = np.concatenate([m for _, m in parts])
     dense = np.linalg.inv(info.toarray())
-    np.testing.assert_allclose(XF, dense[:, fcols], rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(SF, dense[np.ix_(fcols, fcols)], rtol=1e-8, atol=1e-10)
     for k, f in enumerate(meas):
         A, cols = system.factors[f].jacobian, system.factor_columns(f)
         np.testing.assert_allclose(M[k], A @ dense[np.ix_(cols, cols)] @ A.T, rtol=1e-8, atol=1e-10)
-        np.testing.assert_allclose(U[k], dense[np.ix_(fcols, cols)] @ A.T, rtol=1e-8, atol=1e-10)
 
 
 @pytest.mark.parametrize("loop", [False, True])
 def test_initial_gains_in_chunks_equal_one_piece(loop: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    """_gain_blocks reads the candidates' clique covariances and makes their ``M_c``, ``K_c`` GAIN_CHUNK candidates at
-    a time (memory on long graphs): in chunks of 3 the numbers are the same as in one piece, and the dense
-    inverse's; with a loop closure the chain is not a path and its blocks are solved for."""
+    """_initial_gram reads the candidates' clique covariances and makes their ``M_c`` GAIN_CHUNK candidates at a
+    time (memory on long graphs): in chunks of 3 the numbers are the same as in one piece, and the dense inverse's;
+    with a loop closure the chain is not a path and its blocks are solved for. On the unfocused block
+    (:func:`_conditional_problem`) it gives ``K_c = A_c Λ_UU⁻¹ A_cᵀ``."""
     system, meas = _chain_with_hub(loop)
     landmarks = system.variables_of_kind("landmark")
     base = [i for i in range(len(system.factors)) if i not in set(meas)]
     prob = _compact_problem(system, base, meas, [*landmarks[:2], 7], 100.0)
     fcols = prob.system.columns(prob.focused)
-    solver = measurement_selection.SPDSolver(prob.info0)
-    XF, SF = _focused_cov(solver, prob.system.dim, fcols)
-    c = _candidates(prob.system, prob.candidates, fcols)
-    whole = _gain_blocks(prob, solver, XF, SF, c)
-    monkeypatch.setattr(measurement_selection, "GAIN_CHUNK", 3)
-    chunked = _gain_blocks(prob, solver, XF, SF, c)
-    for a, b in zip(whole, chunked, strict=True):
-        np.testing.assert_array_equal(a, b)
+    unfocused = np.setdiff1d(np.arange(prob.system.dim), fcols)
     dense = np.linalg.inv(prob.info0.toarray())
-    pairs = measurement_selection._sym_pairs(c.Ac.shape[1])
-    for k, f in enumerate(prob.candidates):
-        A, cols = prob.system.factors[f].jacobian, prob.system.factor_columns(f)
-        M = A @ dense[np.ix_(cols, cols)] @ A.T
-        np.testing.assert_allclose([M[i, j] for i, j in pairs], whole[0][:, k], rtol=1e-8, atol=1e-10)
+    dense_u = np.zeros_like(dense)
+    dense_u[np.ix_(unfocused, unfocused)] = np.linalg.inv(prob.info0.toarray()[np.ix_(unfocused, unfocused)])
+    for p, cov in ((prob, dense), (_conditional_problem(prob), dense_u)):
+        solver = measurement_selection.SPDSolver(p.info0)
+        c = _candidates(p.system, p.candidates)
+        monkeypatch.setattr(measurement_selection, "GAIN_CHUNK", 2048)
+        whole = _initial_gram(p, c, solver)
+        monkeypatch.setattr(measurement_selection, "GAIN_CHUNK", 3)
+        np.testing.assert_array_equal(whole, _initial_gram(p, c, solver))
+        pairs = measurement_selection._sym_pairs(c.Ac.shape[1])
+        for k, f in enumerate(prob.candidates):
+            A, cols = prob.system.factors[f].jacobian, prob.system.factor_columns(f)
+            M = A @ cov[np.ix_(cols, cols)] @ A.T
+            np.testing.assert_allclose([M[i, j] for i, j in pairs], whole[:, k], rtol=1e-8, atol=1e-10)
 
 
 def test_row_product_reads_the_rows_of_the_whole_product(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -530,3 +528,75 @@ def test_row_product_reads_the_rows_of_the_whole_product(monkeypatch: pytest.Mon
     xc = _RowProduct(X, C)
     assert len(xc.bounds) == 4100 // 64 + 1 and xc.bounds[-1] - xc.bounds[-2] == 64 + 4
     np.testing.assert_allclose(xc.rows(idx), (X @ C)[idx], rtol=1e-13, atol=1e-13)
+
+
+@functools.cache
+def _surveyed_rig(position_sigma: float, rotation_sigma: float) -> tuple[LinearSystem, list[int], list[int], list[int]]:
+    """A camera-only 3D rig hung on a surveyed tag, as TagSLAM's example_1 builds it: 30 Pose3 poses tied only by a
+    weak motion prior (0.5 m and rad), the first pose under the weak prior (100 m, 1 rad) as a base factor, 4 Pose3
+    tags seen two per pose to 3 mm, tag 0 with a prior of ``position_sigma`` m and ``rotation_sigma`` rad. Returns
+    the system, the candidates (every tag measurement), the base and the tags (all focused)."""
+    from stages.estimation.linear_system import landmark_prior_sigmas
+
+    rng = np.random.default_rng(4)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    n, n_tags = 30, 4
+    poses = [
+        gtsam.Pose3(gtsam.Rot3.Ypr(0.1 * k, 0.05 * np.sin(k), 0.0), gtsam.Point3(0.3 * k, np.sin(0.2 * k), 1.0))
+        for k in range(n)
+    ]
+    tags = [
+        gtsam.Pose3(gtsam.Rot3.Ypr(*rng.uniform(-1, 1, 3)), gtsam.Point3(*rng.uniform([0, -3, 0], [9, 3, 2])))
+        for _ in range(n_tags)
+    ]
+    for k, p in enumerate(poses):
+        values.insert(gtsam.symbol("x", k), p)
+    for j, t in enumerate(tags):
+        values.insert(gtsam.symbol("l", j), t)
+    weak = gtsam.noiseModel.Diagonal.Sigmas(landmark_prior_sigmas(6, 100.0))
+    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), poses[0], weak))
+    survey = gtsam.noiseModel.Diagonal.Sigmas(np.array([rotation_sigma] * 3 + [position_sigma] * 3))
+    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("l", 0), tags[0], survey))
+    motion = gtsam.noiseModel.Isotropic.Sigma(6, 0.5)
+    for k in range(n - 1):
+        between = poses[k].between(poses[k + 1])
+        graph.add(gtsam.BetweenFactorPose3(gtsam.symbol("x", k), gtsam.symbol("x", k + 1), between, motion))
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.003)
+    cand = []
+    for k in range(n):
+        for j in rng.choice(n_tags, size=2, replace=False):
+            cand.append(graph.size())
+            between = poses[k].between(tags[j])
+            graph.add(gtsam.BetweenFactorPose3(gtsam.symbol("x", k), gtsam.symbol("l", int(j)), between, noise))
+    system = LinearSystem.from_gtsam(graph, values)
+    base = [i for i in range(len(system.factors)) if i not in set(cand)]
+    return system, cand, base, system.variables_of_kind("landmark")
+
+
+@functools.cache
+def _surveyed_reference(position_sigma: float, rotation_sigma: float) -> tuple[list[int], np.ndarray]:
+    system, cand, base, tags = _surveyed_rig(position_sigma, rotation_sigma)
+    return reference_greedy_logdet(system, cand, tags, 12, base)
+
+
+SURVEY_SCALES = [(1e-6, 1e-6), (1e-4, 1e-4), (1e-2, 1e-2), (1.0, 1.0), (1e-4, 1e-5), (1e-2, 1.0), (1e-6, 1e-4)]
+
+
+@pytest.mark.parametrize("tracker", ["capacitance", "window"])
+@pytest.mark.parametrize(("position_sigma", "rotation_sigma"), SURVEY_SCALES)
+def test_a_rig_hung_on_a_surveyed_tag_picks_what_alg1_picks_at_every_prior_scale(
+    position_sigma: float, rotation_sigma: float, tracker: str
+) -> None:
+    """Issue 34 item 4: the surveyed tag's prior from 1e-6 to 1 (m and rad, and mixed as in TagSLAM's tagslam.yaml
+    files): the fast greedy's picks are Alg. 1's (log-determinants, no covariance formed), its gains within 1e-5
+    nats, and its running entropy within 1e-4 of the exact one. Before ``K_c`` was solved with the unfocused block
+    itself, the picks differed from the 6th or 9th on, the running entropy was 0.55 nats off after 12 picks and the
+    stage stopped with "Matrix is not positive definite" on example_1 with such priors; the log-determinant
+    reference itself stopped ("not positive definite") at 1e-4 m and tighter."""
+    system, cand, base, tags = _surveyed_rig(position_sigma, rotation_sigma)
+    fast = select_information(system, cand, tags, 12, base=base, options=TrackerOptions(tracker=tracker))  # type: ignore[arg-type]
+    picks, gains = _surveyed_reference(position_sigma, rotation_sigma)
+    assert fast.picks == picks
+    np.testing.assert_allclose(fast.gains, gains, rtol=0, atol=1e-5)
+    assert abs(fast.stats["entropy_drift_nats"]) < 1e-4
+    np.testing.assert_allclose(fast.entropy_after, focused_entropy(system, base + picks, tags), rtol=0, atol=1e-8)

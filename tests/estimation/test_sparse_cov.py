@@ -81,3 +81,30 @@ def test_covariance_blocks_read_pair_by_pair_equal_the_dict() -> None:
         np.testing.assert_array_equal(blocks[(i, j)], whole[(i, j)])
         block = dense[offsets[i] : offsets[i + 1], offsets[j] : offsets[j + 1]]
         np.testing.assert_allclose(blocks[(i, j)], block, rtol=1e-9, atol=1e-12)
+
+
+def test_superlu_takes_a_surveyed_prior_beside_a_weak_one_and_still_finds_an_unobserved_direction() -> None:
+    """SuperLU's positive-definiteness check judges each pivot against its own diagonal: a chain of 6-dof poses held
+    by a 1e-6 prior (information 1e12) beside a landmark that only the weak 100 m prior holds (1e-4), as in a rig's
+    ``Λ₀`` with a surveyed tag, is positive definite and ``marginal_logdet`` is the dense value (it stopped with "not
+    positive definite": every pivot was compared with 1e-13 of the largest diagonal); a chain with a free gauge
+    still stops."""
+    from stages.estimation.sparse_cov import SingularInformationError, marginal_logdet
+
+    rng = np.random.default_rng(2)
+    n, d = 12, 6
+    J = sp.lil_matrix(((n - 1) * d, (n + 1) * d))
+    for k in range(n - 1):
+        J[k * d : (k + 1) * d, k * d : (k + 2) * d] = np.hstack([-np.eye(d), np.eye(d)]) + 0.05 * rng.standard_normal(
+            (d, 2 * d)
+        )
+    free = sp.csc_matrix(J.T @ J)
+    priors = np.zeros((n + 1) * d)
+    priors[:d] = 1e12  # the first pose surveyed to 1e-6 m and rad
+    priors[-d:] = 1e-4  # the landmark: the weak prior only
+    info = sp.csc_matrix(free + sp.diags(priors))
+    cols = np.arange((n - 1) * d, (n + 1) * d)  # the last pose and the landmark
+    dense = np.linalg.slogdet(np.linalg.inv(info.toarray())[np.ix_(cols, cols)])[1]
+    assert marginal_logdet(info, cols) == pytest.approx(dense, abs=1e-6)
+    with pytest.raises(SingularInformationError):
+        SPDSolver(sp.csc_matrix(free + sp.diags(np.r_[np.zeros(n * d), np.full(d, 1e-4)])), backend="superlu")
