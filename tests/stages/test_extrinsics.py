@@ -264,6 +264,10 @@ def test_camera_without_extrinsics_is_calibrated_from_the_tags_it_shares(tmp_pat
     assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.01 and angle < 0.5
     assert 0 < max(cam["sigma_translation_m"]) < 0.01
     assert any(kind == "note" and "camera cam1" in text for kind, text in graph_remarks(g))
+    from rerun.chunk import RrdReader
+
+    paths = {c.entity_path for c in RrdReader(run.rrd_path("graph")).stream()}
+    assert {"/graph/pose/cameras", "/graph/pose/cameras_given"} <= paths  # the mounts under the moving rig
     written = load_extrinsics_file(run.stage_dir("graph") / "camera_poses.yaml")
     assert set(written.mounts) == {"cam0", "cam1"}
     assert np.allclose(written.mounts["cam1"], T, atol=1e-6) and np.allclose(written.mounts["cam0"], np.eye(4))
