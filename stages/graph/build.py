@@ -280,10 +280,7 @@ def _initial_rig(
             loose[c] = MountEstimate(c, known[c], 0, GIVEN_PRIOR, 0.0, initial=known[c], prior=info_c)
     if not unmounted and not loose:
         return {}, usable
-    T = np.asarray([det[T_CAMERA_TAG][r] for r in usable], dtype=float).reshape(-1, 4, 4)
-    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)[usable]
-    tag_ids = np.asarray(det[TAG_ID], dtype=np.int64)[usable]
-    estimates, unplaced = initial_mounts(stamps, tag_ids, cams[usable], T, known, unmounted)
+    estimates, unplaced = initial_mounts(*_sighting_arrays(det, usable), known, unmounted)
     estimates.update(loose)
     if unplaced:
         off = np.isin(cams[usable], unplaced)
@@ -303,9 +300,20 @@ def _given_mounts_against_data(
     given = {c: camera_extrinsic(extrinsics, c)[0] for c in sorted(set(cams) - estimated)}
     if len(given) < 2 or _cameras_without_mount(list(given), extrinsics):
         return {}
-    T = np.asarray([det[T_CAMERA_TAG][r] for r in usable], dtype=float).reshape(-1, 4, 4)
-    stamps = np.asarray(det[STAMP_NS], dtype=np.int64)[usable]
-    return given_mount_figures(stamps, np.asarray(det[TAG_ID], dtype=np.int64)[usable], cams, T, given)
+    return given_mount_figures(*_sighting_arrays(det, usable), given)
+
+
+def _sighting_arrays(
+    det: dict[str, list[Any]], rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The stamps, tag ids, cameras and ``T_camera_tag`` (n x 4 x 4) of the detections ``rows``, as the rig's
+    functions (:mod:`stages.graph.rig`) take them."""
+    return (
+        np.asarray(det[STAMP_NS], dtype=np.int64)[rows],
+        np.asarray(det[TAG_ID], dtype=np.int64)[rows],
+        np.asarray([str(det[CAMERA][r]) for r in rows], dtype=object),
+        np.asarray([det[T_CAMERA_TAG][r] for r in rows], dtype=float).reshape(-1, 4, 4),
+    )
 
 
 def _with_mounts(extrinsics: Extrinsics | None, estimates: dict[str, MountEstimate], how: str) -> Extrinsics:

@@ -144,6 +144,19 @@ def pair_estimate(
     return pose, spread, int(keep.sum()), se
 
 
+Views = dict[int, dict[str, dict[int, int]]]
+"""The sightings indexed by moment: stamp to camera to tag id to the row (its first row when repeated)."""
+
+
+def views_of(stamps: npt.ArrayLike, tags: npt.ArrayLike, cameras: Iterable[str]) -> Views:
+    """Index the sightings by moment, camera and tag (:data:`Views`)."""
+    views: Views = defaultdict(lambda: defaultdict(dict))
+    rows = zip(np.asarray(stamps, dtype=np.int64), np.asarray(tags, dtype=np.int64), cameras, strict=True)
+    for i, (st, g, c) in enumerate(rows):
+        views[int(st)][str(c)].setdefault(int(g), i)
+    return views
+
+
 def initial_mounts(
     stamps: npt.ArrayLike,
     tags: npt.ArrayLike,
@@ -157,18 +170,13 @@ def initial_mounts(
 
     ``stamps``, ``tags``, ``cameras``, ``T_camera_tag`` (n x 4 x 4): the usable sightings.
     """
-    cams = np.asarray(list(cameras), dtype=object)
-    seen: dict[tuple[int, int], dict[str, int]] = defaultdict(dict)
-    for i, (s, g, c) in enumerate(zip(np.asarray(stamps), np.asarray(tags), cams, strict=True)):
-        seen[(int(s), int(g))].setdefault(str(c), i)
+    views = views_of(stamps, tags, cameras)
     shared: dict[tuple[str, str], list[tuple[int, int]]] = defaultdict(list)
-    for by_cam in seen.values():
-        if len(by_cam) < 2:
-            continue
-        for a, ia in by_cam.items():
-            for c, ic in by_cam.items():
+    for by_cam in views.values():
+        for a, tags_a in by_cam.items():
+            for c, tags_c in by_cam.items():
                 if a != c:
-                    shared[(a, c)].append((ia, ic))
+                    shared[(a, c)] += [(ia, tags_c[g]) for g, ia in tags_a.items() if g in tags_c]
     placed = {str(c): np.asarray(p.matrix()) for c, p in known.items()}
     todo = set(unknown)
     out: dict[str, MountEstimate] = {}
@@ -179,9 +187,9 @@ def initial_mounts(
         )
         n, a, c = best
         if n < MIN_PAIRS:
-            linked = _through_tag_pairs(stamps, tags, cams, T_camera_tag, placed, todo)
+            linked = _through_tag_pairs(views, T_camera_tag, placed, todo)
             if linked is None:
-                linked = hand_eye(stamps, tags, cams, T_camera_tag, placed, todo)
+                linked = _hand_eye(views, T_camera_tag, placed, todo)
             if linked is None:
                 break
             out[linked.camera] = linked
@@ -197,40 +205,29 @@ def initial_mounts(
 
 
 def _through_tag_pairs(
-    stamps: npt.ArrayLike,
-    tags: npt.ArrayLike,
-    cams: npt.NDArray[np.object_],
-    T_camera_tag: FloatArray,
-    placed: Mapping[str, FloatArray],
-    todo: set[str],
+    views: Views, T_camera_tag: FloatArray, placed: Mapping[str, FloatArray], todo: set[str]
 ) -> MountEstimate | None:
     """The unplaced camera with the most moments at which a placed camera sees tag ``t1`` and it sees another tag
     ``t2`` whose pose relative to ``t1`` some camera measured in one frame: ``T_base_c = T_base_a T_a_t1 T_t1_t2
     T_c_t2⁻¹`` (``T_t1_t2`` the robust mean of its single-frame measurements). None when no camera has
     :data:`MIN_PAIRS` such moments."""
-    stamps_a, tags_a = np.asarray(stamps, dtype=np.int64), np.asarray(tags, dtype=np.int64)
-    frames: dict[tuple[int, str], dict[int, int]] = defaultdict(dict)
-    for i, (s, g, c) in enumerate(zip(stamps_a, tags_a, cams, strict=True)):
-        frames[(int(s), str(c))].setdefault(int(g), i)
     rel_samples: dict[tuple[int, int], list[FloatArray]] = defaultdict(list)
-    for by_tag in frames.values():
-        for t1, i1 in by_tag.items():
-            for t2, i2 in by_tag.items():
-                if t1 != t2:
-                    rel_samples[(t1, t2)].append(np.linalg.inv(T_camera_tag[i1]) @ T_camera_tag[i2])
+    for by_cam in views.values():
+        for by_tag in by_cam.values():
+            for t1, i1 in by_tag.items():
+                for t2, i2 in by_tag.items():
+                    if t1 != t2:
+                        rel_samples[(t1, t2)].append(np.linalg.inv(T_camera_tag[i1]) @ T_camera_tag[i2])
     rel: dict[tuple[int, int], FloatArray] = {}
     best: tuple[int, str, str, list[FloatArray]] = (0, "", "", [])
-    by_stamp: dict[int, dict[str, dict[int, int]]] = defaultdict(dict)
-    for (s, c), by_tag in frames.items():
-        by_stamp[s][c] = by_tag
     for c in sorted(todo):
         for a in sorted(placed):
             est: list[FloatArray] = []
-            for views in by_stamp.values():
-                if a not in views or c not in views:
+            for moment in views.values():
+                if a not in moment or c not in moment:
                     continue
-                for t1, i1 in views[a].items():
-                    for t2, i2 in views[c].items():
+                for t1, i1 in moment[a].items():
+                    for t2, i2 in moment[c].items():
                         if (t1, t2) not in rel_samples:
                             continue
                         if (t1, t2) not in rel:
@@ -275,10 +272,12 @@ def hand_eye(
     ``(R_A − I) t_X = R_X t_B − t_A``; pairs beyond three median deviations are dropped once. None when no camera
     has motions about enough different axes (a robot on a floor turns about one: its mount's height is not fixed
     by motion)."""
-    stamps_a, tags_a = np.asarray(stamps, dtype=np.int64), np.asarray(tags, dtype=np.int64)
-    views: dict[int, dict[str, dict[int, int]]] = defaultdict(lambda: defaultdict(dict))
-    for i, (st, g, c) in enumerate(zip(stamps_a, tags_a, cams, strict=True)):
-        views[int(st)][str(c)].setdefault(int(g), i)
+    return _hand_eye(views_of(stamps, tags, cams), T_camera_tag, placed, todo)
+
+
+def _hand_eye(
+    views: Views, T_camera_tag: FloatArray, placed: Mapping[str, FloatArray], todo: set[str]
+) -> MountEstimate | None:
     best: MountEstimate | None = None
     for c in sorted(todo):
         for a in sorted(placed):
